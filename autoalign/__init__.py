@@ -1,0 +1,46 @@
+"""autoalign: label the 6-DoF pose of a known object from calibrated multi-view masks.
+
+Quick use::
+
+    import autoalign
+    scene = autoalign.read_scene("scene_dir")
+    mesh = autoalign.load_mesh("obj_000001.ply")
+    result = autoalign.refine(scene, mesh, seed=None)   # or a 4x4 pose, or autoalign.Click(...)
+    print(result.T_wm)
+
+Heavy modules (mitsuba/drjit) load on first use, so ``import autoalign`` stays fast.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+__version__ = "0.1.0"
+
+_LAZY = {
+    "refine": "autoalign.engine", "RefineOptions": "autoalign.engine", "RefineResult": "autoalign.engine",
+    "read_scene": "autoalign.bop", "Scene": "autoalign.bop", "read_init_pose": "autoalign.bop",
+    "load_mesh": "autoalign.mesh", "Mesh": "autoalign.mesh", "mesh_from_trimesh": "autoalign.mesh",
+    "Camera": "autoalign.camera", "Click": "autoalign.seeding", "AutoalignError": "autoalign.errors",
+    "Level": "autoalign.objective",
+}
+
+if TYPE_CHECKING:  # pragma: no cover
+    from autoalign.bop import Scene, read_init_pose, read_scene  # noqa: F401
+    from autoalign.camera import Camera  # noqa: F401
+    from autoalign.engine import RefineOptions, RefineResult, refine  # noqa: F401
+    from autoalign.errors import AutoalignError  # noqa: F401
+    from autoalign.mesh import Mesh, load_mesh, mesh_from_trimesh  # noqa: F401
+    from autoalign.objective import Level  # noqa: F401
+    from autoalign.seeding import Click  # noqa: F401
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'autoalign' has no attribute {name!r}")
+
+
+__all__ = sorted(_LAZY)

@@ -1,0 +1,230 @@
+"""Reading and writing BOP scene folders, with validation that names the file and the fix.
+
+Layout read: ``SCENE/scene_camera.json`` (per image ``cam_K`` [9, px], ``cam_R_w2c`` [9, row-major],
+``cam_t_w2c`` [3, mm]) and instance masks ``SCENE/mask_visib/{im_id:06d}_{inst:06d}.png``.
+Layout written: ``scene_gt.json`` with ``cam_R_m2c`` / ``cam_t_m2c`` (mm) per image.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.camera import Camera
+from autoalign.errors import AutoalignError
+from autoalign.se3 import invert, make_pose
+
+
+@dataclass
+class Scene:
+    """Calibrated views of one object instance.
+
+    Attributes:
+        cameras: one :class:`Camera` per view (world frame of ``scene_camera.json``, mm).
+        masks: one (H, W) float32 array in [0, 1] per view (1 = object).
+        image_ids: BOP image id of each view.
+        path: the scene folder, if read from disk.
+        skipped: image ids that had a camera but no mask file.
+    """
+
+    cameras: list[Camera]
+    masks: list[NDArray[np.float32]]
+    image_ids: list[int]
+    path: Path | None = None
+    skipped: tuple[int, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def subset(self, idx: list[int] | NDArray[np.int64]) -> "Scene":
+        """A scene with only the views at positions ``idx``."""
+        idx = [int(i) for i in idx]
+        return Scene([self.cameras[i] for i in idx], [self.masks[i] for i in idx],
+                     [self.image_ids[i] for i in idx], self.path, self.skipped)
+
+
+def _read_json(path: Path, what: str) -> Any:
+    if not path.is_file():
+        raise AutoalignError(f"{path}: not found; {what}")
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise AutoalignError(f"{path}: not valid JSON ({exc.msg if hasattr(exc, 'msg') else exc}); fix or regenerate the file") from None
+
+
+def _floats(entry: dict[str, Any], key: str, n: int, path: Path, where: str, fix: str) -> NDArray[np.float64]:
+    if key not in entry:
+        raise AutoalignError(f"{path}: {where} has no '{key}'; {fix}")
+    try:
+        a = np.asarray(entry[key], dtype=np.float64).ravel()
+    except (TypeError, ValueError):
+        a = np.zeros(0)
+    if a.size != n or not np.all(np.isfinite(a)):
+        raise AutoalignError(f"{path}: {where} '{key}' must be {n} finite numbers; {fix}")
+    return a
+
+
+def read_cameras(scene_dir: Path) -> dict[int, tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]:
+    """``{im_id: (K, R_w2c, t_w2c)}`` from ``scene_camera.json``, validated."""
+    path = scene_dir / "scene_camera.json"
+    fix = "every image needs cam_K (9 numbers), cam_R_w2c (9, row-major) and cam_t_w2c (3, mm)"
+    data = _read_json(path, f"a BOP scene folder needs scene_camera.json ({fix})")
+    if not isinstance(data, dict) or not data:
+        raise AutoalignError(f"{path}: expected an object mapping image ids to cameras; {fix}")
+    out = {}
+    for key, entry in data.items():
+        try:
+            im_id = int(key)
+        except ValueError:
+            raise AutoalignError(f"{path}: key '{key}' is not an image id; keys must be integers") from None
+        if not isinstance(entry, dict):
+            raise AutoalignError(f"{path}: image {key} is not an object; {fix}")
+        where = f"image {key}"
+        K = _floats(entry, "cam_K", 9, path, where, fix).reshape(3, 3)
+        R = _floats(entry, "cam_R_w2c", 9, path, where, fix).reshape(3, 3)
+        t = _floats(entry, "cam_t_w2c", 3, path, where, fix)
+        if abs(np.linalg.det(R) - 1.0) > 1e-3 or np.abs(R @ R.T - np.eye(3)).max() > 1e-3:
+            raise AutoalignError(f"{path}: image {key} cam_R_w2c is not a rotation matrix; write it row-major with det +1")
+        out[im_id] = (K, R, t)
+    return dict(sorted(out.items()))
+
+
+def mask_path(scene_dir: Path, im_id: int, instance: int) -> Path:
+    """BOP visible-mask path of one instance in one image."""
+    return scene_dir / "mask_visib" / f"{im_id:06d}_{instance:06d}.png"
+
+
+def read_scene(scene_dir: str | Path, instance: int = 0) -> Scene:
+    """Read cameras and the masks of instance ``instance`` from a BOP scene folder.
+
+    Images without a mask file are skipped (listed in ``Scene.skipped``); all masks must share one
+    size, and at least one must be non-empty.
+    """
+    scene_dir = Path(scene_dir)
+    if not scene_dir.is_dir():
+        raise AutoalignError(f"{scene_dir}: scene folder not found; pass a BOP scene folder with scene_camera.json and mask_visib/")
+    cams = read_cameras(scene_dir)
+    masks, ids, Ks, skipped = [], [], [], []
+    size: tuple[int, int] | None = None
+    first_path: Path | None = None
+    for im_id, (K, R, t) in cams.items():
+        p = mask_path(scene_dir, im_id, instance)
+        if not p.is_file():
+            skipped.append(im_id)
+            continue
+        m = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        if m is None:
+            raise AutoalignError(f"{p}: cannot read the mask image; replace it with a single-channel PNG")
+        if size is None:
+            size, first_path = m.shape, p
+        elif m.shape != size:
+            raise AutoalignError(f"{p}: mask is {m.shape[1]}x{m.shape[0]} but {first_path.name} is "
+                                 f"{size[1]}x{size[0]}; all masks of a scene must have the image size")
+        masks.append((m > 127).astype(np.float32))
+        ids.append(im_id)
+        Ks.append((K, R, t))
+    if not masks:
+        raise AutoalignError(f"{scene_dir / 'mask_visib'}: no mask files named {{im_id:06d}}_{instance:06d}.png; "
+                             "write the instance masks there or choose the instance with --instance")
+    if not any(m.any() for m in masks):
+        raise AutoalignError(f"{scene_dir / 'mask_visib'}: the masks of instance {instance} are empty in every view; "
+                             "check the segmentation or the --instance number")
+    H, W = size
+    cameras = [Camera(K, R, t, W, H) for K, R, t in Ks]
+    return Scene(cameras, masks, ids, scene_dir, tuple(skipped))
+
+
+def read_init_pose(path: str | Path, scene: Scene, obj_id: int = 1, instance: int = 0) -> NDArray[np.float64]:
+    """World-from-model pose (4x4, mm) from a coarse BOP ``scene_gt.json``.
+
+    Uses the first image (lowest id) that is also a view of ``scene``; within it the
+    ``instance``-th entry with ``obj_id`` (or the ``instance``-th entry if none has that id).
+    """
+    path = Path(path)
+    fix = 'it must map image ids to lists of {"obj_id", "cam_R_m2c": 9 numbers, "cam_t_m2c": 3 numbers (mm)}'
+    data = _read_json(path, "pass an existing BOP scene_gt.json to --init")
+    if not isinstance(data, dict) or not data:
+        raise AutoalignError(f"{path}: wrong shape for --init; {fix}")
+    by_id = {im: cam for im, cam in zip(scene.image_ids, scene.cameras)}
+    try:
+        keys = sorted(int(k) for k in data)
+    except ValueError:
+        raise AutoalignError(f"{path}: wrong shape for --init (keys must be image ids); {fix}") from None
+    usable = [k for k in keys if k in by_id]
+    if not usable:
+        raise AutoalignError(f"{path}: none of its image ids is a view of the scene; {fix}")
+    im = usable[0]
+    entries = data[str(im)] if str(im) in data else data[im]
+    if isinstance(entries, dict):
+        entries = [entries]
+    if not isinstance(entries, list) or not entries or not all(isinstance(e, dict) for e in entries):
+        raise AutoalignError(f"{path}: image {im} must hold a list of pose entries; {fix}")
+    same = [e for e in entries if e.get("obj_id") == obj_id]
+    pool = same if same else entries
+    if instance >= len(pool):
+        raise AutoalignError(f"{path}: image {im} has {len(pool)} entries, no instance {instance}; use --instance")
+    e = pool[instance]
+    where = f"image {im}"
+    R = _floats(e, "cam_R_m2c", 9, path, where, fix).reshape(3, 3)
+    t = _floats(e, "cam_t_m2c", 3, path, where, fix)
+    if abs(np.linalg.det(R) - 1.0) > 1e-2:
+        raise AutoalignError(f"{path}: {where} cam_R_m2c is not a rotation matrix; write it row-major with det +1")
+    U, _, Vt = np.linalg.svd(R)  # re-orthonormalise rounded input
+    R = U @ Vt
+    return invert(by_id[im].T_cw) @ make_pose(R, t)
+
+
+def pose_in_camera(T_wm: NDArray[np.float64], cam: Camera) -> tuple[list[float], list[float]]:
+    """BOP ``cam_R_m2c`` (9, row-major) and ``cam_t_m2c`` (3, mm) of a world-from-model pose."""
+    T_cm = cam.T_cw @ T_wm
+    return [float(x) for x in T_cm[:3, :3].ravel()], [float(x) for x in T_cm[:3, 3]]
+
+
+def scene_gt_dict(T_wm: NDArray[np.float64], cameras: list[Camera], image_ids: list[int],
+                  obj_id: int = 1) -> dict[str, list[dict[str, Any]]]:
+    """A BOP ``scene_gt.json`` object: one entry per image for the given world pose."""
+    out = {}
+    for im, cam in zip(image_ids, cameras):
+        R, t = pose_in_camera(T_wm, cam)
+        out[str(im)] = [{"obj_id": int(obj_id), "cam_R_m2c": R, "cam_t_m2c": t}]
+    return out
+
+
+def write_json_atomic(path: str | Path, data: Any) -> None:
+    """Write JSON to ``path`` via a temporary file in the same folder and an atomic rename."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=1)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def write_scene(out_dir: str | Path, scene: Scene, T_wm: NDArray[np.float64], obj_id: int = 1,
+                write_masks: bool = True) -> None:
+    """Write ``scene`` as a BOP folder (cameras, masks, ground truth) — used for synthetic data."""
+    out_dir = Path(out_dir)
+    (out_dir / "mask_visib").mkdir(parents=True, exist_ok=True)
+    cams = {}
+    for im, cam in zip(scene.image_ids, scene.cameras):
+        cams[str(im)] = {"cam_K": [float(x) for x in cam.K.ravel()],
+                         "cam_R_w2c": [float(x) for x in cam.R_w2c.ravel()],
+                         "cam_t_w2c": [float(x) for x in cam.t_w2c], "depth_scale": 1.0}
+    if write_masks:
+        for im, m in zip(scene.image_ids, scene.masks):
+            cv2.imwrite(str(mask_path(out_dir, im, 0)), (np.asarray(m) > 0.5).astype(np.uint8) * 255)
+    write_json_atomic(out_dir / "scene_camera.json", cams)
+    write_json_atomic(out_dir / "scene_gt.json", scene_gt_dict(T_wm, scene.cameras, scene.image_ids, obj_id))

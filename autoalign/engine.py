@@ -1,0 +1,224 @@
+"""The refinement engine: seed -> hypotheses -> coarse-to-fine optimisation -> result.
+
+``refine(scene, mesh, seed)`` is the Python API behind ``autoalign refine``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.bop import Scene
+from autoalign.hypotheses import poses_at, score_poses
+from autoalign.mesh import Mesh
+from autoalign.objective import Level, SilhouetteObjective
+from autoalign.optim import OPTIMIZERS, Trace
+from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+from autoalign.se3 import rotation_angle_deg, transform_points
+from autoalign.seeding import Click, click_centre, hull_centre, rotation_grid
+
+DEFAULT_SCHEDULE: tuple[Level, ...] = (Level(0.25, 1.0, 40), Level(0.5, 1.0, 20), Level(1.0, 1.0, 15))
+
+Seed = NDArray[np.float64] | Click | None
+Progress = Callable[[str, int, int], None]
+
+
+@dataclass
+class RefineOptions:
+    """Settings of :func:`refine`.
+
+    Attributes:
+        loss: ``iou`` (default, see README for the measurement), ``dice``, ``l2`` or ``bce``.
+        optimizer: ``lm`` (Levenberg-Marquardt, default), ``gn`` (Gauss-Newton) or ``adam``.
+        robust: Cauchy re-weighting of views by their misfit.
+        schedule: coarse-to-fine levels (scale, sigma in px, iterations).
+        n_rotations: orientation hypotheses scored when the orientation is unknown.
+        n_coarse: best-scoring hypotheses refined at the coarsest level.
+        n_final: best of those refined through the whole schedule.
+        ambiguity_tol: runner-up within this relative loss of the winner (and at another pose) means ambiguous.
+    """
+
+    loss: str = "iou"
+    optimizer: str = "lm"
+    robust: bool = True
+    schedule: tuple[Level, ...] = DEFAULT_SCHEDULE
+    n_rotations: int = 384
+    n_coarse: int = 8
+    n_final: int = 2
+    ambiguity_tol: float = 0.05
+
+
+@dataclass(eq=False)
+class Hypothesis:
+    """One start tried: its initial pose, its final pose, loss and mean IoU."""
+
+    T_init: NDArray[np.float64]
+    T_final: NDArray[np.float64]
+    loss: float
+    mean_iou: float
+    stage: str
+
+
+@dataclass
+class RefineResult:
+    """What :func:`refine` found.
+
+    Attributes:
+        T_wm: world-from-model pose (4x4, mm).
+        T_init: the starting pose of the winning hypothesis.
+        iou_before / iou_after: per-view hard-mask IoU at full resolution.
+        iterations: optimiser iterations of the winner, all levels.
+        renders: soft renders used in total.
+        timings: seconds per stage.
+        hypotheses: every start tried, best first.
+        ambiguous: a clearly different pose fits almost as well (symmetric or ambiguous object).
+        runner_up: the best hypothesis at a different pose, if any.
+        weights: final per-view robust weights (low = the mask disagrees with the rest).
+        history: objective per accepted iteration of the winner, per level.
+    """
+
+    T_wm: NDArray[np.float64]
+    T_init: NDArray[np.float64]
+    iou_before: NDArray[np.float64]
+    iou_after: NDArray[np.float64]
+    iterations: int
+    renders: int
+    timings: dict[str, float]
+    hypotheses: list[Hypothesis]
+    ambiguous: bool
+    runner_up: Hypothesis | None
+    weights: NDArray[np.float64]
+    history: list[dict[str, Any]] = field(default_factory=list)
+    image_ids: list[int] = field(default_factory=list)
+
+
+def _run_schedule(obj: SilhouetteObjective, T: NDArray[np.float64], levels: tuple[Level, ...], optimizer: str,
+                  progress: Progress | None = None, label: str = "refine") -> tuple[NDArray[np.float64], list[Trace]]:
+    opt = OPTIMIZERS[optimizer]
+    traces = []
+    total = sum(lv.max_iters for lv in levels)
+    done = 0
+    for lv in levels:
+        cb = None
+        if progress is not None:
+            base = done
+
+            def cb(it: int, ev: Any, base: int = base) -> None:
+                progress(label, base + it + 1, total)
+
+        T, tr = opt(obj, T, lv, callback=cb)
+        traces.append(tr)
+        done += lv.max_iters
+        if progress is not None:
+            progress(label, done, total)
+    return T, traces
+
+
+def _final_loss(obj: SilhouetteObjective, T: NDArray[np.float64], level: Level) -> tuple[float, float]:
+    ev = obj.evaluate(T, level, with_derivatives=False)
+    return ev.value / len(ev.weights), float(np.mean(ev.terms.iou))
+
+
+def hard_ious(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Per-view IoU of the ray-cast silhouette at ``T_wm`` with the scene's masks, full resolution."""
+    out = []
+    for m, t in zip(rast.hard_masks(T_wm, scene.cameras), scene.masks):
+        tt = t > 0.5
+        u = np.logical_or(m, tt).sum()
+        out.append(float(np.logical_and(m, tt).sum() / u) if u else 1.0)
+    return np.array(out)
+
+
+def _differs(A: NDArray[np.float64], B: NDArray[np.float64], centre_m: NDArray[np.float64],
+             mm: float = 2.0, deg: float = 5.0) -> bool:
+    dc = np.linalg.norm(transform_points(A, centre_m[None]) - transform_points(B, centre_m[None]))
+    return bool(dc > mm or rotation_angle_deg(A[:3, :3], B[:3, :3]) > deg)
+
+
+def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions | None = None,
+           progress: Progress | None = None) -> RefineResult:
+    """Find the world-from-model pose of ``mesh`` whose silhouettes match the masks of ``scene``.
+
+    Args:
+        scene: calibrated views with target masks (mm, BOP world frame).
+        mesh: the object model (mm).
+        seed: a coarse world-from-model pose (4x4), a :class:`Click`, or ``None`` (visual hull).
+            Without a pose the orientation is searched with ``options.n_rotations`` hypotheses.
+        options: see :class:`RefineOptions`.
+        progress: called as ``progress(stage, done, total)`` while it works.
+    """
+    opts = options or RefineOptions()
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    rast = SoftSilhouetteRasterizer(mesh)
+    obj = SilhouetteObjective(rast, scene, opts.loss, opts.robust)
+    levels = opts.schedule
+    timings["setup"] = time.perf_counter() - t_start
+
+    t0 = time.perf_counter()
+    if seed is not None and not isinstance(seed, Click):
+        starts = [np.asarray(seed, dtype=np.float64)]
+    else:
+        centre = click_centre(scene, seed, mesh.diameter) if isinstance(seed, Click) else hull_centre(scene, mesh.diameter)
+        poses = poses_at(rotation_grid(opts.n_rotations), centre, mesh.centre)
+        scores = score_poses(rast, scene, poses)
+        order = np.argsort(-scores)[: opts.n_coarse]
+        starts = [poses[i] for i in order]
+    timings["seed"] = time.perf_counter() - t0
+
+    hyps: list[Hypothesis] = []
+    t0 = time.perf_counter()
+    if len(starts) > 1:
+        coarse = []
+        for j, T in enumerate(starts):
+            Tc, _ = _run_schedule(obj, T, levels[:1], opts.optimizer)
+            loss, miou = _final_loss(obj, Tc, levels[0])
+            coarse.append(Hypothesis(T, Tc, loss, miou, "coarse"))
+            if progress is not None:
+                progress("hypotheses", j + 1, len(starts))
+        coarse.sort(key=lambda h: h.loss)
+        finalists: list[Hypothesis] = []
+        for h in coarse:  # keep distinct poses only
+            if all(_differs(h.T_final, f.T_final, mesh.centre) for f in finalists):
+                finalists.append(h)
+            if len(finalists) == opts.n_final:
+                break
+        hyps.extend(h for h in coarse if h not in finalists)
+        rest = levels[1:]
+    else:
+        finalists = [Hypothesis(starts[0], starts[0], float("nan"), float("nan"), "seed")]
+        rest = levels
+    timings["hypotheses"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    final: list[tuple[Hypothesis, list[Trace]]] = []
+    for h in finalists:
+        T, traces = _run_schedule(obj, h.T_final, rest, opts.optimizer, progress)
+        loss, miou = _final_loss(obj, T, levels[-1])
+        final.append((Hypothesis(h.T_init, T, loss, miou, "final"), traces))
+    final.sort(key=lambda x: x[0].loss)
+    timings["refine"] = time.perf_counter() - t0
+    best, traces = final[0]
+    hyps = [f[0] for f in final] + sorted(hyps, key=lambda h: h.loss)
+
+    runner = next((h for h in hyps[1:] if _differs(h.T_final, best.T_final, mesh.centre)), None)
+    ambiguous = bool(runner is not None and runner.stage == "final"
+                     and runner.loss <= best.loss * (1.0 + opts.ambiguity_tol) + 1e-4)
+
+    t0 = time.perf_counter()
+    ev = obj.evaluate(best.T_final, levels[-1], with_derivatives=False)
+    iou_before = hard_ious(rast, scene, best.T_init)
+    iou_after = hard_ious(rast, scene, best.T_final)
+    timings["report"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_start
+    history = [{"scale": lv.scale, "sigma": lv.sigma, "values": tr.values, "iterations": tr.iterations,
+                "converged": tr.converged} for lv, tr in zip(rest, traces)]
+    return RefineResult(
+        T_wm=best.T_final, T_init=best.T_init, iou_before=iou_before, iou_after=iou_after,
+        iterations=sum(tr.iterations for tr in traces), renders=obj.renders, timings=timings,
+        hypotheses=hyps, ambiguous=ambiguous, runner_up=runner, weights=ev.weights, history=history,
+        image_ids=list(scene.image_ids))

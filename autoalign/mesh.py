@@ -1,0 +1,125 @@
+"""Object meshes: loading with validation, and the edge/face topology the renderer needs.
+
+Models are in millimetres (BOP). Any format trimesh reads works; multi-part scenes are
+concatenated, non-watertight meshes are fine (open boundary edges count as contour edges).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from numpy.typing import NDArray
+
+from autoalign.errors import AutoalignError
+
+
+@dataclass
+class Mesh:
+    """A triangle mesh in the model frame (mm) with the adjacency used for contour extraction.
+
+    Attributes:
+        vertices: (V, 3) float64, mm.
+        faces: (F, 3) int64 vertex indices.
+        edges: (E, 2) unique undirected edges.
+        edge_faces: (E, 2) indices of the faces on either side; ``-1`` for an open boundary edge.
+        centre: (3,) centre of the axis-aligned bounding box, mm (the BOP model origin convention).
+        diameter: largest distance between two vertices, mm.
+        name: file stem or a given label.
+    """
+
+    vertices: NDArray[np.float64]
+    faces: NDArray[np.int64]
+    name: str = "mesh"
+    edges: NDArray[np.int64] = field(init=False)
+    edge_faces: NDArray[np.int64] = field(init=False)
+    face_normals: NDArray[np.float64] = field(init=False)
+    centre: NDArray[np.float64] = field(init=False)
+    diameter: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64)
+        self.faces = np.ascontiguousarray(self.faces, dtype=np.int64)
+        tm = trimesh.Trimesh(self.vertices, self.faces, process=False)
+        self.face_normals = np.asarray(tm.face_normals, dtype=np.float64)
+        self.edges, self.edge_faces = _edge_faces(self.faces)
+        lo, hi = self.vertices.min(0), self.vertices.max(0)
+        self.centre = (lo + hi) / 2.0
+        self.diameter = _diameter(self.vertices)
+
+    @property
+    def trimesh(self) -> trimesh.Trimesh:
+        """A trimesh view of the same geometry (no processing)."""
+        return trimesh.Trimesh(self.vertices, self.faces, process=False)
+
+    def sample_points(self, n: int, seed: int = 0) -> NDArray[np.float64]:
+        """``n`` points sampled uniformly on the surface (mm, model frame), reproducibly."""
+        pts, _ = trimesh.sample.sample_surface(self.trimesh, n, seed=seed)
+        return np.asarray(pts, dtype=np.float64)
+
+
+def _diameter(V: NDArray[np.float64], max_points: int = 2500) -> float:
+    """Largest vertex-to-vertex distance (exact on up to ``max_points`` convex-hull vertices)."""
+    try:
+        pts = np.asarray(trimesh.convex.convex_hull(V).vertices)
+    except Exception:  # degenerate (flat) point sets have no 3-D hull
+        pts = V
+    if len(pts) > max_points:
+        pts = pts[np.random.default_rng(0).choice(len(pts), max_points, replace=False)]
+    return float(max(np.linalg.norm(pts - p, axis=1).max() for p in pts))
+
+
+def _edge_faces(faces: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Unique edges and the (up to two) faces beside each; extra faces of non-manifold edges are dropped."""
+    F = len(faces)
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    fid = np.tile(np.arange(F), 3)
+    e_sorted = np.sort(e, axis=1)
+    uniq, inv = np.unique(e_sorted, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    order = np.argsort(inv, kind="stable")
+    inv_s, fid_s = inv[order], fid[order]
+    first = np.r_[True, inv_s[1:] != inv_s[:-1]]
+    starts = np.flatnonzero(first)
+    counts = np.diff(np.r_[starts, len(inv_s)])
+    ef = np.full((len(uniq), 2), -1, dtype=np.int64)
+    ef[inv_s[starts], 0] = fid_s[starts]
+    two = counts >= 2
+    ef[inv_s[starts[two]], 1] = fid_s[starts[two] + 1]
+    return uniq.astype(np.int64), ef
+
+
+def load_mesh(path: str | Path, name: str | None = None) -> Mesh:
+    """Read a mesh file (mm) with trimesh; raise :class:`AutoalignError` naming the file on failure.
+
+    Warns when the extents suggest the file is in metres (largest side under 2 units).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise AutoalignError(f"{path}: mesh file not found; pass an existing file to --model")
+    try:
+        loaded = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many kinds for unreadable files
+        raise AutoalignError(f"{path}: cannot read the mesh ({type(exc).__name__}: {exc}); "
+                             "pass a mesh file trimesh reads (PLY, OBJ, STL, GLB, OFF)") from None
+    if isinstance(loaded, trimesh.Scene):  # pragma: no cover - force='mesh' normally concatenates
+        loaded = loaded.dump(concatenate=True)
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0 or len(loaded.vertices) < 3:
+        raise AutoalignError(f"{path}: the mesh has no triangles; pass a mesh with faces (not a point cloud)")
+    V = np.asarray(loaded.vertices, dtype=np.float64)
+    Fa = np.asarray(loaded.faces, dtype=np.int64)
+    if not np.all(np.isfinite(V)):
+        raise AutoalignError(f"{path}: the mesh has non-finite vertex coordinates; repair the file")
+    mesh = Mesh(V, Fa, name=name or path.stem)
+    if mesh.diameter < 2.0:
+        warnings.warn(f"{path}: the model is only {mesh.diameter:.3g} units across; autoalign expects "
+                      "millimetres, so it is probably in metres (scale it by 1000)", stacklevel=2)
+    return mesh
+
+
+def mesh_from_trimesh(tm: trimesh.Trimesh, name: str = "mesh") -> Mesh:
+    """Wrap an in-memory trimesh (mm)."""
+    return Mesh(np.asarray(tm.vertices), np.asarray(tm.faces), name=name)

@@ -1,0 +1,185 @@
+"""Pose optimisers over the 6-D twist ``(v [mm], w [rad])`` about the object centre.
+
+* :func:`levenberg_marquardt` — damped Gauss-Newton (second order), the default.
+* :func:`gauss_newton` — undamped Gauss-Newton with step halving.
+* :func:`adam` — the first-order reference.
+
+Each runs one :class:`~autoalign.objective.Level` of the coarse-to-fine schedule and stops when a step
+moves the object by less than ``tol_mm`` and ``tol_deg``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.objective import Evaluation, Level, SilhouetteObjective
+from autoalign.se3 import apply_twist, transform_points
+
+TOL_MM = 0.01
+TOL_DEG = 0.001
+
+
+@dataclass
+class Trace:
+    """What an optimiser did: objective per accepted iteration, step sizes, renders."""
+
+    values: list[float] = field(default_factory=list)
+    step_mm: list[float] = field(default_factory=list)
+    step_deg: list[float] = field(default_factory=list)
+    poses: list[NDArray[np.float64]] = field(default_factory=list)
+    iterations: int = 0
+    converged: bool = False
+
+
+Callback = Callable[[int, Evaluation], None]
+
+
+def _centre(objective: SilhouetteObjective, T: NDArray[np.float64]) -> NDArray[np.float64]:
+    return transform_points(T, objective.rasterizer.mesh.centre[None])[0]
+
+
+def level_tolerance(level: Level, tol_mm: float, tol_deg: float) -> tuple[float, float]:
+    """Stopping tolerances at ``level``: the given ones at full resolution, looser when coarser.
+
+    A coarse level only has to bring the pose within reach of the next one, so its tolerance
+    grows with the pixel size squared (x16 at quarter resolution).
+    """
+    f = 1.0 / max(level.scale, 1e-6) ** 2
+    return tol_mm * f, tol_deg * f * 10.0 if level.scale < 1.0 else tol_deg
+
+
+def _small(step: NDArray[np.float64], tol_mm: float, tol_deg: float) -> bool:
+    return bool(np.linalg.norm(step[:3]) < tol_mm and np.degrees(np.linalg.norm(step[3:])) < tol_deg)
+
+
+def _record(trace: Trace, ev: Evaluation, T: NDArray[np.float64], step: NDArray[np.float64]) -> None:
+    trace.values.append(ev.value)
+    trace.step_mm.append(float(np.linalg.norm(step[:3])))
+    trace.step_deg.append(float(np.degrees(np.linalg.norm(step[3:]))))
+    trace.poses.append(T.copy())
+
+
+def levenberg_marquardt(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level,
+                        lam: float = 1e-3, tol_mm: float = TOL_MM, tol_deg: float = TOL_DEG,
+                        callback: Callback | None = None, damping_growth: float = 4.0,
+                        max_step_mm: float = 30.0, max_step_deg: float = 20.0) -> tuple[NDArray[np.float64], Trace]:
+    """Levenberg-Marquardt on the weighted Gauss-Newton system ``(H + lam diag(H)) step = -g``.
+
+    Robust view weights are re-computed after every accepted step (IRLS) and held fixed while a
+    step is being accepted or rejected, so the comparison is between equal objectives.
+    Steps are clipped to ``max_step_mm`` / ``max_step_deg`` (a trust region for far starts).
+    """
+    trace = Trace()
+    tol_mm, tol_deg = level_tolerance(level, tol_mm, tol_deg)
+    ev = objective.evaluate(T, level)
+    for it in range(level.max_iters):
+        H, g = ev.gn, ev.grad
+        D = np.diag(np.maximum(np.diag(H), 1e-12 * max(np.trace(H), 1e-30)))
+        accepted = False
+        while not accepted:
+            try:
+                step = -np.linalg.solve(H + lam * D, g)
+            except np.linalg.LinAlgError:
+                step = np.zeros(6)
+            step = _clip_step(step, max_step_mm, max_step_deg)
+            T_new = apply_twist(T, step, _centre(objective, T))
+            ev_new = objective.evaluate(T_new, level, weights=ev.weights)
+            if ev_new.value <= ev.value:
+                accepted = True
+                lam = max(lam / 3.0, 1e-7)
+            else:
+                lam *= damping_growth
+                if lam > 1e8 or _small(step, tol_mm, tol_deg):
+                    break
+        trace.iterations = it + 1
+        if not accepted:
+            trace.converged = True  # no descent direction left at this resolution
+            break
+        T = T_new
+        ev = objective.reweighted(ev_new)
+        _record(trace, ev, T, step)
+        if callback:
+            callback(it, ev)
+        if _small(step, tol_mm, tol_deg):
+            trace.converged = True
+            break
+    return T, trace
+
+
+def gauss_newton(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level,
+                 tol_mm: float = TOL_MM, tol_deg: float = TOL_DEG,
+                 callback: Callback | None = None) -> tuple[NDArray[np.float64], Trace]:
+    """Gauss-Newton steps ``H step = -g`` with step halving until the objective decreases."""
+    trace = Trace()
+    tol_mm, tol_deg = level_tolerance(level, tol_mm, tol_deg)
+    ev = objective.evaluate(T, level)
+    for it in range(level.max_iters):
+        step = -np.linalg.lstsq(ev.gn, ev.grad, rcond=1e-10)[0]
+        step = _clip_step(step, 30.0, 20.0)
+        for _ in range(12):
+            T_new = apply_twist(T, step, _centre(objective, T))
+            ev_new = objective.evaluate(T_new, level, weights=ev.weights)
+            if ev_new.value <= ev.value:
+                break
+            step = step / 2.0
+        else:
+            trace.converged = True
+            trace.iterations = it + 1
+            break
+        trace.iterations = it + 1
+        T = T_new
+        ev = objective.reweighted(ev_new)
+        _record(trace, ev, T, step)
+        if callback:
+            callback(it, ev)
+        if _small(step, tol_mm, tol_deg):
+            trace.converged = True
+            break
+    return T, trace
+
+
+def adam(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level,
+         lr_mm: float = 1.0, lr_deg: float = 1.0, betas: tuple[float, float] = (0.9, 0.999),
+         decay: float = 0.97, tol_mm: float = TOL_MM, tol_deg: float = TOL_DEG,
+         callback: Callback | None = None) -> tuple[NDArray[np.float64], Trace]:
+    """Adam on the twist with per-block learning rates (mm and degrees per step), decayed geometrically."""
+    trace = Trace()
+    tol_mm, tol_deg = level_tolerance(level, tol_mm, tol_deg)
+    m = np.zeros(6)
+    v = np.zeros(6)
+    lr = np.array([lr_mm] * 3 + [np.radians(lr_deg)] * 3)
+    for it in range(level.max_iters):
+        ev = objective.evaluate(T, level)
+        g = ev.grad
+        m = betas[0] * m + (1 - betas[0]) * g
+        v = betas[1] * v + (1 - betas[1]) * g * g
+        mh = m / (1 - betas[0] ** (it + 1))
+        vh = v / (1 - betas[1] ** (it + 1))
+        step = -lr * (decay ** it) * mh / (np.sqrt(vh) + 1e-12)
+        T = apply_twist(T, step, _centre(objective, T))
+        trace.iterations = it + 1
+        _record(trace, ev, T, step)
+        if callback:
+            callback(it, ev)
+        if _small(step, tol_mm, tol_deg):
+            trace.converged = True
+            break
+    return T, trace
+
+
+def _clip_step(step: NDArray[np.float64], max_mm: float, max_deg: float) -> NDArray[np.float64]:
+    step = step.copy()
+    n_t = np.linalg.norm(step[:3])
+    if n_t > max_mm:
+        step[:3] *= max_mm / n_t
+    n_r = np.degrees(np.linalg.norm(step[3:]))
+    if n_r > max_deg:
+        step[3:] *= max_deg / n_r
+    return step
+
+
+OPTIMIZERS = {"lm": levenberg_marquardt, "gn": gauss_newton, "adam": adam}

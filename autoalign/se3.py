@@ -1,0 +1,125 @@
+"""Rigid transforms as 4x4 numpy matrices, and the SE(3) exponential/logarithm of twists.
+
+Conventions
+-----------
+* A pose ``T`` is a 4x4 homogeneous matrix mapping points of one frame into another,
+  ``x_a = T_ab @ x_b`` (``T_ab`` reads "a from b"). Translations are in millimetres.
+* A twist is ``xi = (v, w)``: translation part ``v`` first (mm), rotation part ``w`` second
+  (radians, axis times angle), as in the ProgressLabeller paper, ``xi = [-w x v_o; w]``.
+* ``exp(xi)`` is the matrix exponential of ``hat(xi) = [[hat(w), v], [0, 0]]``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+_SMALL = 1e-8
+
+
+def hat3(w: ArrayLike) -> NDArray[np.float64]:
+    """3x3 skew matrix with ``hat3(w) @ x == cross(w, x)``."""
+    w = np.asarray(w, dtype=np.float64)
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def so3_exp(w: ArrayLike) -> NDArray[np.float64]:
+    """Rotation matrix of the axis-angle vector ``w`` (radians), by Rodrigues' formula."""
+    w = np.asarray(w, dtype=np.float64)
+    th = float(np.linalg.norm(w))
+    W = hat3(w)
+    if th < _SMALL:
+        return np.eye(3) + W + 0.5 * W @ W
+    return np.eye(3) + np.sin(th) / th * W + (1.0 - np.cos(th)) / th**2 * W @ W
+
+
+def so3_log(R: ArrayLike) -> NDArray[np.float64]:
+    """Axis-angle vector (radians, angle in [0, pi]) of a rotation matrix."""
+    R = np.asarray(R, dtype=np.float64)
+    cos = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    th = float(np.arccos(cos))
+    vee = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if th < 1e-6:
+        return 0.5 * vee
+    if np.pi - th < 1e-4:
+        # Near pi the antisymmetric part vanishes: read the axis off R + I = 2 a a^T (approx).
+        B = (R + np.eye(3)) / 2.0
+        i = int(np.argmax(np.diag(B)))
+        a = B[:, i] / np.sqrt(max(B[i, i], _SMALL))
+        if vee @ a < 0:  # keep the sign consistent with the small antisymmetric part
+            a = -a
+        return th * a / np.linalg.norm(a)
+    return th / (2.0 * np.sin(th)) * vee
+
+
+def _left_jacobian(w: NDArray[np.float64]) -> NDArray[np.float64]:
+    th = float(np.linalg.norm(w))
+    W = hat3(w)
+    if th < 1e-5:
+        return np.eye(3) + 0.5 * W + W @ W / 6.0
+    return np.eye(3) + (1.0 - np.cos(th)) / th**2 * W + (th - np.sin(th)) / th**3 * W @ W
+
+
+def se3_exp(xi: ArrayLike) -> NDArray[np.float64]:
+    """4x4 transform ``exp(hat(xi))`` of a twist ``xi = (v [mm], w [rad])``."""
+    xi = np.asarray(xi, dtype=np.float64)
+    v, w = xi[:3], xi[3:]
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(w)
+    T[:3, 3] = _left_jacobian(w) @ v
+    return T
+
+
+def se3_log(T: ArrayLike) -> NDArray[np.float64]:
+    """Twist ``(v, w)`` with ``se3_exp(se3_log(T)) == T`` (rotation angle in [0, pi])."""
+    T = np.asarray(T, dtype=np.float64)
+    w = so3_log(T[:3, :3])
+    v = np.linalg.solve(_left_jacobian(w), T[:3, 3])
+    return np.concatenate([v, w])
+
+
+def make_pose(R: ArrayLike, t: ArrayLike) -> NDArray[np.float64]:
+    """4x4 pose from a 3x3 rotation and a translation (mm)."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, dtype=np.float64).reshape(3, 3)
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def invert(T: ArrayLike) -> NDArray[np.float64]:
+    """Inverse of a rigid 4x4 transform."""
+    T = np.asarray(T, dtype=np.float64)
+    R, t = T[:3, :3], T[:3, 3]
+    return make_pose(R.T, -R.T @ t)
+
+
+def transform_points(T: ArrayLike, X: ArrayLike) -> NDArray[np.float64]:
+    """Apply a 4x4 transform to an (N, 3) array of points."""
+    T = np.asarray(T, dtype=np.float64)
+    return np.asarray(X, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
+
+
+def twist_about(xi: ArrayLike, centre: ArrayLike) -> NDArray[np.float64]:
+    """The world-frame twist of a motion whose rotation ``w`` turns about ``centre`` (mm).
+
+    ``xi = (v, w)`` moves a body by ``v`` and rotates it by ``w`` about the point ``centre``;
+    the returned twist is ``(v - w x centre, w)``, the paper's ``[-w x v_o; w]`` plus ``v``.
+    """
+    xi = np.asarray(xi, dtype=np.float64)
+    v, w = xi[:3], xi[3:]
+    return np.concatenate([v - np.cross(w, np.asarray(centre, dtype=np.float64)), w])
+
+
+def apply_twist(T_wm: ArrayLike, xi: ArrayLike, centre: ArrayLike) -> NDArray[np.float64]:
+    """Left-multiplied update ``exp(hat(xi')) @ T_wm`` with ``xi' = twist_about(xi, centre)``.
+
+    ``centre`` is the world point (mm) the rotation turns about, normally the object centre,
+    so that rotation and translation steps decouple.
+    """
+    return se3_exp(twist_about(xi, centre)) @ np.asarray(T_wm, dtype=np.float64)
+
+
+def rotation_angle_deg(R_a: ArrayLike, R_b: ArrayLike) -> float:
+    """Geodesic angle between two rotations in degrees."""
+    R = np.asarray(R_a, dtype=np.float64).T @ np.asarray(R_b, dtype=np.float64)
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))

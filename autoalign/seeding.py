@@ -1,0 +1,141 @@
+"""Coarse starting poses: from a click, from the visual hull of the masks, and rotation hypotheses.
+
+All positions are world-frame millimetres; orientations are rotation matrices (world from model).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.bop import Scene
+from autoalign.errors import AutoalignError
+
+
+@dataclass(frozen=True)
+class Click:
+    """One pixel on the object: image id and continuous pixel coordinates ``(u, v)`` (centres at +0.5)."""
+
+    image_id: int
+    u: float
+    v: float
+
+    @staticmethod
+    def parse(text: str) -> "Click":
+        """Parse ``IM_ID:U,V``."""
+        try:
+            im, uv = text.split(":")
+            u, v = uv.split(",")
+            return Click(int(im), float(u), float(v))
+        except ValueError:
+            raise AutoalignError(f"--click {text!r}: expected IM_ID:U,V, e.g. --click 0:320,240") from None
+
+
+def _mask_support(scene: Scene, X: NDArray[np.float64], dilate_px: int = 0) -> NDArray[np.int64]:
+    """How many views see each world point ``X`` (N, 3) inside their mask; (N,) counts."""
+    count = np.zeros(len(X), dtype=np.int64)
+    kernel = np.ones((2 * dilate_px + 1,) * 2, np.uint8) if dilate_px else None
+    for cam, m in zip(scene.cameras, scene.masks):
+        Xc = cam.to_camera(X)
+        ok = Xc[:, 2] > 1.0
+        uv = np.full((len(X), 2), -1.0)
+        uv[ok] = (Xc[ok] @ cam.K.T)[:, :2] / Xc[ok, 2:3]
+        j, i = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        inside = ok & (j >= 0) & (i >= 0) & (j < cam.width) & (i < cam.height)
+        mm = cv2.dilate((m > 0.5).astype(np.uint8), kernel) if kernel is not None else (m > 0.5)
+        hit = np.zeros(len(X), dtype=bool)
+        hit[inside] = mm[i[inside], j[inside]] > 0
+        count += hit
+    return count
+
+
+def _closest_point_to_rays(origins: NDArray[np.float64], dirs: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Least-squares point nearest to a set of lines."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for o, d in zip(origins, dirs):
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ o
+    return np.linalg.lstsq(A, b, rcond=None)[0]
+
+
+def hull_centre(scene: Scene, diameter: float, grid: int = 40, min_fraction: float = 0.8) -> NDArray[np.float64]:
+    """Centre (mm, world) of the visual hull of the masks, for an object about ``diameter`` mm across.
+
+    The rays through the mask centroids give a first guess; a voxel grid of 1.5 diameters around it
+    is carved, keeping voxels inside the (slightly dilated) mask in at least ``min_fraction`` of the
+    views with a non-empty mask, so a few wrong masks do not empty the hull.
+    """
+    origins, dirs = [], []
+    for cam, m in zip(scene.cameras, scene.masks):
+        ys, xs = np.nonzero(m > 0.5)
+        if len(xs) == 0:
+            continue
+        origins.append(cam.centre)
+        dirs.append(cam.ray_directions(np.array([[xs.mean() + 0.5, ys.mean() + 0.5]]))[0])
+    if not origins:
+        raise AutoalignError("the masks are empty in every view; check the segmentation or --instance")
+    centre = _closest_point_to_rays(np.array(origins), np.array(dirs))
+    n_views = len(origins)
+    for half in (1.5 * diameter, 0.75 * diameter):
+        ax = np.linspace(-half, half, grid)
+        X = centre + np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+        support = _mask_support(scene, X, dilate_px=1)
+        keep = support >= max(1, int(np.ceil(min_fraction * n_views)))
+        if not keep.any():
+            keep = support >= support.max()
+        centre = X[keep].mean(0)
+    return centre
+
+
+def click_centre(scene: Scene, click: Click, diameter: float, samples: int = 4000) -> NDArray[np.float64]:
+    """Object centre (mm, world) on the ray of a click: the middle of the depths seen inside the most masks.
+
+    Raises :class:`AutoalignError` when the click is outside its image, names an unknown image,
+    or its ray falls inside no mask at all.
+    """
+    if click.image_id not in scene.image_ids:
+        raise AutoalignError(f"--click {click.image_id}:...: image {click.image_id} is not a view of the scene "
+                             f"(views: {scene.image_ids[0]}..{scene.image_ids[-1]}); click in one of them")
+    k = scene.image_ids.index(click.image_id)
+    cam = scene.cameras[k]
+    if not (0 <= click.u < cam.width and 0 <= click.v < cam.height):
+        raise AutoalignError(f"--click {click.image_id}:{click.u:g},{click.v:g}: outside the {cam.width}x{cam.height} "
+                             "image; give pixel coordinates inside it")
+    d = cam.ray_directions(np.array([[click.u, click.v]]))[0]
+    dist = np.linalg.norm(np.array([c.centre for c in scene.cameras]) - cam.centre, axis=1)
+    far = max(float(dist.max()), 10.0 * diameter) * 2.0
+    depth = np.linspace(1.0, far, samples)
+    X = cam.centre + depth[:, None] * d
+    support = _mask_support(scene, X)
+    if support.max() == 0:
+        raise AutoalignError(f"--click {click.image_id}:{click.u:g},{click.v:g}: the click's ray is off every mask; "
+                             "click on the object")
+    best = np.flatnonzero(support == support.max())
+    # the longest run of best depths (contiguous), its middle
+    runs = np.split(best, np.flatnonzero(np.diff(best) > 1) + 1)
+    run = max(runs, key=len)
+    return X[run[len(run) // 2]]
+
+
+def rotation_grid(n: int) -> NDArray[np.float64]:
+    """``n`` rotation matrices spread evenly over SO(3) (super-Fibonacci spiral, deterministic)."""
+    phi = np.sqrt(2.0)
+    psi = 1.533751168755204288118041
+    i = np.arange(n) + 0.5
+    s = i / n
+    r = np.sqrt(s)
+    R = np.sqrt(1.0 - s)
+    alpha = 2.0 * np.pi * i / phi
+    beta = 2.0 * np.pi * i / psi
+    q = np.stack([r * np.sin(alpha), r * np.cos(alpha), R * np.sin(beta), R * np.cos(beta)], 1)  # x y z w
+    x, y, z, w = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ], 1)

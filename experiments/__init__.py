@@ -1,0 +1,1 @@
+"""The simulated convergence study and synthetic-scene tools."""

@@ -1,0 +1,466 @@
+"""Soft silhouettes of a mesh in many views at once, with derivatives w.r.t. a 6-D pose twist.
+
+The pipeline, per call, for all views together:
+
+1. **Crop** each view to the projected bounding region of the object plus a margin.
+2. **Hard mask** by ray casting (mitsuba, LLVM backend) through every crop pixel centre. The
+   scene holds the mesh in its model frame once; rays are moved into the model frame instead of
+   re-building the BVH for each pose.
+3. **Contour edges**: mesh edges whose two faces point to opposite sides of the camera, plus open
+   boundary edges. They are split into sub-pixel segments, and each segment is kept only if a pair
+   of rays just either side of it disagree (one hits, one misses): that is the visible outline.
+4. **Band**: the pixels within ``2 sigma + 1.5`` px of an outline segment (a distance transform
+   with labels gives each pixel its nearest segment). Only these pixels can have a soft value
+   strictly between 0 and 1, so the cost follows the silhouette's length, not pixels x faces.
+5. **Soft value** of a band pixel: ``smoothstep(sign * dist / (2 sigma))`` where ``dist`` is the
+   distance from the pixel centre to the nearest outline edge and ``sign`` is +1 inside the hard
+   mask. Outside the band the soft value equals the hard mask exactly. Its derivatives w.r.t. the
+   twist are taken by drjit forward-mode AD through the projection of the edge end points.
+
+Twist convention: ``xi = (v [mm], w [rad])`` moves every world point ``X`` of the object to
+``X + v + w x (X - c)`` to first order, ``c`` being the object centre in the world frame — the
+paper's left-multiplied exponential ``exp(hat(xi')) T`` with ``xi' = (v - w x c, w)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.backend import drjit, mitsuba
+from autoalign.camera import Camera
+from autoalign.mesh import Mesh
+from autoalign.se3 import invert, transform_points
+
+_NEAR_MM = 1.0  # points closer than this to a camera plane are not projected
+# A band pixel's nearest outline segment is chosen among those nearest to it and to its 4 neighbours.
+_CANDIDATE_OFFSETS = ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1))
+
+
+@dataclass
+class Silhouettes:
+    """Soft silhouettes of all views, stored as one flat array of crop pixels.
+
+    Attributes:
+        crops: (N, 4) int ``x0, y0, w, h`` of each view's crop in its (scaled) image, pixels.
+        offsets: (N + 1,) start of each view's pixels in the flat arrays (row-major in its crop).
+        soft: (P,) soft mask values in [0, 1].
+        hard: (P,) ray-cast hard mask at pixel centres.
+        band: (B,) flat indices of the pixels whose soft value depends on the pose.
+        jac: (B, 6) derivatives of ``soft[band]`` w.r.t. the twist ``(v [mm], w [rad])``.
+        view_of_band: (B,) view index of each band pixel.
+        n_outline: (N,) outline segments found per view (diagnostics).
+    """
+
+    crops: NDArray[np.int64]
+    offsets: NDArray[np.int64]
+    soft: NDArray[np.float64]
+    hard: NDArray[np.bool_]
+    band: NDArray[np.int64]
+    jac: NDArray[np.float64]
+    view_of_band: NDArray[np.int64]
+    n_outline: NDArray[np.int64]
+
+    @property
+    def n_views(self) -> int:
+        return len(self.crops)
+
+    def view_of_pixel(self) -> NDArray[np.int64]:
+        """(P,) view index of every flat pixel."""
+        return np.repeat(np.arange(self.n_views), np.diff(self.offsets))
+
+    def image(self, i: int, which: str = "soft", size: tuple[int, int] | None = None) -> NDArray[np.float64]:
+        """View ``i`` as a full (H, W) image (``size = (W, H)``) or, without ``size``, as its crop."""
+        x0, y0, w, h = self.crops[i]
+        arr = getattr(self, which)[self.offsets[i]:self.offsets[i + 1]].reshape(h, w).astype(np.float64)
+        if size is None:
+            return arr
+        full = np.zeros((size[1], size[0]))
+        full[y0:y0 + h, x0:x0 + w] = arr
+        return full
+
+
+def smoothstep_edge(z: NDArray[np.float64] | float) -> NDArray[np.float64]:
+    """The edge profile: 0 for ``z <= -1``, 1 for ``z >= 1``, C1 cubic in between (numpy)."""
+    u = np.clip((np.asarray(z, dtype=np.float64) + 1.0) / 2.0, 0.0, 1.0)
+    return u * u * (3.0 - 2.0 * u)
+
+
+class SoftSilhouetteRasterizer:
+    """Renders soft silhouettes of one mesh in many calibrated views (see module docstring).
+
+    Args:
+        mesh: the object, model frame, mm.
+        segment_px: length of the outline segments the contour edges are split into, pixels.
+    """
+
+    def __init__(self, mesh: Mesh, segment_px: float = 0.75) -> None:
+        self.mesh = mesh
+        self.segment_px = float(segment_px)
+        mi = mitsuba()
+        self._mi = mi
+        self._dr = drjit()
+        m = mi.Mesh(mesh.name, vertex_count=len(mesh.vertices), face_count=len(mesh.faces),
+                    has_vertex_normals=False, has_vertex_texcoords=False)
+        params = mi.traverse(m)
+        params["vertex_positions"] = mi.Float(mesh.vertices.astype(np.float32).ravel())
+        params["faces"] = mi.UInt32(mesh.faces.astype(np.uint32).ravel())
+        params.update()
+        self._scene = mi.load_dict({"type": "scene", "object": m})
+        hull = mesh.trimesh.convex_hull.vertices if len(mesh.vertices) > 4 else mesh.vertices
+        self._hull = np.asarray(hull, dtype=np.float64)
+        # Per-face constants for the facing test n.(c - v0) > 0  <=>  n.c > n.v0
+        self._n = mesh.face_normals
+        self._nv0 = np.einsum("ij,ij->i", mesh.face_normals, mesh.vertices[mesh.faces[:, 0]])
+        ef = mesh.edge_faces
+        self._interior = ef[:, 1] >= 0
+        self._ef0, self._ef1 = ef[:, 0], np.where(ef[:, 1] >= 0, ef[:, 1], ef[:, 0])
+
+    # ------------------------------------------------------------------ ray casting
+    def ray_hits(self, T_wm: NDArray[np.float64], origins_w: NDArray[np.float64],
+                 dirs_w: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Whether world-frame rays hit the object posed at ``T_wm`` (any hit, no shading)."""
+        if len(origins_w) == 0:
+            return np.zeros(0, dtype=bool)
+        T_mw = invert(T_wm)
+        return self.model_ray_hits(origins_w @ T_mw[:3, :3].T + T_mw[:3, 3], dirs_w @ T_mw[:3, :3].T)
+
+    def model_ray_hits(self, origins_m: NDArray[np.float64], dirs_m: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Whether model-frame rays (N, 3) hit the mesh; one vectorised mitsuba call."""
+        if len(origins_m) == 0:
+            return np.zeros(0, dtype=bool)
+        mi = self._mi
+        o = np.ascontiguousarray(np.asarray(origins_m).T, dtype=np.float32)
+        d = np.ascontiguousarray(np.asarray(dirs_m).T, dtype=np.float32)
+        ray = mi.Ray3f(mi.Point3f(*(mi.Float(x) for x in o)), mi.Vector3f(*(mi.Float(x) for x in d)))
+        return np.array(self._scene.ray_test(ray), dtype=bool)
+
+    def pixel_hits(self, T_wm: NDArray[np.float64], cameras: list[Camera],
+                   uv: list[NDArray[np.float64]]) -> list[NDArray[np.bool_]]:
+        """Hard hits for continuous pixel coordinates ``uv[i]`` (N_i, 2) of each camera."""
+        counts = [len(x) for x in uv]
+        if sum(counts) == 0:
+            return [np.zeros(0, bool) for _ in uv]
+        o = np.concatenate([np.broadcast_to(c.centre, (n, 3)) for c, n in zip(cameras, counts)])
+        d = np.concatenate([c.ray_directions(x) if len(x) else np.zeros((0, 3)) for c, x in zip(cameras, uv)])
+        hits = self.ray_hits(T_wm, o, d)
+        return np.split(hits, np.cumsum(counts)[:-1])
+
+    def hard_masks(self, T_wm: NDArray[np.float64], cameras: list[Camera]) -> list[NDArray[np.bool_]]:
+        """Full-image hard masks (H, W) by ray casting at pixel centres."""
+        crops = self.crops(T_wm, cameras, margin=2)
+        uv = [_crop_pixel_centres(c) for c in crops]
+        hits = self.pixel_hits(T_wm, cameras, uv)
+        out = []
+        for cam, (x0, y0, w, h), hv in zip(cameras, crops, hits):
+            m = np.zeros((cam.height, cam.width), dtype=bool)
+            m[y0:y0 + h, x0:x0 + w] = hv.reshape(h, w)
+            out.append(m)
+        return out
+
+    # ------------------------------------------------------------------ geometry helpers
+    def crops(self, T_wm: NDArray[np.float64], cameras: list[Camera], margin: int) -> NDArray[np.int64]:
+        """(N, 4) ``x0, y0, w, h`` covering the projected convex hull plus ``margin`` px, clipped."""
+        Xw = transform_points(T_wm, self._hull)
+        out = np.zeros((len(cameras), 4), dtype=np.int64)
+        for i, cam in enumerate(cameras):
+            Xc = cam.to_camera(Xw)
+            if np.any(Xc[:, 2] < _NEAR_MM):
+                lo, hi = np.array([0, 0]), np.array([cam.width, cam.height])  # straddles the camera: whole image
+            else:
+                uv = Xc @ cam.K.T
+                uv = uv[:, :2] / uv[:, 2:3]
+                lo = np.floor(uv.min(0)).astype(np.int64) - margin
+                hi = np.ceil(uv.max(0)).astype(np.int64) + margin
+            x0, y0 = max(lo[0], 0), max(lo[1], 0)
+            x1, y1 = min(hi[0], cam.width), min(hi[1], cam.height)
+            out[i] = (x0, y0, max(x1 - x0, 0), max(y1 - y0, 0))
+        return out
+
+    def contour_edges(self, T_wm: NDArray[np.float64], cameras: list[Camera]) -> list[NDArray[np.int64]]:
+        """Per view, indices of mesh edges on the contour generator (front/back flip or open boundary)."""
+        T_mw = invert(T_wm)
+        C_m = np.stack([T_mw[:3, :3] @ c.centre + T_mw[:3, 3] for c in cameras])  # (N, 3)
+        facing = (self._n @ C_m.T) > self._nv0[:, None]  # (F, N)
+        flip = facing[self._ef0] != facing[self._ef1]  # (E, N)
+        flip |= ~self._interior[:, None]
+        return [np.flatnonzero(flip[:, i]) for i in range(len(cameras))]
+
+    # ------------------------------------------------------------------ rendering
+    def render(self, T_wm: NDArray[np.float64], cameras: list[Camera], sigma: float = 1.0,
+               with_jacobian: bool = True) -> Silhouettes:
+        """Soft silhouettes (and twist derivatives) of the object at pose ``T_wm`` in all ``cameras``.
+
+        Args:
+            T_wm: world-from-model pose, mm.
+            cameras: the views (already scaled to the working resolution).
+            sigma: edge softness in pixels of these cameras; the profile spans ``+-2 sigma``.
+            with_jacobian: also compute ``jac`` (6 forward AD passes over the band pixels).
+        """
+        sigma = float(sigma)
+        half = 2.0 * sigma
+        band_r = half + 1.5
+        margin = int(np.ceil(band_r)) + 2
+        crops = self.crops(T_wm, cameras, margin)
+        sizes = crops[:, 2] * crops[:, 3]
+        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        seg = self._outline_segments(T_wm, cameras, crops)
+        n_out = np.bincount(seg["view"], minlength=len(cameras)).astype(np.int64)
+        band, bseg, region, samples = self._band_pixels(seg, crops, offsets, band_r)
+        hard = self._hard_from_regions(T_wm, cameras, crops, offsets, band, region, samples)
+        soft = hard.astype(np.float64)
+        view_of_band = np.searchsorted(offsets, band, side="right") - 1
+        if len(band) == 0:
+            return Silhouettes(crops, offsets, soft, hard, band, np.zeros((0, 6)), view_of_band, n_out)
+        local = band - offsets[view_of_band]
+        w_b = crops[view_of_band, 2]
+        px = crops[view_of_band, 0] + local % w_b + 0.5
+        py = crops[view_of_band, 1] + local // w_b + 0.5
+        sign = np.where(hard[band], 1.0, -1.0)
+        ends = self.mesh.edges[seg["edge"][bseg]]
+        A_w = transform_points(T_wm, self.mesh.vertices[ends[:, 0]])
+        B_w = transform_points(T_wm, self.mesh.vertices[ends[:, 1]])
+        centre_w = transform_points(T_wm, self.mesh.centre[None])[0]
+        value, jac = self._band_values(cameras, view_of_band, px, py, sign, A_w, B_w,
+                                       seg["t0"][bseg], seg["t1"][bseg], centre_w, half, with_jacobian)
+        soft[band] = value
+        return Silhouettes(crops, offsets, soft, hard, band, jac, view_of_band, n_out)
+
+    def _hits_at_flat(self, T_wm: NDArray[np.float64], cameras: list[Camera], crops: NDArray[np.int64],
+                      offsets: NDArray[np.int64], flat: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """Ray-cast hard hits at the centres of the given flat crop pixels (any views, any order)."""
+        view = np.searchsorted(offsets, flat, side="right") - 1
+        order = np.argsort(view, kind="stable")
+        local = flat[order] - offsets[view[order]]
+        w = crops[view[order], 2]
+        uv = np.column_stack([crops[view[order], 0] + local % w + 0.5, crops[view[order], 1] + local // w + 0.5])
+        counts = np.bincount(view, minlength=len(cameras))
+        hits = np.concatenate(self.pixel_hits(T_wm, cameras, np.split(uv, np.cumsum(counts)[:-1])))
+        out = np.empty(len(flat), dtype=bool)
+        out[order] = hits
+        return out
+
+    def _hard_from_regions(self, T_wm: NDArray[np.float64], cameras: list[Camera], crops: NDArray[np.int64],
+                           offsets: NDArray[np.int64], band: NDArray[np.int64], region: NDArray[np.int64],
+                           samples: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """The hard mask of all crop pixels from rays at band pixels and a few per off-band region.
+
+        Off the band no outline passes, so each connected off-band region is wholly inside or
+        wholly outside: three rays decide it. A region whose rays disagree (an outline the
+        segment test missed) is ray-cast pixel by pixel.
+        """
+        hard = np.zeros(int(offsets[-1]), dtype=bool)
+        hits = self._hits_at_flat(T_wm, cameras, crops, offsets, np.concatenate([band, samples.ravel()]))
+        hard[band] = hits[:len(band)]
+        if samples.size:
+            sv = hits[len(band):].reshape(samples.shape)
+            value = sv[:, 0]
+            off = np.flatnonzero(region >= 0)
+            hard[off] = value[region[off]]
+            mixed = np.flatnonzero(~np.all(sv == sv[:, :1], axis=1))
+            if len(mixed):
+                redo = off[np.isin(region[off], mixed)]
+                hard[redo] = self._hits_at_flat(T_wm, cameras, crops, offsets, redo)
+        return hard
+
+    def _band_pixels(self, seg: dict[str, NDArray], crops: NDArray[np.int64], offsets: NDArray[np.int64],
+                     band_r: float) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+        """Band pixels (within ``band_r`` px of the outline) with their nearest segment, and off-band regions.
+
+        Returns flat band indices, their segment ids, a region id per flat pixel (-1 in the band)
+        and (R, 3) sample pixels per region.
+
+        A distance transform with labels proposes, for every pixel, the segments nearest to it and to
+        its 4 neighbours; the exact point-to-segment distance picks the nearest of them. Taking the
+        minimum over several nearby candidates keeps the distance continuous as the outline moves.
+        """
+        band_idx, samples, cand_parts, p_parts = [], [], [], []
+        region = np.full(int(offsets[-1]), -1, dtype=np.int64)
+        n_regions = 0
+        for i, (x0, y0, w, h) in enumerate(crops):
+            if w == 0 or h == 0:
+                continue
+            sel = np.flatnonzero(seg["view"] == i)
+            if len(sel) == 0:  # no outline in this crop: one region
+                region[offsets[i]:offsets[i + 1]] = n_regions
+                samples.append(offsets[i] + np.array([0, (w * h) // 2, w * h - 1]))
+                n_regions += 1
+                continue
+            cx = np.clip(np.floor(seg["mid"][sel, 0] - x0).astype(np.int64), 0, w - 1)
+            cy = np.clip(np.floor(seg["mid"][sel, 1] - y0).astype(np.int64), 0, h - 1)
+            src = np.ones((h, w), dtype=np.uint8)
+            src[cy, cx] = 0
+            owner = np.full((h, w), -1, dtype=np.int64)
+            owner[cy, cx] = sel
+            dist, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+            lut = np.full(labels.max() + 1, -1, dtype=np.int64)
+            lut[labels[cy, cx]] = owner[cy, cx]
+            in_band = dist <= band_r
+            n_lab, lab = cv2.connectedComponents((~in_band).astype(np.uint8), connectivity=4)
+            flat_lab = lab.ravel().astype(np.int64)
+            off = np.flatnonzero(~in_band.ravel())
+            if len(off):
+                region[offsets[i] + off] = n_regions + flat_lab[off] - 1
+                # three sample pixels per region: its first, middle and last pixel in scan order
+                o = np.argsort(flat_lab[off], kind="stable")
+                first = np.searchsorted(flat_lab[off][o], np.arange(1, n_lab))
+                last = np.searchsorted(flat_lab[off][o], np.arange(1, n_lab), side="right") - 1
+                pick = off[o][np.stack([first, (first + last) // 2, last], 1)]
+                samples.append(offsets[i] + pick)
+                n_regions += n_lab - 1
+            rr, cc = np.nonzero(in_band)
+            nearest = np.pad(lut[labels], 1, mode="edge")
+            cand_parts.append(np.stack([nearest[rr + 1 + dy, cc + 1 + dx] for dy, dx in _CANDIDATE_OFFSETS], 1))
+            p_parts.append(np.stack([cc + x0 + 0.5, rr + y0 + 0.5], 1))
+            band_idx.append(offsets[i] + rr * w + cc)
+        smp = np.concatenate([x.reshape(-1, 3) for x in samples]) if samples else np.zeros((0, 3), np.int64)
+        if not band_idx:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), region, smp
+        cand = np.concatenate(cand_parts)
+        d2 = _point_segment_dist2(np.concatenate(p_parts)[:, None, :], seg["a"][cand], seg["b"][cand])
+        return np.concatenate(band_idx), cand[np.arange(len(cand)), np.argmin(d2, axis=1)], region, smp
+
+    def _outline_segments(self, T_wm: NDArray[np.float64], cameras: list[Camera],
+                          crops: NDArray[np.int64]) -> dict[str, NDArray]:
+        """Sub-pixel segments of contour edges that lie on the visible outline, all views."""
+        edges_per_view = self.contour_edges(T_wm, cameras)
+        V_w = transform_points(T_wm, self.mesh.vertices)
+        views, eids, A2, B2 = [], [], [], []
+        for i, (cam, e) in enumerate(zip(cameras, edges_per_view)):
+            if len(e) == 0 or crops[i, 2] == 0:
+                continue
+            ends = self.mesh.edges[e]
+            Xc = cam.to_camera(V_w[ends.ravel()]).reshape(-1, 2, 3)
+            ok = np.all(Xc[..., 2] > _NEAR_MM, axis=1)
+            uvw = Xc[ok] @ cam.K.T
+            uv = uvw[..., :2] / uvw[..., 2:3]
+            views.append(np.full(ok.sum(), i))
+            eids.append(e[ok])
+            A2.append(uv[:, 0])
+            B2.append(uv[:, 1])
+        empty = {"view": np.zeros(0, np.int64), "edge": np.zeros(0, np.int64), "mid": np.zeros((0, 2)),
+                 "t0": np.zeros(0), "t1": np.zeros(0), "a": np.zeros((0, 2)), "b": np.zeros((0, 2))}
+        if not views:
+            return empty
+        view = np.concatenate(views)
+        edge = np.concatenate(eids)
+        A, B = np.concatenate(A2), np.concatenate(B2)
+        d = B - A
+        L = np.linalg.norm(d, axis=1)
+        good = L > 1e-9
+        view, edge, A, d, L = view[good], edge[good], A[good], d[good], L[good]
+        n_sub = np.maximum(1, np.ceil(L / self.segment_px).astype(np.int64))
+        rep = np.repeat(np.arange(len(L)), n_sub)
+        k = np.arange(len(rep)) - np.repeat(np.cumsum(n_sub) - n_sub, n_sub)
+        t = (k + 0.5) / n_sub[rep]
+        mid = A[rep] + t[:, None] * d[rep]
+        nrm = np.column_stack([-d[:, 1], d[:, 0]]) / L[:, None]
+        delta = 0.3
+        p_plus = mid + delta * nrm[rep]
+        p_minus = mid - delta * nrm[rep]
+        sv = view[rep]
+        uv_list = []
+        for i in range(len(cameras)):
+            s = sv == i
+            uv_list.append(np.concatenate([p_plus[s], p_minus[s]]))
+        hits = self.pixel_hits(T_wm, cameras, uv_list)
+        outline = np.zeros(len(rep), dtype=bool)
+        for i, hv in enumerate(hits):
+            s = np.flatnonzero(sv == i)
+            if len(s) == 0:
+                continue
+            hp, hm = hv[:len(s)], hv[len(s):]
+            outline[s] = hp != hm
+        # The visible interval [t0, t1] of each (view, edge): from its first to its last outline
+        # segment. Distances are taken to that whole interval, so that the nearest outline point
+        # moves continuously while the pose changes.
+        pair = np.flatnonzero(outline)
+        owner = rep[pair]
+        t0 = np.full(len(L), np.inf)
+        t1 = np.full(len(L), -np.inf)
+        np.minimum.at(t0, owner, k[pair] / n_sub[owner])
+        np.maximum.at(t1, owner, (k[pair] + 1.0) / n_sub[owner])
+        t0, t1 = t0[owner], t1[owner]
+        a, b = A[owner] + t0[:, None] * d[owner], A[owner] + t1[:, None] * d[owner]
+        return {"view": sv[pair], "edge": edge[owner], "mid": mid[pair],
+                "t0": t0, "t1": t1, "a": a, "b": b}
+
+    def _band_values(self, cameras: list[Camera], view: NDArray[np.int64], px: NDArray[np.float64],
+                     py: NDArray[np.float64], sign: NDArray[np.float64], A_w: NDArray[np.float64],
+                     B_w: NDArray[np.float64], t0: NDArray[np.float64], t1: NDArray[np.float64],
+                     centre_w: NDArray[np.float64], half: float,
+                     with_jacobian: bool) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Soft values of band pixels and their twist derivatives (drjit, forward-mode AD)."""
+        dr, mi = self._dr, self._mi
+        Float, UInt = mi.Float64, mi.UInt32
+        P = np.stack([np.concatenate([c.R_w2c.ravel(), c.t_w2c, c.K[:2].ravel()]) for c in cameras])  # (N, 18)
+        vid = UInt(view.astype(np.uint32))
+        cam = [dr.gather(Float, Float(P[:, j].copy()), vid) for j in range(18)]
+        xi = [Float(0.0) for _ in range(6)]
+        if with_jacobian:
+            for x in xi:
+                dr.enable_grad(x)
+        c = [dr.opaque(Float, float(x)) for x in centre_w]  # opaque: one compiled kernel for all poses
+
+        def moved(X: NDArray[np.float64]) -> list:
+            # X + v + w x (X - c), to first order in the twist (exact derivative at xi = 0)
+            x = [Float(X[:, j].copy()) for j in range(3)]
+            r = [x[0] - c[0], x[1] - c[1], x[2] - c[2]]
+            wx = [xi[4] * r[2] - xi[5] * r[1], xi[5] * r[0] - xi[3] * r[2], xi[3] * r[1] - xi[4] * r[0]]
+            return [x[j] + xi[j] + wx[j] for j in range(3)]
+
+        def project(X: list) -> tuple:
+            R, t = cam[:9], cam[9:12]
+            xc = [R[3 * r + 0] * X[0] + R[3 * r + 1] * X[1] + R[3 * r + 2] * X[2] + t[r] for r in range(3)]
+            k = cam[12:18]  # fx, s, cx, 0, fy, cy
+            u = (k[0] * xc[0] + k[1] * xc[1]) / xc[2] + k[2]
+            v = (k[3] * xc[0] + k[4] * xc[1]) / xc[2] + k[5]
+            return u, v
+
+        eu, ev = project(moved(A_w))
+        fu, fv = project(moved(B_w))
+        s0, s1 = Float(t0), Float(t1)
+        au, av = eu + s0 * (fu - eu), ev + s0 * (fv - ev)  # the sub-segment [t0, t1] of the edge
+        bu, bv = eu + s1 * (fu - eu), ev + s1 * (fv - ev)
+        qx, qy = Float(px), Float(py)
+        dx, dy = bu - au, bv - av
+        t = ((qx - au) * dx + (qy - av) * dy) / dr.maximum(dx * dx + dy * dy, 1e-18)
+        t = dr.clip(t, 0.0, 1.0)
+        ex, ey = au + t * dx - qx, av + t * dy - qy
+        dist = dr.sqrt(dr.maximum(ex * ex + ey * ey, 1e-18))
+        z = Float(sign) * dist / dr.opaque(Float, half)
+        u = dr.clip((z + 1.0) * 0.5, 0.0, 1.0)
+        s = u * u * (3.0 - 2.0 * u)
+        outputs = [dr.detach(s)]
+        if with_jacobian:
+            for k in range(6):  # one forward pass per twist coordinate; kept lazy, evaluated together
+                dr.set_grad(s, 0.0)
+                dr.forward_from(xi[k], flags=dr.ADFlag.ClearInterior)
+                outputs.append(dr.grad(s))
+            for x in xi:
+                dr.disable_grad(x)
+        dr.eval(*outputs)  # a single fused kernel for the values and all six derivative columns
+        value = np.array(outputs[0], dtype=np.float64)
+        jac = np.stack([np.array(o, dtype=np.float64) for o in outputs[1:]], 1) if with_jacobian \
+            else np.zeros((len(px), 6))
+        return value, jac
+
+
+def _point_segment_dist2(p: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Squared distance from points ``p`` to segments ``[a, b]`` (broadcast over leading axes)."""
+    d = b - a
+    t = np.clip(np.sum((p - a) * d, -1) / np.maximum(np.sum(d * d, -1), 1e-18), 0.0, 1.0)
+    e = a + t[..., None] * d - p
+    return np.sum(e * e, -1)
+
+
+def _crop_pixel_centres(crop: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Continuous coordinates (N, 2) of the pixel centres of a crop, row-major."""
+    x0, y0, w, h = (int(v) for v in crop)
+    xs = np.arange(x0, x0 + w) + 0.5
+    ys = np.arange(y0, y0 + h) + 0.5
+    gx, gy = np.meshgrid(xs, ys)
+    return np.column_stack([gx.ravel(), gy.ravel()])
