@@ -32,23 +32,28 @@ class RefineOptions:
     """Settings of :func:`refine`.
 
     Attributes:
-        loss: ``iou`` (default, see README for the measurement), ``dice``, ``l2`` or ``bce``.
+        loss: ``l2`` (default: per-pixel residuals give Gauss-Newton a full-rank model and it
+            converged in 3-4x fewer iterations than ``iou``/``dice``; see README), ``bce``, ``iou``, ``dice``.
         optimizer: ``lm`` (Levenberg-Marquardt, default), ``gn`` (Gauss-Newton) or ``adam``.
         robust: Cauchy re-weighting of views by their misfit.
         schedule: coarse-to-fine levels (scale, sigma in px, iterations).
         n_rotations: orientation hypotheses scored when the orientation is unknown.
-        n_coarse: best-scoring hypotheses refined at the coarsest level.
-        n_final: best of those refined through the whole schedule.
+        n_coarse: best-scoring hypotheses refined at ``search_level``.
+        n_mid: best distinct ones of those refined at the first schedule level.
+        n_final: best distinct ones of those refined through the rest of the schedule.
+        search_level: the cheap level of the hypothesis search.
         ambiguity_tol: runner-up within this relative loss of the winner (and at another pose) means ambiguous.
     """
 
-    loss: str = "iou"
+    loss: str = "l2"
     optimizer: str = "lm"
     robust: bool = True
     schedule: tuple[Level, ...] = DEFAULT_SCHEDULE
     n_rotations: int = 384
     n_coarse: int = 8
+    n_mid: int = 3
     n_final: int = 2
+    search_level: Level = Level(0.125, 1.0, 20)
     ambiguity_tol: float = 0.05
 
 
@@ -173,21 +178,25 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
     hyps: list[Hypothesis] = []
     t0 = time.perf_counter()
     if len(starts) > 1:
-        coarse = []
-        for j, T in enumerate(starts):
-            Tc, _ = _run_schedule(obj, T, levels[:1], opts.optimizer)
-            loss, miou = _final_loss(obj, Tc, levels[0])
-            coarse.append(Hypothesis(T, Tc, loss, miou, "coarse"))
-            if progress is not None:
-                progress("hypotheses", j + 1, len(starts))
-        coarse.sort(key=lambda h: h.loss)
-        finalists: list[Hypothesis] = []
-        for h in coarse:  # keep distinct poses only
-            if all(_differs(h.T_final, f.T_final, mesh.centre) for f in finalists):
-                finalists.append(h)
-            if len(finalists) == opts.n_final:
-                break
-        hyps.extend(h for h in coarse if h not in finalists)
+        # A funnel: every start at the search level, the best distinct few at the first schedule
+        # level, the best distinct n_final through the rest of the schedule.
+        pool = [Hypothesis(T, T, float("nan"), float("nan"), "start") for T in starts]
+        funnel = [(opts.search_level, (opts.search_level,), opts.n_mid), (levels[0], levels[:1], opts.n_final)]
+        for stage, (score_level, stage_levels, keep) in enumerate(funnel):
+            done = []
+            for j, h in enumerate(pool):
+                Tc, _ = _run_schedule(obj, h.T_final, stage_levels, opts.optimizer)
+                loss, miou = _final_loss(obj, Tc, score_level)
+                done.append(Hypothesis(h.T_init, Tc, loss, miou, f"search{stage}"))
+                if progress is not None:
+                    progress(f"hypotheses {stage + 1}/{len(funnel)}", j + 1, len(pool))
+            done.sort(key=lambda h: h.loss)
+            pool = []
+            for h in done:  # keep distinct poses only
+                if len(pool) < keep and all(_differs(h.T_final, f.T_final, mesh.centre) for f in pool):
+                    pool.append(h)
+            hyps.extend(h for h in done if h not in pool)
+        finalists = pool
         rest = levels[1:]
     else:
         finalists = [Hypothesis(starts[0], starts[0], float("nan"), float("nan"), "seed")]
