@@ -38,10 +38,10 @@ def llvm_major(path: str) -> int | None:
     return int(m.group(1)) if m else None
 
 
-def find_libllvm(search_dirs: tuple[str, ...] = _SEARCH_DIRS) -> str | None:
-    """Newest shared libLLVM of version >= 16 found in ``search_dirs``, or None."""
+def find_libllvm(search_dirs: tuple[str, ...] | None = None) -> str | None:
+    """Newest shared libLLVM of version >= 16 found in ``search_dirs`` (default: the usual folders), or None."""
     found: list[tuple[int, str]] = []
-    for d in search_dirs:
+    for d in _SEARCH_DIRS if search_dirs is None else search_dirs:
         for p in glob.glob(os.path.join(d, "libLLVM*.so*")) + glob.glob(os.path.join(d, "libLLVM*.dylib")):
             major = llvm_major(p)
             if major is not None and major >= MIN_LLVM_MAJOR and os.path.isfile(p):

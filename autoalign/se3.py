@@ -37,18 +37,20 @@ def so3_log(R: ArrayLike) -> NDArray[np.float64]:
     """Axis-angle vector (radians, angle in [0, pi]) of a rotation matrix."""
     R = np.asarray(R, dtype=np.float64)
     cos = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    th = float(np.arccos(cos))
     vee = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    # atan2 keeps the angle accurate near 0 and pi, where arccos loses half the digits.
+    th = float(np.arctan2(0.5 * np.linalg.norm(vee), cos))
     if th < 1e-6:
         return 0.5 * vee
     if np.pi - th < 1e-4:
-        # Near pi the antisymmetric part vanishes: read the axis off R + I = 2 a a^T (approx).
-        B = (R + np.eye(3)) / 2.0
+        # Near pi the antisymmetric part vanishes; read the axis off the symmetric part,
+        # (R + R^T)/2 - cos(th) I = (1 - cos(th)) a a^T exactly.
+        B = 0.5 * (R + R.T) - cos * np.eye(3)
         i = int(np.argmax(np.diag(B)))
-        a = B[:, i] / np.sqrt(max(B[i, i], _SMALL))
+        a = B[:, i] / np.linalg.norm(B[:, i])
         if vee @ a < 0:  # keep the sign consistent with the small antisymmetric part
             a = -a
-        return th * a / np.linalg.norm(a)
+        return th * a
     return th / (2.0 * np.sin(th)) * vee
 
 

@@ -83,6 +83,25 @@ class Silhouettes:
         return full
 
 
+@dataclass
+class CameraBatch:
+    """The calibration of N views stacked into arrays, for vectorised projection and ray casting."""
+
+    K: NDArray[np.float64]
+    K_inv: NDArray[np.float64]
+    R_w2c: NDArray[np.float64]
+    t_w2c: NDArray[np.float64]
+    R_c2w: NDArray[np.float64]
+    centres: NDArray[np.float64]
+
+    @staticmethod
+    def of(cameras: list[Camera]) -> "CameraBatch":
+        K = np.stack([c.K for c in cameras])
+        R = np.stack([c.R_w2c for c in cameras])
+        t = np.stack([c.t_w2c for c in cameras])
+        return CameraBatch(K, np.linalg.inv(K), R, t, R.transpose(0, 2, 1), -np.einsum("nji,nj->ni", R, t))
+
+
 def smoothstep_edge(z: NDArray[np.float64] | float) -> NDArray[np.float64]:
     """The edge profile: 0 for ``z <= -1``, 1 for ``z >= 1``, C1 cubic in between (numpy)."""
     u = np.clip((np.asarray(z, dtype=np.float64) + 1.0) / 2.0, 0.0, 1.0)
@@ -138,15 +157,26 @@ class SoftSilhouetteRasterizer:
         ray = mi.Ray3f(mi.Point3f(*(mi.Float(x) for x in o)), mi.Vector3f(*(mi.Float(x) for x in d)))
         return np.array(self._scene.ray_test(ray), dtype=bool)
 
+    def hits_at(self, T_wm: NDArray[np.float64], cams: "CameraBatch", view: NDArray[np.int64],
+                uv: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Hard hits of the rays through continuous pixel coordinates ``uv`` (N, 2) of views ``view`` (N,)."""
+        if len(view) == 0:
+            return np.zeros(0, dtype=bool)
+        T_mw = invert(T_wm)
+        R_mc = T_mw[:3, :3] @ cams.R_c2w  # (V, 3, 3) model-from-camera rotation
+        d_c = np.einsum("nij,nj->ni", cams.K_inv[view][:, :, :2], uv) + cams.K_inv[view][:, :, 2]
+        d_m = np.einsum("nij,nj->ni", R_mc[view], d_c)
+        d_m /= np.linalg.norm(d_m, axis=1, keepdims=True)
+        o_m = (cams.centres @ T_mw[:3, :3].T + T_mw[:3, 3])[view]
+        return self.model_ray_hits(o_m, d_m)
+
     def pixel_hits(self, T_wm: NDArray[np.float64], cameras: list[Camera],
                    uv: list[NDArray[np.float64]]) -> list[NDArray[np.bool_]]:
         """Hard hits for continuous pixel coordinates ``uv[i]`` (N_i, 2) of each camera."""
         counts = [len(x) for x in uv]
-        if sum(counts) == 0:
-            return [np.zeros(0, bool) for _ in uv]
-        o = np.concatenate([np.broadcast_to(c.centre, (n, 3)) for c, n in zip(cameras, counts)])
-        d = np.concatenate([c.ray_directions(x) if len(x) else np.zeros((0, 3)) for c, x in zip(cameras, uv)])
-        hits = self.ray_hits(T_wm, o, d)
+        view = np.repeat(np.arange(len(cameras)), counts)
+        alluv = np.concatenate(uv) if sum(counts) else np.zeros((0, 2))
+        hits = self.hits_at(T_wm, CameraBatch.of(cameras), view, alluv)
         return np.split(hits, np.cumsum(counts)[:-1])
 
     def hard_masks(self, T_wm: NDArray[np.float64], cameras: list[Camera]) -> list[NDArray[np.bool_]]:
@@ -182,12 +212,17 @@ class SoftSilhouetteRasterizer:
 
     def contour_edges(self, T_wm: NDArray[np.float64], cameras: list[Camera]) -> list[NDArray[np.int64]]:
         """Per view, indices of mesh edges on the contour generator (front/back flip or open boundary)."""
+        flip = self._contour_matrix(T_wm, CameraBatch.of(cameras))
+        return [np.flatnonzero(flip[:, i]) for i in range(len(cameras))]
+
+    def _contour_matrix(self, T_wm: NDArray[np.float64], cams: "CameraBatch") -> NDArray[np.bool_]:
+        """(E, N) whether edge e is a contour-generator edge in view n."""
         T_mw = invert(T_wm)
-        C_m = np.stack([T_mw[:3, :3] @ c.centre + T_mw[:3, 3] for c in cameras])  # (N, 3)
+        C_m = cams.centres @ T_mw[:3, :3].T + T_mw[:3, 3]  # (N, 3) camera centres, model frame
         facing = (self._n @ C_m.T) > self._nv0[:, None]  # (F, N)
         flip = facing[self._ef0] != facing[self._ef1]  # (E, N)
         flip |= ~self._interior[:, None]
-        return [np.flatnonzero(flip[:, i]) for i in range(len(cameras))]
+        return flip
 
     # ------------------------------------------------------------------ rendering
     def render(self, T_wm: NDArray[np.float64], cameras: list[Camera], sigma: float = 1.0,
@@ -233,15 +268,10 @@ class SoftSilhouetteRasterizer:
                       offsets: NDArray[np.int64], flat: NDArray[np.int64]) -> NDArray[np.bool_]:
         """Ray-cast hard hits at the centres of the given flat crop pixels (any views, any order)."""
         view = np.searchsorted(offsets, flat, side="right") - 1
-        order = np.argsort(view, kind="stable")
-        local = flat[order] - offsets[view[order]]
-        w = crops[view[order], 2]
-        uv = np.column_stack([crops[view[order], 0] + local % w + 0.5, crops[view[order], 1] + local // w + 0.5])
-        counts = np.bincount(view, minlength=len(cameras))
-        hits = np.concatenate(self.pixel_hits(T_wm, cameras, np.split(uv, np.cumsum(counts)[:-1])))
-        out = np.empty(len(flat), dtype=bool)
-        out[order] = hits
-        return out
+        local = flat - offsets[view]
+        w = crops[view, 2]
+        uv = np.column_stack([crops[view, 0] + local % w + 0.5, crops[view, 1] + local // w + 0.5])
+        return self.hits_at(T_wm, CameraBatch.of(cameras), view, uv)
 
     def _hard_from_regions(self, T_wm: NDArray[np.float64], cameras: list[Camera], crops: NDArray[np.int64],
                            offsets: NDArray[np.int64], band: NDArray[np.int64], region: NDArray[np.int64],
@@ -326,28 +356,26 @@ class SoftSilhouetteRasterizer:
     def _outline_segments(self, T_wm: NDArray[np.float64], cameras: list[Camera],
                           crops: NDArray[np.int64]) -> dict[str, NDArray]:
         """Sub-pixel segments of contour edges that lie on the visible outline, all views."""
-        edges_per_view = self.contour_edges(T_wm, cameras)
-        V_w = transform_points(T_wm, self.mesh.vertices)
-        views, eids, A2, B2 = [], [], [], []
-        for i, (cam, e) in enumerate(zip(cameras, edges_per_view)):
-            if len(e) == 0 or crops[i, 2] == 0:
-                continue
-            ends = self.mesh.edges[e]
-            Xc = cam.to_camera(V_w[ends.ravel()]).reshape(-1, 2, 3)
-            ok = np.all(Xc[..., 2] > _NEAR_MM, axis=1)
-            uvw = Xc[ok] @ cam.K.T
-            uv = uvw[..., :2] / uvw[..., 2:3]
-            views.append(np.full(ok.sum(), i))
-            eids.append(e[ok])
-            A2.append(uv[:, 0])
-            B2.append(uv[:, 1])
+        cams = CameraBatch.of(cameras)
+        flip = self._contour_matrix(T_wm, cams)  # (E, N)
+        flip[:, crops[:, 2] * crops[:, 3] == 0] = False
+        edge, view = np.nonzero(flip)
         empty = {"view": np.zeros(0, np.int64), "edge": np.zeros(0, np.int64), "mid": np.zeros((0, 2)),
                  "t0": np.zeros(0), "t1": np.zeros(0), "a": np.zeros((0, 2)), "b": np.zeros((0, 2))}
-        if not views:
+        if len(edge) == 0:
             return empty
-        view = np.concatenate(views)
-        edge = np.concatenate(eids)
-        A, B = np.concatenate(A2), np.concatenate(B2)
+        used = np.unique(self.mesh.edges[edge])
+        V_w = np.zeros_like(self.mesh.vertices)
+        V_w[used] = transform_points(T_wm, self.mesh.vertices[used])
+        ends = self.mesh.edges[edge]
+        R, t = cams.R_w2c[view], cams.t_w2c[view]
+        Xa = np.einsum("nij,nj->ni", R, V_w[ends[:, 0]]) + t
+        Xb = np.einsum("nij,nj->ni", R, V_w[ends[:, 1]]) + t
+        ok = (Xa[:, 2] > _NEAR_MM) & (Xb[:, 2] > _NEAR_MM)
+        view, edge, Xa, Xb = view[ok], edge[ok], Xa[ok], Xb[ok]
+        Kv = cams.K[view]
+        ua, ub = np.einsum("nij,nj->ni", Kv, Xa), np.einsum("nij,nj->ni", Kv, Xb)
+        A, B = ua[:, :2] / ua[:, 2:3], ub[:, :2] / ub[:, 2:3]
         d = B - A
         L = np.linalg.norm(d, axis=1)
         good = L > 1e-9
@@ -362,18 +390,8 @@ class SoftSilhouetteRasterizer:
         p_plus = mid + delta * nrm[rep]
         p_minus = mid - delta * nrm[rep]
         sv = view[rep]
-        uv_list = []
-        for i in range(len(cameras)):
-            s = sv == i
-            uv_list.append(np.concatenate([p_plus[s], p_minus[s]]))
-        hits = self.pixel_hits(T_wm, cameras, uv_list)
-        outline = np.zeros(len(rep), dtype=bool)
-        for i, hv in enumerate(hits):
-            s = np.flatnonzero(sv == i)
-            if len(s) == 0:
-                continue
-            hp, hm = hv[:len(s)], hv[len(s):]
-            outline[s] = hp != hm
+        hits = self.hits_at(T_wm, cams, np.concatenate([sv, sv]), np.concatenate([p_plus, p_minus]))
+        outline = hits[:len(rep)] != hits[len(rep):]
         # The visible interval [t0, t1] of each (view, edge): from its first to its last outline
         # segment. Distances are taken to that whole interval, so that the nearest outline point
         # moves continuously while the pose changes.

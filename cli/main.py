@@ -1,0 +1,551 @@
+"""The ``autoalign`` command line: ``autoalign refine`` (and ``autoalign simulate`` when available).
+
+Start-up is kept fast: only the standard library and :mod:`autoalign.errors` are imported here;
+numpy, OpenCV, trimesh and the rendering backend (mitsuba/drjit) load inside the command, after
+the arguments are parsed. Nothing on this path imports torch or jax.
+
+Exit status: 0 success; 2 a usage or input mistake (one line ``autoalign: error: ...`` on stderr,
+no output files); 130 interrupted; anything else is a bug (Python prints a traceback).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+from typing import Any, Callable
+
+from autoalign import __version__
+from autoalign.errors import AutoalignError
+
+PROG = "autoalign"
+OUTPUT_FILES = ("scene_gt.json", "refine.json", "overlay.png")
+LOW_WEIGHT = 0.3  # a view whose robust weight (mean 1) ends below this ...
+LOW_WEIGHT_MAX_IOU = 0.95  # ... and whose IoU after stays below this is reported as disagreeing
+
+
+class UsageError(Exception):
+    """A command-line syntax mistake (unknown option, missing argument, bad value)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors become :class:`UsageError` (one line) instead of usage + exit."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise UsageError(f"{message} (see '{self.prog} --help')")
+
+
+class _Formatter(argparse.RawDescriptionHelpFormatter):
+    def __init__(self, prog: str) -> None:
+        super().__init__(prog, max_help_position=30, width=min(100, max(60, _terminal_width())))
+
+
+def _terminal_width() -> int:
+    try:
+        return os.get_terminal_size().columns
+    except OSError:
+        return 100
+
+
+# ------------------------------------------------------------------------------------------
+# Argument parsing
+# ------------------------------------------------------------------------------------------
+
+_MAIN_DESCRIPTION = """\
+Label the 6-DoF pose of a known object from calibrated multi-view masks: the object mesh is
+moved until its silhouettes match the masks in every view (BOP format, millimetres, OpenCV
+pinhole cameras with pixel centres at +0.5)."""
+
+_REFINE_DESCRIPTION = """\
+Find the pose of the object whose silhouettes best match the masks of one instance in a BOP
+scene folder, starting from a coarse pose (--init), a click on the object (--click) or, with
+neither, from the visual hull of the masks and a search over orientations."""
+
+_REFINE_EPILOG = """\
+input scene (SCENE_DIR):
+  scene_camera.json   per image id: cam_K (9 numbers, pixels), cam_R_w2c (9, row-major) and
+                      cam_t_w2c (3, mm): x_cam = R_w2c x_world + t_w2c
+  mask_visib/{im_id:06d}_{instance:06d}.png
+                      the object's mask in each image (white = object); all the same size.
+                      Images without a mask file are skipped (listed in refine.json).
+
+outputs (written into OUT_DIR, replacing files of the same name; if the run fails none is written):
+  scene_gt.json  BOP ground truth: for every image of scene_camera.json a list with one entry
+                 {"obj_id": K, "cam_R_m2c": 9 numbers (row-major), "cam_t_m2c": 3 numbers (mm)}
+  refine.json    the world-from-model pose ("pose": T_wm 4x4, R 9, t 3 mm; world = the frame of
+                 scene_camera.json), the seed, per-view IoU before/after and robust weights with
+                 their image ids, iterations, renders, timings (s), every hypothesis tried (stage,
+                 loss, mean IoU, poses), "ambiguous" and "runner_up" (pose, loss, rotation_deg and
+                 translation_mm from the winner), the options, the version and skipped image ids
+  overlay.png    up to 12 views (always the worst-fitting one), zoomed on the object: the target
+                 mask in grey, the silhouette outline before (red) and after (green) refinement,
+                 with image id and IoU after
+
+examples:
+  autoalign refine scenes/000001 --model models/obj_000001.ply --out labels/000001 --init coarse/scene_gt.json
+  autoalign refine scenes/000001 --model models/obj_000001.ply --out labels/000001 --click 0:412.5,233.5
+  autoalign refine scenes/000001 --model models/obj_000001.ply --out labels/000001 --json --quiet
+
+exit status: 0 success, 2 a mistake in the command or the input files (one line on stderr)."""
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be 1 or more")
+    return v
+
+
+def _nonnegative_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be 0 or more")
+    return v
+
+
+def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Register ``autoalign refine`` on an argparse subparsers object."""
+    p = subparsers.add_parser(
+        "refine", help="refine the pose of an object from multi-view masks (writes scene_gt.json, refine.json, overlay.png)",
+        description=_REFINE_DESCRIPTION, epilog=_REFINE_EPILOG, formatter_class=_Formatter)
+    p.add_argument("scene", metavar="SCENE_DIR",
+                   help="BOP scene folder with scene_camera.json and mask_visib/ (see 'input scene' below)")
+    req = p.add_argument_group("required")
+    req.add_argument("--model", metavar="MESH", required=True,
+                     help="the object's mesh in millimetres, in its BOP model frame (PLY, OBJ, STL, GLB, OFF, ...); "
+                          "it needs triangles, a point cloud will not do")
+    req.add_argument("--out", metavar="OUT_DIR", required=True,
+                     help="output folder, created if missing; scene_gt.json, refine.json and overlay.png are "
+                          "written there (see 'outputs' below)")
+    sel = p.add_argument_group("object")
+    sel.add_argument("--obj-id", metavar="K", type=_positive_int, default=1,
+                     help="BOP object id written to scene_gt.json and looked for in the --init file (default: 1)")
+    sel.add_argument("--instance", metavar="N", type=_nonnegative_int, default=0,
+                     help="which instance's masks to use, mask_visib/{im_id:06d}_{N:06d}.png; also picks the N-th "
+                          "entry with obj_id K in the --init file (default: 0)")
+    seed = p.add_argument_group("starting pose (at most one; default: visual hull of the masks + orientation search)")
+    ex = seed.add_mutually_exclusive_group()
+    ex.add_argument("--init", metavar="SCENE_GT_JSON",
+                    help="a coarse pose as a BOP scene_gt.json: image id -> list of {\"obj_id\", \"cam_R_m2c\": 9 "
+                         "numbers (row-major), \"cam_t_m2c\": 3 numbers (mm)}; the entry of the lowest image id "
+                         "that is a view of the scene is used; the refinement is local, so this pose should "
+                         "roughly overlap the masks")
+    ex.add_argument("--click", metavar="IM_ID:U,V",
+                    help="one pixel on the object: image id, then pixel coordinates U (column, to the right) and "
+                         "V (row, down), pixel centres at +0.5, e.g. 3:412.5,233.5; the position is found along "
+                         "that ray and the orientation is searched")
+    alg = p.add_argument_group("algorithm")
+    alg.add_argument("--loss", choices=("l2", "bce", "iou", "dice"), default="l2",
+                     help="silhouette loss per view: l2 = squared pixel differences (default, fastest to "
+                          "converge), bce = binary cross-entropy, iou = 1 - soft IoU, dice = 1 - soft Dice")
+    alg.add_argument("--optimizer", choices=("lm", "gn", "adam"), default="lm",
+                     help="lm = Levenberg-Marquardt (default), gn = Gauss-Newton, adam = first-order Adam")
+    alg.add_argument("--no-robust", action="store_true",
+                     help="weigh all views equally; by default views whose mask disagrees with the others "
+                          "(occlusion, bad segmentation) are down-weighted (Cauchy weights on 1 - IoU)")
+    out = p.add_argument_group("output")
+    out.add_argument("--quiet", action="store_true",
+                     help="no progress bar and no summary; only warnings and errors, on stderr")
+    out.add_argument("--json", action="store_true",
+                     help="print one JSON object on stdout (pose, mean IoU before/after, time, ambiguous, "
+                          "output paths) and nothing else there")
+    p.set_defaults(func=run_refine)
+    return p
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``autoalign`` parser with its subcommands (``simulate`` only if its module imports)."""
+    parser = _Parser(prog=PROG, description=_MAIN_DESCRIPTION, formatter_class=_Formatter,
+                     epilog="Run 'autoalign COMMAND --help' for the options of a command.")
+    parser.add_argument("--version", action="version", version=f"{PROG} {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands", parser_class=_Parser)
+    add_refine_parser(sub)
+    try:
+        from autoalign.experiments import simulate
+    except ImportError:
+        simulate = None
+    if simulate is not None and hasattr(simulate, "add_simulate_parser"):
+        simulate.add_simulate_parser(sub)
+    return parser
+
+
+# ------------------------------------------------------------------------------------------
+# Entry point
+# ------------------------------------------------------------------------------------------
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _error(message: str) -> None:
+    print(f"{PROG}: error: {_one_line(message)}", file=sys.stderr, flush=True)
+
+
+def _warn(message: str) -> None:
+    print(f"{PROG}: warning: {_one_line(message)}", file=sys.stderr, flush=True)
+
+
+def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                  file: Any = None, line: str | None = None) -> None:
+    _warn(str(message))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line; returns the exit status (0 ok, 2 usage/input error)."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except UsageError as exc:
+        _error(str(exc))
+        return 2
+    except SystemExit as exc:  # --help, --version
+        return exc.code if isinstance(exc.code, int) else 0
+    func: Callable[[argparse.Namespace], int] | None = getattr(args, "func", None)
+    if func is None:
+        _error("no command given; use e.g. 'autoalign refine SCENE_DIR --model MESH --out OUT_DIR' "
+               "(see 'autoalign --help')")
+        return 2
+    with warnings.catch_warnings():
+        warnings.showwarning = _show_warning
+        warnings.filterwarnings("ignore", category=RuntimeWarning, module=r"trimesh(\.|$)")
+        try:
+            return int(func(args) or 0)
+        except (AutoalignError, UsageError) as exc:
+            _error(str(exc))
+            return 2
+        except KeyboardInterrupt:
+            print(f"\n{PROG}: interrupted", file=sys.stderr)
+            return 130
+
+
+# ------------------------------------------------------------------------------------------
+# autoalign refine
+# ------------------------------------------------------------------------------------------
+
+def prepare_out_dir(out: Path) -> list[Path]:
+    """Create ``out`` if needed and check a file can be written there.
+
+    Returns the folders that were created (outermost first) so that a failed run can remove them.
+    Raises :class:`AutoalignError` naming ``--out`` when that is impossible.
+    """
+    fix = "choose a folder you can write to with --out"
+    if out.exists() and not out.is_dir():
+        raise AutoalignError(f"--out {out}: exists and is not a folder; {fix}")
+    missing: list[Path] = []
+    p = out.absolute()
+    while not p.exists() and p != p.parent:
+        missing.append(p)
+        p = p.parent
+    if not p.is_dir():
+        raise AutoalignError(f"--out {out}: cannot create it because {p} is a file, not a folder; {fix}")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        _remove_empty_dirs(list(reversed(missing)))
+        raise AutoalignError(f"--out {out}: cannot create the folder ({exc.strerror or exc}); {fix}") from None
+    created = list(reversed(missing))
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".autoalign-probe-", suffix=".tmp", dir=out)
+        try:
+            os.write(fd, b"autoalign")
+        finally:
+            os.close(fd)
+            os.unlink(probe)
+    except OSError as exc:
+        _remove_empty_dirs(created)
+        raise AutoalignError(f"--out {out}: cannot write there ({exc.strerror or exc}); {fix}") from None
+    return created
+
+
+def _remove_empty_dirs(created: list[Path]) -> None:
+    """Remove the folders this run created (innermost first), if they are still empty."""
+    for d in reversed(created):
+        try:
+            d.rmdir()
+        except OSError:
+            break
+
+
+def write_files_atomic(out: Path, files: dict[str, bytes]) -> dict[str, Path]:
+    """Write every ``name -> bytes`` to a temporary file in ``out``, then rename them all into place.
+
+    If any write fails no temporary file is left behind and no target file is touched.
+    """
+    temps: list[tuple[str, str]] = []
+    try:
+        for name, data in files.items():
+            fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=out)
+            temps.append((name, tmp))
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+                f.flush()
+                os.fsync(f.fileno())
+        for name, tmp in temps:
+            os.replace(tmp, out / name)
+    except BaseException as exc:
+        for _, tmp in temps:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        if isinstance(exc, OSError):
+            raise AutoalignError(f"--out {out}: cannot write the outputs ({exc.strerror or exc}); "
+                                 "free some space or choose another --out") from None
+        raise
+    return {name: out / name for name in files}
+
+
+class _Progress:
+    """``progress(stage, done, total)`` callback drawing one tqdm bar on stderr."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.enabled = enabled
+        self.bar: Any = None
+        self.stage: str | None = None
+        self.last = -1
+
+    def start(self, desc: str) -> None:
+        if self.enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=None, desc=desc, file=sys.stderr, leave=False, dynamic_ncols=True,
+                            unit="it", bar_format="{desc}: {elapsed}")
+            self.stage = desc
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        if not self.enabled:
+            return
+        if self.bar is None:
+            self.start(stage)
+        if stage != self.stage or done < self.last or self.bar.total != total:
+            self.bar.bar_format = None
+            self.bar.set_description(stage, refresh=False)
+            self.bar.reset(total=total)
+            self.stage, self.last = stage, 0
+        self.bar.update(max(0, done - self.bar.n))
+        self.last = done
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+def _floats(a: Any) -> Any:
+    """Nested lists of plain floats (NaN/inf as None) from an array-like."""
+    import numpy as np
+
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim == 0:
+        v = float(arr)
+        return v if np.isfinite(v) else None
+    return [_floats(x) for x in arr]
+
+
+def _jsonable(obj: Any) -> Any:
+    """Plain JSON types from numpy scalars/arrays, dataclasses, tuples and paths (NaN as None)."""
+    import dataclasses
+    import math
+
+    import numpy as np
+
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _floats(obj) if obj.dtype.kind == "f" else obj.tolist()
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(float(obj)) else None
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def _pose(T: Any) -> dict[str, Any]:
+    import numpy as np
+
+    T = np.asarray(T, dtype=np.float64)
+    return {"T_wm": _floats(T), "R": _floats(T[:3, :3].ravel()), "t": _floats(T[:3, 3])}
+
+
+def _all_cameras(scene: Any) -> tuple[list[Any], list[int]]:
+    """Cameras and ids of every image in scene_camera.json (also those skipped for lack of a mask)."""
+    from autoalign.bop import read_cameras
+    from autoalign.camera import Camera
+
+    if scene.path is None:
+        return list(scene.cameras), list(scene.image_ids)
+    W, H = scene.cameras[0].width, scene.cameras[0].height
+    cams = read_cameras(Path(scene.path))
+    return [Camera(K, R, t, W, H) for K, R, t in cams.values()], list(cams)
+
+
+def run_refine(args: argparse.Namespace) -> int:
+    """``autoalign refine``: see ``autoalign refine --help``."""
+    t_start = time.perf_counter()
+    click = None
+    if args.click is not None:
+        from autoalign.seeding import Click
+
+        click = Click.parse(args.click)
+    out = Path(args.out)
+    created = prepare_out_dir(out)
+    try:
+        return _refine_into(args, out, click, t_start)
+    except BaseException:
+        _remove_empty_dirs(created)
+        raise
+
+
+def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float) -> int:
+    import numpy as np
+
+    from autoalign.bop import read_init_pose, read_scene, scene_gt_dict
+    from autoalign.mesh import load_mesh
+
+    scene = read_scene(args.scene, args.instance)
+    mesh = load_mesh(args.model)
+    seed: Any = None
+    seed_info: dict[str, Any] = {"kind": "hull", "init_file": None, "click": None, "pose": None}
+    if args.init is not None:
+        seed = read_init_pose(args.init, scene, args.obj_id, args.instance)
+        seed_info.update(kind="init", init_file=str(Path(args.init).absolute()), pose=_pose(seed))
+    elif click is not None:
+        from autoalign.seeding import click_centre
+
+        click_centre(scene, click, mesh.diameter)  # fail now, not after loading the renderer
+        seed = click
+        seed_info.update(kind="click", click={"image_id": click.image_id, "u": click.u, "v": click.v})
+
+    from autoalign.engine import RefineOptions, refine
+    from autoalign.overlay import encode_png, render_overlay
+    from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+    from autoalign.se3 import rotation_angle_deg, transform_points
+
+    options = RefineOptions(loss=args.loss, optimizer=args.optimizer, robust=not args.no_robust)
+    progress = _Progress(enabled=not args.quiet)
+    progress.start("loading the renderer" if seed_info["kind"] == "init" else "seeding")
+    try:
+        result = refine(scene, mesh, seed, options, progress=progress)
+        progress("overlay", 0, 1)
+        t0 = time.perf_counter()
+        overlay = render_overlay(scene, mesh, result.T_init, result.T_wm, result.iou_after,
+                                 rasterizer=SoftSilhouetteRasterizer(mesh))
+        progress("overlay", 1, 1)
+    finally:
+        progress.close()
+    t_overlay = time.perf_counter() - t0
+
+    # ---------------------------------------------------------------- compose outputs in memory
+    ids = [int(i) for i in result.image_ids or scene.image_ids]
+    iou_b, iou_a = np.asarray(result.iou_before, float), np.asarray(result.iou_after, float)
+    weights = np.asarray(result.weights, float)
+    low = [(i, float(w), float(a)) for i, w, a in zip(ids, weights, iou_a)
+           if w < LOW_WEIGHT and a < LOW_WEIGHT_MAX_IOU]
+    runner = None
+    if result.runner_up is not None:
+        Ru = np.asarray(result.runner_up.T_final, float)
+        c = mesh.centre[None]
+        runner = {"pose": _pose(Ru), "loss": result.runner_up.loss, "mean_iou": result.runner_up.mean_iou,
+                  "stage": result.runner_up.stage,
+                  "rotation_deg": rotation_angle_deg(result.T_wm[:3, :3], Ru[:3, :3]),
+                  "translation_mm": float(np.linalg.norm(transform_points(result.T_wm, c) - transform_points(Ru, c)))}
+    all_cams, all_ids = _all_cameras(scene)
+    scene_gt = scene_gt_dict(result.T_wm, all_cams, all_ids, args.obj_id)
+    cam0 = scene.cameras[0]
+    T_cm = cam0.T_cw @ result.T_wm
+    first = {"image_id": ids[0], "cam_R_m2c": _floats(T_cm[:3, :3].ravel()), "cam_t_m2c": _floats(T_cm[:3, 3])}
+    timings = dict(result.timings)
+    timings["overlay"] = t_overlay
+    report = {
+        "autoalign_version": __version__,
+        "scene_dir": str(Path(args.scene).absolute()),
+        "model": str(Path(args.model).absolute()),
+        "obj_id": args.obj_id,
+        "instance": args.instance,
+        "units": "mm; poses are world-from-model, world = the frame of scene_camera.json",
+        "pose": _pose(result.T_wm),
+        "pose_first_camera": first,
+        "pose_before": _pose(result.T_init),
+        "seed": seed_info,
+        "image_ids": ids,
+        "iou_before": iou_b,
+        "iou_after": iou_a,
+        "weights": weights,
+        "mean_iou_before": float(iou_b.mean()), "mean_iou_after": float(iou_a.mean()),
+        "min_iou_before": float(iou_b.min()), "min_iou_after": float(iou_a.min()),
+        "low_weight_ids": [i for i, _, _ in low],
+        "skipped": [int(i) for i in scene.skipped],
+        "iterations": result.iterations,
+        "renders": result.renders,
+        "timings": timings,
+        "hypotheses": [{"rank": k, "stage": h.stage, "loss": h.loss, "mean_iou": h.mean_iou,
+                        "pose_init": _pose(h.T_init), "pose": _pose(h.T_final)}
+                       for k, h in enumerate(result.hypotheses)],
+        "ambiguous": bool(result.ambiguous),
+        "runner_up": runner,
+        "options": options,
+        "history": result.history,
+        "outputs": {"scene_gt": "scene_gt.json", "refine": "refine.json", "overlay": "overlay.png"},
+    }
+    files = {
+        "scene_gt.json": json.dumps(_jsonable(scene_gt), indent=1).encode(),
+        "refine.json": json.dumps(_jsonable(report), indent=1, allow_nan=False).encode(),
+        "overlay.png": encode_png(overlay),
+    }
+    paths = write_files_atomic(out, files)
+    elapsed = time.perf_counter() - t_start
+
+    # ---------------------------------------------------------------- report
+    if args.json:
+        summary = {
+            "pose": report["pose"], "pose_first_camera": first,
+            "mean_iou_before": report["mean_iou_before"], "mean_iou_after": report["mean_iou_after"],
+            "min_iou_after": report["min_iou_after"], "time_s": elapsed, "ambiguous": report["ambiguous"],
+            "low_weight_ids": report["low_weight_ids"], "out_dir": str(out.absolute()),
+            "outputs": {"scene_gt": str(paths["scene_gt.json"].absolute()),
+                        "refine": str(paths["refine.json"].absolute()),
+                        "overlay": str(paths["overlay.png"].absolute())},
+        }
+        print(json.dumps(_jsonable(summary), allow_nan=False), flush=True)
+    elif not args.quiet:
+        R = T_cm[:3, :3]
+        rows = "\n".join("    [" + ", ".join(f"{x:+.6f}" for x in r) + "]" for r in R)
+        print(f"pose of obj {args.obj_id} in the camera of image {ids[0]} (model to camera):\n"
+              f"  cam_R_m2c =\n{rows}\n"
+              f"  cam_t_m2c = [{', '.join(f'{x:.2f}' for x in T_cm[:3, 3])}] mm\n"
+              f"IoU over {len(ids)} views: mean {iou_b.mean():.3f} -> {iou_a.mean():.3f}, "
+              f"min {iou_b.min():.3f} -> {iou_a.min():.3f} (image {ids[int(np.argmin(iou_a))]})\n"
+              f"time {elapsed:.1f} s ({result.iterations} iterations, {result.renders} renders)\n"
+              f"wrote {', '.join(OUTPUT_FILES)} to {out}", flush=True)
+    if result.ambiguous and runner is not None:
+        _warn(f"ambiguous: another pose ({runner['rotation_deg']:.1f} deg, {runner['translation_mm']:.1f} mm away) "
+              f"fits almost as well (loss {result.runner_up.loss:.4g} vs {result.hypotheses[0].loss:.4g}); "
+              "the object may be symmetric in these views; check overlay.png and 'runner_up' in refine.json")
+    if low:
+        _warn("views with low weight (their masks disagree with the others): image ids "
+              + ", ".join(f"{i} (IoU {a:.2f})" for i, _, a in low) + "; check those masks")
+    if scene.skipped:
+        _warn(f"{len(scene.skipped)} image(s) without a mask were skipped: ids "
+              + ", ".join(str(i) for i in scene.skipped[:20]) + (" ..." if len(scene.skipped) > 20 else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

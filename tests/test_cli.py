@@ -1,0 +1,482 @@
+"""Tests of the ``autoalign`` command line: one-line errors for user mistakes, help, outputs, start-up.
+
+A small synthetic scene (12 views, 320x240, fx = fy = 300, an asymmetric procedural bracket) is
+ray-cast once per session with open3d; the bad inputs are variants of it.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from autoalign.bop import scene_gt_dict, write_json_atomic
+from autoalign.cli.main import OUTPUT_FILES, main
+from autoalign.experiments.procedural_models import procedural_models
+from autoalign.experiments.synthetic import (
+    default_K, perturb_pose, random_rotation, sphere_cameras, translate_mask, write_synthetic_scene,
+)
+from autoalign.mesh import load_mesh
+from autoalign.se3 import make_pose, rotation_angle_deg
+
+N_VIEWS, W, H, F = 12, 320, 240, 300.0
+ERROR_PREFIX = "autoalign: error:"
+
+
+# --------------------------------------------------------------------------------------------
+# Fixtures
+# --------------------------------------------------------------------------------------------
+
+class Data:
+    """Paths of the session's synthetic scene and its true pose."""
+
+    root: Path
+    scene: Path
+    model: Path
+    init: Path
+    T_true: np.ndarray
+    T_init: np.ndarray
+
+
+@pytest.fixture(scope="session")
+def data(tmp_path_factory) -> Data:
+    root = tmp_path_factory.mktemp("cli")
+    pm = next(m for m in procedural_models() if m.name == "l_bracket")
+    assert pm.symmetry == "none"
+    d = Data()
+    d.root = root
+    d.model = root / "obj_000001.ply"
+    pm.mesh.export(str(d.model))
+    mesh = load_mesh(d.model)
+    rng = np.random.default_rng(7)
+    d.T_true = make_pose(random_rotation(rng), [4.0, -3.0, 2.0])
+    cams = sphere_cameras(N_VIEWS, rng, dist_range=(350.0, 500.0), K=default_K(W, H, F), width=W, height=H)
+    d.scene = root / "scene"
+    write_synthetic_scene(d.scene, mesh, d.T_true, cams)
+    d.T_init = perturb_pose(d.T_true, 5.0, 10.0, rng, centre=mesh.centre)
+    d.init = root / "coarse_scene_gt.json"
+    write_json_atomic(d.init, scene_gt_dict(d.T_init, cams, list(range(N_VIEWS))))
+    return d
+
+
+def _copy_scene(data: Data, tmp_path: Path) -> Path:
+    dst = tmp_path / "scene"
+    shutil.copytree(data.scene, dst)
+    return dst
+
+
+def _mask(scene: Path, im: int) -> Path:
+    return scene / "mask_visib" / f"{im:06d}_000000.png"
+
+
+def _no_outputs(out: Path) -> bool:
+    return not any((out / name).exists() for name in OUTPUT_FILES) and not (
+        out.is_dir() and any(p.name.endswith(".tmp") for p in out.iterdir()))
+
+
+# --------------------------------------------------------------------------------------------
+# Bad inputs: exit code 2, one line naming the file/option, no traceback, no outputs
+# --------------------------------------------------------------------------------------------
+
+def _bad_scene_camera_missing(d, tmp):
+    s = _copy_scene(d, tmp)
+    (s / "scene_camera.json").unlink()
+    return {"scene": s}, "scene_camera.json"
+
+
+def _bad_camera_without_R(d, tmp):
+    s = _copy_scene(d, tmp)
+    cams = json.loads((s / "scene_camera.json").read_text())
+    del cams["3"]["cam_R_w2c"]
+    (s / "scene_camera.json").write_text(json.dumps(cams))
+    return {"scene": s}, "cam_R_w2c"
+
+
+def _bad_mask_size(d, tmp):
+    s = _copy_scene(d, tmp)
+    m = cv2.imread(str(_mask(s, 5)), cv2.IMREAD_GRAYSCALE)
+    cv2.imwrite(str(_mask(s, 5)), cv2.resize(m, (W // 2, H // 2)))
+    return {"scene": s}, "000005_000000.png"
+
+
+def _bad_masks_all_empty(d, tmp):
+    s = _copy_scene(d, tmp)
+    for im in range(N_VIEWS):
+        cv2.imwrite(str(_mask(s, im)), np.zeros((H, W), np.uint8))
+    return {"scene": s}, "mask_visib"
+
+
+def _bad_scene_dir_missing(d, tmp):
+    return {"scene": tmp / "no_such_scene"}, "no_such_scene"
+
+
+def _bad_mesh_missing(d, tmp):
+    return {"model": tmp / "missing.ply"}, "missing.ply"
+
+
+def _bad_mesh_garbage(d, tmp):
+    p = tmp / "garbage.ply"
+    p.write_bytes(b"\x00\x01 this is not a mesh \xff" * 20)
+    return {"model": p}, "garbage.ply"
+
+
+def _bad_mesh_vertices_only(d, tmp):
+    p = tmp / "points.ply"
+    p.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                 "end_header\n0 0 0\n10 0 0\n0 10 0\n")
+    return {"model": p}, "points.ply"
+
+
+def _bad_mesh_zero_faces(d, tmp):
+    p = tmp / "nofaces.ply"
+    p.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                 "element face 0\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n10 0 0\n0 10 0\n")
+    return {"model": p}, "nofaces.ply"
+
+
+def _bad_mesh_empty_file(d, tmp):
+    p = tmp / "empty.obj"
+    p.write_text("")
+    return {"model": p}, "empty.obj"
+
+
+def _bad_click_outside(d, tmp):
+    return {"seed": ["--click", f"0:{W + 5},10"]}, "--click"
+
+
+def _bad_click_off_masks(d, tmp):
+    return {"seed": ["--click", "0:1.5,1.5"]}, "--click"
+
+
+def _bad_click_syntax(d, tmp):
+    return {"seed": ["--click", "0-12-14"]}, "--click"
+
+
+def _bad_click_unknown_image(d, tmp):
+    return {"seed": ["--click", "99:100,100"]}, "--click"
+
+
+def _write_init(tmp, content) -> Path:
+    p = tmp / "init_gt.json"
+    p.write_text(json.dumps(content) if not isinstance(content, str) else content)
+    return p
+
+
+def _bad_init_list(d, tmp):
+    return {"seed": ["--init", str(_write_init(tmp, [1, 2, 3]))]}, "init_gt.json"
+
+
+def _bad_init_no_t(d, tmp):
+    gt = json.loads(d.init.read_text())
+    for v in gt.values():
+        del v[0]["cam_t_m2c"]
+    return {"seed": ["--init", str(_write_init(tmp, gt))]}, "init_gt.json"
+
+
+def _bad_init_8_numbers(d, tmp):
+    gt = json.loads(d.init.read_text())
+    for v in gt.values():
+        v[0]["cam_R_m2c"] = v[0]["cam_R_m2c"][:8]
+    return {"seed": ["--init", str(_write_init(tmp, gt))]}, "init_gt.json"
+
+
+def _bad_init_not_json(d, tmp):
+    return {"seed": ["--init", str(_write_init(tmp, "{not json"))]}, "init_gt.json"
+
+
+def _bad_init_missing(d, tmp):
+    return {"seed": ["--init", str(tmp / "nope_gt.json")]}, "nope_gt.json"
+
+
+def _bad_out_is_file(d, tmp):
+    out = tmp / "out_file"
+    out.write_text("I am a file")
+    return {"out": out}, "--out"
+
+
+def _bad_out_parent_is_file(d, tmp):
+    parent = tmp / "regular_file"
+    parent.write_text("I am a file")
+    return {"out": parent / "sub" / "out"}, "--out"
+
+
+def _bad_init_and_click(d, tmp):
+    return {"seed": ["--init", str(d.init), "--click", "0:160,120"]}, "--click"
+
+
+def _bad_loss(d, tmp):
+    return {"seed": ["--loss", "l3"]}, "--loss"
+
+
+def _bad_optimizer(d, tmp):
+    return {"seed": ["--optimizer", "sgd"]}, "--optimizer"
+
+
+def _bad_instance(d, tmp):
+    return {"seed": ["--instance", "-1"]}, "--instance"
+
+
+def _bad_missing_model(d, tmp):
+    return {"model": None}, "--model"
+
+
+def _bad_missing_instance_masks(d, tmp):
+    return {"seed": ["--instance", "3"]}, "--instance"
+
+
+BAD_INPUTS = {name[5:]: fn for name, fn in dict(globals()).items() if name.startswith("_bad_")}
+
+
+def _argv(data: Data, tmp: Path, spec: dict) -> tuple[list[str], Path]:
+    out = spec.get("out", tmp / "out")
+    argv = ["refine", str(spec.get("scene", data.scene)), "--out", str(out)]
+    model = spec.get("model", data.model)
+    if model is not None:
+        argv += ["--model", str(model)]
+    argv += spec.get("seed", ["--init", str(data.init)])
+    return argv, Path(out)
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUTS))
+def test_bad_input_gives_one_line_error(case, data, tmp_path, capsys):
+    spec, token = BAD_INPUTS[case](data, tmp_path)
+    argv, out = _argv(data, tmp_path, spec)
+    rc = main(argv)
+    cap = capsys.readouterr()
+    lines = cap.err.splitlines()
+    assert rc == 2, cap.err
+    assert len(lines) == 1, cap.err
+    assert lines[0].startswith(ERROR_PREFIX)
+    assert token in lines[0], lines[0]
+    assert "Traceback" not in cap.err
+    assert cap.out == ""
+    assert _no_outputs(out)
+    if case != "out_is_file":
+        assert not out.exists(), "a folder created for a failed run should be removed"
+
+
+@pytest.mark.parametrize("case", ["scene_camera_missing", "mesh_garbage", "init_and_click"])
+def test_bad_input_subprocess(case, data, tmp_path):
+    """The same in a real process: exit status 2 and exactly one line on stderr."""
+    spec, token = BAD_INPUTS[case](data, tmp_path)
+    argv, out = _argv(data, tmp_path, spec)
+    p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", *argv], capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 2, p.stderr
+    lines = p.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(ERROR_PREFIX) and token in lines[0], p.stderr
+    assert p.stdout == ""
+    assert _no_outputs(out) and not out.exists()
+
+
+def test_no_command_is_an_error(capsys):
+    assert main([]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith(ERROR_PREFIX)
+
+
+def test_internal_error_keeps_traceback_and_leaves_nothing(data, tmp_path, monkeypatch):
+    """A bug (not a user mistake) propagates as an exception; the run's outputs and folder are removed."""
+    import autoalign.engine
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("engine bug")
+
+    monkeypatch.setattr(autoalign.engine, "refine", broken)
+    out = tmp_path / "a" / "out"
+    with pytest.raises(RuntimeError, match="engine bug"):
+        main(["refine", str(data.scene), "--model", str(data.model), "--out", str(out), "--init", str(data.init),
+              "--quiet"])
+    assert not (tmp_path / "a").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# Help, version, start-up
+# --------------------------------------------------------------------------------------------
+
+REFINE_OPTIONS = ["SCENE_DIR", "--model", "--out", "--obj-id", "--instance", "--init", "--click", "--loss",
+                  "--optimizer", "--no-robust", "--quiet", "--json"]
+
+
+def test_help_mentions_every_option(capsys):
+    assert main(["refine", "--help"]) == 0
+    text = capsys.readouterr().out
+    for opt in REFINE_OPTIONS:
+        assert opt in text, opt
+    for word in ("mm", "scene_gt.json", "refine.json", "overlay.png", "cam_R_m2c", "cam_t_m2c", "+0.5",
+                 "default", "l2", "bce", "iou", "dice", "lm", "gn", "adam"):
+        assert word in text, word
+    assert main(["--help"]) == 0
+    assert "refine" in capsys.readouterr().out
+
+
+def test_version(capsys):
+    import autoalign
+
+    assert main(["--version"]) == 0
+    assert autoalign.__version__ in capsys.readouterr().out
+
+
+def test_startup_imports_no_heavy_modules():
+    code = (
+        "import contextlib, io, json, sys\n"
+        "import autoalign.cli.main as m\n"
+        "with contextlib.redirect_stdout(io.StringIO()):\n"
+        "    rcs = [m.main(['--help']), m.main(['refine', '--help'])]\n"
+        "heavy = sorted(k for k in sys.modules if k.split('.')[0] in ('torch', 'jax', 'jaxlib', 'mitsuba', 'drjit')\n"
+        "               or k in ('autoalign.engine', 'autoalign.rasterizers.soft_silhouette'))\n"
+        "print(json.dumps({'rcs': rcs, 'heavy': heavy}))\n"
+    )
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    res = json.loads(p.stdout.strip().splitlines()[-1])
+    assert res == {"rcs": [0, 0], "heavy": []}
+
+
+def test_simulate_subcommand_registered_when_available(monkeypatch, capsys):
+    import types
+
+    import autoalign.experiments
+
+    fake = types.ModuleType("autoalign.experiments.simulate")
+
+    def add_simulate_parser(subparsers):
+        p = subparsers.add_parser("simulate", help="fake simulate")
+        p.add_argument("--n", type=int, default=1)
+        p.set_defaults(func=lambda args: 0 if args.n == 3 else 1)
+
+    fake.add_simulate_parser = add_simulate_parser
+    monkeypatch.setitem(sys.modules, "autoalign.experiments.simulate", fake)
+    monkeypatch.setattr(autoalign.experiments, "simulate", fake, raising=False)
+    assert main(["simulate", "--n", "3"]) == 0
+    assert main(["simulate", "--n", "x"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith(ERROR_PREFIX) and "--n" in err[0]
+
+
+# --------------------------------------------------------------------------------------------
+# Successful runs
+# --------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def json_run(data):
+    """One real ``autoalign refine --init ... --json`` run (progress bar on stderr)."""
+    out = data.root / "out_json"
+    p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", str(data.scene), "--model",
+                        str(data.model), "--out", str(out), "--init", str(data.init), "--json"],
+                       capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr
+    return p, out
+
+
+def test_refine_writes_valid_scene_gt(json_run, data):
+    _, out = json_run
+    gt = json.loads((out / "scene_gt.json").read_text())
+    true = json.loads((data.scene / "scene_gt.json").read_text())
+    assert sorted(gt, key=int) == [str(i) for i in range(N_VIEWS)]
+    for im, entries in gt.items():
+        assert len(entries) == 1
+        e = entries[0]
+        assert e["obj_id"] == 1
+        R = np.array(e["cam_R_m2c"], dtype=float).reshape(3, 3)
+        t = np.array(e["cam_t_m2c"], dtype=float)
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) == pytest.approx(1.0, abs=1e-6)
+        R0 = np.array(true[im][0]["cam_R_m2c"]).reshape(3, 3)
+        t0 = np.array(true[im][0]["cam_t_m2c"])
+        assert rotation_angle_deg(R, R0) < 1.0
+        assert np.linalg.norm(t - t0) < 1.0
+
+
+def test_refine_json_report(json_run, data):
+    _, out = json_run
+    r = json.loads((out / "refine.json").read_text())
+    for key in ("autoalign_version", "pose", "pose_before", "seed", "image_ids", "iou_before", "iou_after",
+                "weights", "iterations", "renders", "timings", "hypotheses", "ambiguous", "runner_up", "options",
+                "skipped", "mean_iou_before", "mean_iou_after", "low_weight_ids"):
+        assert key in r, key
+    T = np.array(r["pose"]["T_wm"])
+    assert T.shape == (4, 4)
+    assert np.allclose(np.array(r["pose"]["R"]).reshape(3, 3), T[:3, :3])
+    assert np.allclose(r["pose"]["t"], T[:3, 3])
+    assert np.linalg.norm(T[:3, 3] - data.T_true[:3, 3]) < 1.0
+    assert rotation_angle_deg(T[:3, :3], data.T_true[:3, :3]) < 1.0
+    assert np.allclose(r["pose_before"]["T_wm"], data.T_init, atol=1e-6)
+    assert r["seed"]["kind"] == "init"
+    assert r["image_ids"] == list(range(N_VIEWS))
+    assert len(r["iou_before"]) == len(r["iou_after"]) == len(r["weights"]) == N_VIEWS
+    assert min(r["iou_after"]) > 0.97 and r["mean_iou_after"] > r["mean_iou_before"]
+    assert r["ambiguous"] is False and r["skipped"] == [] and r["low_weight_ids"] == []
+    assert r["iterations"] > 0 and r["renders"] > 0 and r["timings"]["total"] > 0
+    assert len(r["hypotheses"]) >= 1
+    h = r["hypotheses"][0]
+    assert {"stage", "loss", "mean_iou", "pose", "pose_init"} <= set(h)
+    assert np.allclose(h["pose"]["T_wm"], T)
+    assert r["options"]["loss"] == "l2" and r["options"]["optimizer"] == "lm" and r["options"]["robust"] is True
+    import autoalign
+
+    assert r["autoalign_version"] == autoalign.__version__
+
+
+def test_overlay_png(json_run):
+    from autoalign.overlay import GAP, LEGEND_H, TILE_H, TILE_W
+
+    _, out = json_run
+    img = cv2.imread(str(out / "overlay.png"), cv2.IMREAD_COLOR)
+    assert img is not None
+    assert img.shape == (LEGEND_H + 3 * TILE_H + 4 * GAP, 4 * TILE_W + 5 * GAP, 3)
+    # red (before) and green (after) outlines are drawn
+    b, g, r = (img[..., c].astype(int) for c in range(3))
+    assert ((r > 180) & (g < 100) & (b < 100)).sum() > 500
+    assert ((g > 150) & (r < 100) & (b < 100)).sum() > 500
+
+
+def test_json_stdout(json_run):
+    p, out = json_run
+    lines = p.stdout.splitlines()
+    assert len(lines) == 1
+    s = json.loads(lines[0])
+    assert s["mean_iou_after"] > s["mean_iou_before"]
+    assert s["ambiguous"] is False and s["time_s"] > 0
+    assert np.array(s["pose"]["T_wm"]).shape == (4, 4)
+    for key, name in (("scene_gt", "scene_gt.json"), ("refine", "refine.json"), ("overlay", "overlay.png")):
+        assert Path(s["outputs"][key]) == (out / name).absolute()
+    assert not [q for q in out.iterdir() if q.name.endswith(".tmp")]
+
+
+def test_human_summary_and_skipped_view(data, tmp_path, capsys):
+    scene = _copy_scene(data, tmp_path)
+    _mask(scene, 11).unlink()
+    out = tmp_path / "out"
+    rc = main(["refine", str(scene), "--model", str(data.model), "--out", str(out), "--init", str(data.init)])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    assert "IoU over 11 views" in cap.out and str(out) in cap.out and "cam_t_m2c" in cap.out
+    warn = [ln for ln in cap.err.replace("\r", "\n").splitlines() if ln.startswith("autoalign: warning:")]
+    assert len(warn) == 1 and "skipped" in warn[0] and "11" in warn[0]
+    gt = json.loads((out / "scene_gt.json").read_text())
+    assert len(gt) == N_VIEWS  # every image of scene_camera.json, also the one without a mask
+    r = json.loads((out / "refine.json").read_text())
+    assert r["skipped"] == [11] and r["image_ids"] == list(range(11))
+
+
+def test_quiet_run_warns_about_a_bad_mask(data, tmp_path, capsys):
+    scene = _copy_scene(data, tmp_path)
+    m = cv2.imread(str(_mask(scene, 4)), cv2.IMREAD_GRAYSCALE) > 127
+    cv2.imwrite(str(_mask(scene, 4)), translate_mask(m, 25, 0).astype(np.uint8) * 255)
+    out = tmp_path / "out"
+    rc = main(["refine", str(scene), "--model", str(data.model), "--out", str(out), "--init", str(data.init),
+               "--quiet"])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    assert cap.out == ""
+    lines = cap.err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("autoalign: warning:") and "low weight" in lines[0], cap.err
+    assert "4 (IoU" in lines[0]
+    r = json.loads((out / "refine.json").read_text())
+    assert r["low_weight_ids"] == [4]
