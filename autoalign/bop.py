@@ -150,7 +150,7 @@ def read_init_pose(path: str | Path, scene: Scene, obj_id: int = 1, instance: in
     ``instance``-th entry with ``obj_id`` (or the ``instance``-th entry if none has that id).
     """
     path = Path(path)
-    fix = 'it must map image ids to lists of {"obj_id", "cam_R_m2c": 9 numbers, "cam_t_m2c": 3 numbers (mm)}'
+    fix = 'an --init file must map image ids to lists of {"obj_id", "cam_R_m2c": 9 numbers, "cam_t_m2c": 3 numbers (mm)}'
     data = _read_json(path, "pass an existing BOP scene_gt.json to --init")
     if not isinstance(data, dict) or not data:
         raise AutoalignError(f"{path}: wrong shape for --init; {fix}")

@@ -43,6 +43,8 @@ class RefineOptions:
         n_final: best distinct ones of those refined through the rest of the schedule.
         search_level: the cheap level of the hypothesis search.
         ambiguity_tol: runner-up within this relative loss of the winner (and at another pose) means ambiguous.
+        competitive: a distinct hypothesis is refined to full resolution only if its loss after the
+            first schedule level is within this factor of the best one's.
     """
 
     loss: str = "l2"
@@ -55,6 +57,7 @@ class RefineOptions:
     n_final: int = 2
     search_level: Level = Level(0.125, 1.0, 20)
     ambiguity_tol: float = 0.05
+    competitive: float = 1.5
 
 
 @dataclass(eq=False)
@@ -196,7 +199,10 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
                 if len(pool) < keep and all(_differs(h.T_final, f.T_final, mesh.centre) for f in pool):
                     pool.append(h)
             hyps.extend(h for h in done if h not in pool)
-        finalists = pool
+        # A distinct runner-up is carried to full resolution only while it is competitive:
+        # ambiguity is judged on final losses, but a clearly worse pose need not be polished.
+        finalists = [h for h in pool if h.loss <= pool[0].loss * opts.competitive + 1e-4]
+        hyps.extend(h for h in pool if h not in finalists)
         rest = levels[1:]
     else:
         finalists = [Hypothesis(starts[0], starts[0], float("nan"), float("nan"), "seed")]

@@ -98,6 +98,8 @@ def load_mesh(path: str | Path, name: str | None = None) -> Mesh:
     Warns when the extents suggest the file is in metres (largest side under 2 units).
     """
     path = Path(path)
+    if path.is_dir():
+        raise AutoalignError(f"{path}: is a folder, not a mesh file; pass the mesh file itself to --model")
     if not path.is_file():
         raise AutoalignError(f"{path}: mesh file not found; pass an existing file to --model")
     try:

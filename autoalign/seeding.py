@@ -92,11 +92,15 @@ def hull_centre(scene: Scene, diameter: float, grid: int = 40, min_fraction: flo
     return centre
 
 
-def click_centre(scene: Scene, click: Click, diameter: float, samples: int = 4000) -> NDArray[np.float64]:
-    """Object centre (mm, world) on the ray of a click: the middle of the depths seen inside the most masks.
+CLICK_TOLERANCE_PX = 5.0  # a click may be this far (pixels) outside the mask of its own image
 
-    Raises :class:`AutoalignError` when the click is outside its image, names an unknown image,
-    or its ray falls inside no mask at all.
+
+def check_click(scene: Scene, click: Click, tol_px: float = CLICK_TOLERANCE_PX) -> None:
+    """Raise :class:`AutoalignError` unless ``click`` is in a view, inside its image and on (or within
+    ``tol_px`` of) that image's mask. An empty mask in the clicked view is not held against the click.
+
+    (A click off the object can still have a ray through other views' masks; it would seed a wrong
+    position, so it is refused.)
     """
     if click.image_id not in scene.image_ids:
         raise AutoalignError(f"--click {click.image_id}:...: image {click.image_id} is not a view of the scene "
@@ -106,6 +110,23 @@ def click_centre(scene: Scene, click: Click, diameter: float, samples: int = 400
     if not (0 <= click.u < cam.width and 0 <= click.v < cam.height):
         raise AutoalignError(f"--click {click.image_id}:{click.u:g},{click.v:g}: outside the {cam.width}x{cam.height} "
                              "image; give pixel coordinates inside it")
+    ys, xs = np.nonzero(np.asarray(scene.masks[k]) > 0.5)
+    if len(xs) == 0:
+        return
+    d = float(np.sqrt(((xs + 0.5 - click.u) ** 2 + (ys + 0.5 - click.v) ** 2).min()))
+    if d > tol_px:
+        raise AutoalignError(f"--click {click.image_id}:{click.u:g},{click.v:g}: not on the object's mask in image "
+                             f"{click.image_id} (the nearest mask pixel is {d:.0f} px away); click on the object")
+
+
+def click_centre(scene: Scene, click: Click, diameter: float, samples: int = 4000) -> NDArray[np.float64]:
+    """Object centre (mm, world) on the ray of a click: the middle of the depths seen inside the most masks.
+
+    Raises :class:`AutoalignError` when the click is outside its image, names an unknown image,
+    is off the mask of its image (see :func:`check_click`) or its ray falls inside no mask at all.
+    """
+    check_click(scene, click)
+    cam = scene.cameras[scene.image_ids.index(click.image_id)]
     d = cam.ray_directions(np.array([[click.u, click.v]]))[0]
     dist = np.linalg.norm(np.array([c.centre for c in scene.cameras]) - cam.centre, axis=1)
     far = max(float(dist.max()), 10.0 * diameter) * 2.0

@@ -27,6 +27,7 @@ PROG = "autoalign"
 OUTPUT_FILES = ("scene_gt.json", "refine.json", "overlay.png")
 LOW_WEIGHT = 0.3  # a view whose robust weight (mean 1) ends below this ...
 LOW_WEIGHT_MAX_IOU = 0.95  # ... and whose IoU after stays below this is reported as disagreeing
+POOR_FIT_IOU = 0.7  # a mean IoU after refinement below this is reported as a poor fit
 
 
 class UsageError(Exception):
@@ -78,13 +79,14 @@ outputs (written into OUT_DIR, replacing files of the same name; if the run fail
   scene_gt.json  BOP ground truth: for every image of scene_camera.json a list with one entry
                  {"obj_id": K, "cam_R_m2c": 9 numbers (row-major), "cam_t_m2c": 3 numbers (mm)}
   refine.json    the world-from-model pose ("pose": T_wm 4x4, R 9, t 3 mm; world = the frame of
-                 scene_camera.json), the seed, per-view IoU before/after and robust weights with
-                 their image ids, iterations, renders, timings (s), every hypothesis tried (stage,
-                 loss, mean IoU, poses), "ambiguous" and "runner_up" (pose, loss, rotation_deg and
-                 translation_mm from the winner), the options, the version and skipped image ids
+                 scene_camera.json), the seed, per-view IoU before/after and robust weights
+                 (mean 1; low = the view's mask disagrees with the others) with their image ids,
+                 iterations, renders, timings (s), every hypothesis tried (stage, loss, mean IoU,
+                 poses), "ambiguous" and "runner_up" (pose, loss, rotation_deg and translation_mm
+                 from the winner), the options, the version, skipped image ids and warnings
   overlay.png    up to 12 views (always the worst-fitting one), zoomed on the object: the target
                  mask in grey, the silhouette outline before (red) and after (green) refinement,
-                 with image id and IoU after
+                 with image id and IoU before -> after
 
 examples:
   autoalign refine scenes/000001 --model models/obj_000001.ply --out labels/000001 --init coarse/scene_gt.json
@@ -159,7 +161,7 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
                      help="no progress bar and no summary; only warnings and errors, on stderr")
     out.add_argument("--json", action="store_true",
                      help="print one JSON object on stdout (pose, mean IoU before/after, time, ambiguous, "
-                          "output paths) and nothing else there")
+                          "warnings, output paths) and nothing else there")
     p.set_defaults(func=run_refine)
     return p
 
@@ -192,7 +194,11 @@ def _error(message: str) -> None:
     print(f"{PROG}: error: {_one_line(message)}", file=sys.stderr, flush=True)
 
 
+_WARNINGS: list[str] = []  # the warnings of the current run (also written to refine.json)
+
+
 def _warn(message: str) -> None:
+    _WARNINGS.append(_one_line(message))
     print(f"{PROG}: warning: {_one_line(message)}", file=sys.stderr, flush=True)
 
 
@@ -203,6 +209,7 @@ def _show_warning(message: Warning | str, category: type[Warning], filename: str
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 ok, 2 usage/input error)."""
+    _WARNINGS.clear()
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -401,7 +408,7 @@ def run_refine(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     click = None
     if args.click is not None:
-        from autoalign.seeding import Click
+        from autoalign.seeding import Click, check_click
 
         click = Click.parse(args.click)
     out = Path(args.out)
@@ -430,6 +437,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
         from autoalign.seeding import click_centre
 
         click_centre(scene, click, mesh.diameter)  # fail now, not after loading the renderer
+        check_click(scene, click)  # fail before the slow start-up of the renderer
         seed = click
         seed_info.update(kind="click", click={"image_id": click.image_id, "u": click.u, "v": click.v})
 
@@ -471,6 +479,20 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
     cam0 = scene.cameras[0]
     T_cm = cam0.T_cw @ result.T_wm
     first = {"image_id": ids[0], "cam_R_m2c": _floats(T_cm[:3, :3].ravel()), "cam_t_m2c": _floats(T_cm[:3, 3])}
+    notes = []
+    if result.ambiguous and runner is not None:
+        notes.append(f"ambiguous: another pose ({runner['rotation_deg']:.1f} deg, {runner['translation_mm']:.1f} mm "
+                     f"away) fits almost as well (loss {result.runner_up.loss:.4g} vs {result.hypotheses[0].loss:.4g}); "
+                     "the object may be symmetric in these views; check overlay.png and 'runner_up' in refine.json")
+    if low:
+        notes.append("views with low weight (their masks disagree with the others): image ids "
+                     + ", ".join(f"{i} (IoU {a:.2f})" for i, _, a in low) + "; check those masks")
+    if iou_a.mean() < POOR_FIT_IOU:
+        notes.append(f"poor fit: mean IoU after refinement is only {iou_a.mean():.2f}; check the model's units (mm), "
+                     "the starting pose and the masks (see overlay.png)")
+    if scene.skipped:
+        notes.append(f"{len(scene.skipped)} image(s) without a mask were skipped: ids "
+                     + ", ".join(str(i) for i in scene.skipped[:20]) + (" ..." if len(scene.skipped) > 20 else ""))
     timings = dict(result.timings)
     timings["overlay"] = t_overlay
     report = {
@@ -503,6 +525,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
         "options": options,
         "history": result.history,
         "outputs": {"scene_gt": "scene_gt.json", "refine": "refine.json", "overlay": "overlay.png"},
+        "warnings": list(_WARNINGS) + [_one_line(n) for n in notes],
     }
     files = {
         "scene_gt.json": json.dumps(_jsonable(scene_gt), indent=1).encode(),
@@ -518,7 +541,8 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
             "pose": report["pose"], "pose_first_camera": first,
             "mean_iou_before": report["mean_iou_before"], "mean_iou_after": report["mean_iou_after"],
             "min_iou_after": report["min_iou_after"], "time_s": elapsed, "ambiguous": report["ambiguous"],
-            "low_weight_ids": report["low_weight_ids"], "out_dir": str(out.absolute()),
+            "low_weight_ids": report["low_weight_ids"], "warnings": report["warnings"],
+            "out_dir": str(out.absolute()),
             "outputs": {"scene_gt": str(paths["scene_gt.json"].absolute()),
                         "refine": str(paths["refine.json"].absolute()),
                         "overlay": str(paths["overlay.png"].absolute())},
@@ -534,16 +558,8 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
               f"min {iou_b.min():.3f} -> {iou_a.min():.3f} (image {ids[int(np.argmin(iou_a))]})\n"
               f"time {elapsed:.1f} s ({result.iterations} iterations, {result.renders} renders)\n"
               f"wrote {', '.join(OUTPUT_FILES)} to {out}", flush=True)
-    if result.ambiguous and runner is not None:
-        _warn(f"ambiguous: another pose ({runner['rotation_deg']:.1f} deg, {runner['translation_mm']:.1f} mm away) "
-              f"fits almost as well (loss {result.runner_up.loss:.4g} vs {result.hypotheses[0].loss:.4g}); "
-              "the object may be symmetric in these views; check overlay.png and 'runner_up' in refine.json")
-    if low:
-        _warn("views with low weight (their masks disagree with the others): image ids "
-              + ", ".join(f"{i} (IoU {a:.2f})" for i, _, a in low) + "; check those masks")
-    if scene.skipped:
-        _warn(f"{len(scene.skipped)} image(s) without a mask were skipped: ids "
-              + ", ".join(str(i) for i in scene.skipped[:20]) + (" ..." if len(scene.skipped) > 20 else ""))
+    for note in notes:
+        _warn(note)
     return 0
 
 

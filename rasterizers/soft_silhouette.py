@@ -193,22 +193,22 @@ class SoftSilhouetteRasterizer:
 
     # ------------------------------------------------------------------ geometry helpers
     def crops(self, T_wm: NDArray[np.float64], cameras: list[Camera], margin: int) -> NDArray[np.int64]:
-        """(N, 4) ``x0, y0, w, h`` covering the projected convex hull plus ``margin`` px, clipped."""
+        """(N, 4) ``x0, y0, w, h`` covering the projected convex hull plus ``margin`` px, clipped.
+
+        A view whose camera plane cuts the object gets the whole image.
+        """
+        cams = CameraBatch.of(cameras)
         Xw = transform_points(T_wm, self._hull)
-        out = np.zeros((len(cameras), 4), dtype=np.int64)
-        for i, cam in enumerate(cameras):
-            Xc = cam.to_camera(Xw)
-            if np.any(Xc[:, 2] < _NEAR_MM):
-                lo, hi = np.array([0, 0]), np.array([cam.width, cam.height])  # straddles the camera: whole image
-            else:
-                uv = Xc @ cam.K.T
-                uv = uv[:, :2] / uv[:, 2:3]
-                lo = np.floor(uv.min(0)).astype(np.int64) - margin
-                hi = np.ceil(uv.max(0)).astype(np.int64) + margin
-            x0, y0 = max(lo[0], 0), max(lo[1], 0)
-            x1, y1 = min(hi[0], cam.width), min(hi[1], cam.height)
-            out[i] = (x0, y0, max(x1 - x0, 0), max(y1 - y0, 0))
-        return out
+        Xc = np.einsum("nij,hj->nhi", cams.R_w2c, Xw) + cams.t_w2c[:, None, :]  # (N, H, 3)
+        behind = np.any(Xc[..., 2] < _NEAR_MM, axis=1)
+        uvw = np.einsum("nij,nhj->nhi", cams.K, Xc)
+        uv = uvw[..., :2] / np.where(np.abs(uvw[..., 2:3]) > 1e-9, uvw[..., 2:3], 1e-9)
+        size = np.array([[c.width, c.height] for c in cameras], dtype=np.int64)
+        lo = np.where(behind[:, None], 0, np.floor(uv.min(1)).astype(np.int64) - margin)
+        hi = np.where(behind[:, None], size, np.ceil(uv.max(1)).astype(np.int64) + margin)
+        lo = np.clip(lo, 0, size)
+        hi = np.clip(hi, 0, size)
+        return np.concatenate([lo, np.maximum(hi - lo, 0)], axis=1)
 
     def contour_edges(self, T_wm: NDArray[np.float64], cameras: list[Camera]) -> list[NDArray[np.int64]]:
         """Per view, indices of mesh edges on the contour generator (front/back flip or open boundary)."""
@@ -301,57 +301,56 @@ class SoftSilhouetteRasterizer:
         """Band pixels (within ``band_r`` px of the outline) with their nearest segment, and off-band regions.
 
         Returns flat band indices, their segment ids, a region id per flat pixel (-1 in the band)
-        and (R, 3) sample pixels per region.
+        and (R, 3) sample pixels per region (first, middle and last in scan order).
 
-        A distance transform with labels proposes, for every pixel, the segments nearest to it and to
-        its 4 neighbours; the exact point-to-segment distance picks the nearest of them. Taking the
-        minimum over several nearby candidates keeps the distance continuous as the outline moves.
+        All crops are stacked into one atlas image, separated by gaps wider than the band, so that
+        one distance transform (with labels) and one connected-components pass serve every view.
+        The labels propose, for every pixel, the segments nearest to it and to its 4 neighbours;
+        the exact point-to-segment distance picks the nearest of them. Taking the minimum over
+        several nearby candidates keeps the distance continuous as the outline moves.
         """
-        band_idx, samples, cand_parts, p_parts = [], [], [], []
-        region = np.full(int(offsets[-1]), -1, dtype=np.int64)
-        n_regions = 0
-        for i, (x0, y0, w, h) in enumerate(crops):
-            if w == 0 or h == 0:
-                continue
-            sel = np.flatnonzero(seg["view"] == i)
-            if len(sel) == 0:  # no outline in this crop: one region
-                region[offsets[i]:offsets[i + 1]] = n_regions
-                samples.append(offsets[i] + np.array([0, (w * h) // 2, w * h - 1]))
-                n_regions += 1
-                continue
-            cx = np.clip(np.floor(seg["mid"][sel, 0] - x0).astype(np.int64), 0, w - 1)
-            cy = np.clip(np.floor(seg["mid"][sel, 1] - y0).astype(np.int64), 0, h - 1)
-            src = np.ones((h, w), dtype=np.uint8)
-            src[cy, cx] = 0
-            owner = np.full((h, w), -1, dtype=np.int64)
-            owner[cy, cx] = sel
+        P = int(offsets[-1])
+        region = np.full(P, -1, dtype=np.int64)
+        atlas = _Atlas(crops, offsets, gap=int(np.ceil(band_r)) + 2)
+        src = np.ones(atlas.shape, dtype=np.uint8)
+        n_seg = len(seg["view"])
+        if n_seg:
+            sv = seg["view"]
+            cx = np.clip(np.floor(seg["mid"][:, 0] - crops[sv, 0]).astype(np.int64), 0, crops[sv, 2] - 1)
+            cy = np.clip(np.floor(seg["mid"][:, 1] - crops[sv, 1]).astype(np.int64), 0, crops[sv, 3] - 1)
+            ay = atlas.row0[sv] + cy
+            src[ay, cx] = 0
+            owner = np.full(atlas.shape, -1, dtype=np.int64)
+            owner[ay, cx] = np.arange(n_seg)
             dist, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
-            lut = np.full(labels.max() + 1, -1, dtype=np.int64)
-            lut[labels[cy, cx]] = owner[cy, cx]
-            in_band = dist <= band_r
-            n_lab, lab = cv2.connectedComponents((~in_band).astype(np.uint8), connectivity=4)
-            flat_lab = lab.ravel().astype(np.int64)
-            off = np.flatnonzero(~in_band.ravel())
-            if len(off):
-                region[offsets[i] + off] = n_regions + flat_lab[off] - 1
-                # three sample pixels per region: its first, middle and last pixel in scan order
-                o = np.argsort(flat_lab[off], kind="stable")
-                first = np.searchsorted(flat_lab[off][o], np.arange(1, n_lab))
-                last = np.searchsorted(flat_lab[off][o], np.arange(1, n_lab), side="right") - 1
-                pick = off[o][np.stack([first, (first + last) // 2, last], 1)]
-                samples.append(offsets[i] + pick)
-                n_regions += n_lab - 1
-            rr, cc = np.nonzero(in_band)
-            nearest = np.pad(lut[labels], 1, mode="edge")
-            cand_parts.append(np.stack([nearest[rr + 1 + dy, cc + 1 + dx] for dy, dx in _CANDIDATE_OFFSETS], 1))
-            p_parts.append(np.stack([cc + x0 + 0.5, rr + y0 + 0.5], 1))
-            band_idx.append(offsets[i] + rr * w + cc)
-        smp = np.concatenate([x.reshape(-1, 3) for x in samples]) if samples else np.zeros((0, 3), np.int64)
-        if not band_idx:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64), region, smp
-        cand = np.concatenate(cand_parts)
-        d2 = _point_segment_dist2(np.concatenate(p_parts)[:, None, :], seg["a"][cand], seg["b"][cand])
-        return np.concatenate(band_idx), cand[np.arange(len(cand)), np.argmin(d2, axis=1)], region, smp
+            lut = np.full(int(labels.max()) + 1, -1, dtype=np.int64)
+            lut[labels[ay, cx]] = owner[ay, cx]
+            in_band = (dist <= band_r) & atlas.valid
+        else:
+            in_band = np.zeros(atlas.shape, dtype=bool)
+        off_band = atlas.valid & ~in_band
+        n_lab, lab = cv2.connectedComponents(off_band.astype(np.uint8), connectivity=4)
+        oy, ox = np.nonzero(off_band)
+        flat_off = atlas.flat[oy, ox]
+        lab_off = lab[oy, ox].astype(np.int64) - 1
+        region[flat_off] = lab_off
+        order = np.argsort(lab_off, kind="stable")
+        ids = np.arange(n_lab - 1)
+        first = np.searchsorted(lab_off[order], ids)
+        last = np.searchsorted(lab_off[order], ids, side="right") - 1
+        samples = flat_off[order][np.stack([first, (first + last) // 2, last], 1)] if n_lab > 1 \
+            else np.zeros((0, 3), np.int64)
+        rr, cc = np.nonzero(in_band)
+        if len(rr) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), region, samples
+        band = atlas.flat[rr, cc]
+        view = atlas.view_of_row[rr]
+        nearest = np.pad(lut[labels], 1, mode="edge")
+        cand = np.stack([nearest[rr + 1 + dy, cc + 1 + dx] for dy, dx in _CANDIDATE_OFFSETS], 1)
+        p = np.stack([crops[view, 0] + cc + 0.5, crops[view, 1] + rr - atlas.row0[view] + 0.5], 1)
+        d2 = _point_segment_dist2(p[:, None, :], seg["a"][cand], seg["b"][cand])
+        d2[seg["view"][cand] != view[:, None]] = np.inf  # a neighbour across a gap belongs to another view
+        return band, cand[np.arange(len(cand)), np.argmin(d2, axis=1)], region, samples
 
     def _outline_segments(self, T_wm: NDArray[np.float64], cameras: list[Camera],
                           crops: NDArray[np.int64]) -> dict[str, NDArray]:
@@ -465,6 +464,28 @@ class SoftSilhouetteRasterizer:
         jac = np.stack([np.array(o, dtype=np.float64) for o in outputs[1:]], 1) if with_jacobian \
             else np.zeros((len(px), 6))
         return value, jac
+
+
+class _Atlas:
+    """All crops stacked top to bottom in one image, ``gap`` rows apart, left-aligned.
+
+    ``flat[y, x]`` is the flat pixel index of atlas pixel (y, x) (-1 in gaps), ``valid`` marks crop
+    pixels, ``row0[i]`` is the first atlas row of view ``i`` and ``view_of_row`` the view of each row.
+    """
+
+    def __init__(self, crops: NDArray[np.int64], offsets: NDArray[np.int64], gap: int) -> None:
+        heights = crops[:, 3] + gap
+        self.row0 = np.concatenate([[0], np.cumsum(heights)[:-1]]).astype(np.int64)
+        H = int(heights.sum()) if len(crops) else 1
+        W = int(crops[:, 2].max()) + gap if len(crops) else 1
+        self.shape = (max(H, 1), max(W, 1))
+        self.flat = np.full(self.shape, -1, dtype=np.int64)
+        self.view_of_row = np.full(self.shape[0], -1, dtype=np.int64)
+        for i, (x0, y0, w, h) in enumerate(crops):
+            r0 = self.row0[i]
+            self.flat[r0:r0 + h, :w] = offsets[i] + np.arange(w * h).reshape(h, w)
+            self.view_of_row[r0:r0 + h] = i
+        self.valid = self.flat >= 0
 
 
 def _point_segment_dist2(p: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -480,3 +480,41 @@ def test_quiet_run_warns_about_a_bad_mask(data, tmp_path, capsys):
     assert "4 (IoU" in lines[0]
     r = json.loads((out / "refine.json").read_text())
     assert r["low_weight_ids"] == [4]
+
+
+# --------------------------------------------------------------------------------------------
+# Pieces
+# --------------------------------------------------------------------------------------------
+
+def test_write_files_atomic_leaves_nothing_on_failure(tmp_path, monkeypatch):
+    import errno
+    import os
+
+    from autoalign.cli.main import write_files_atomic
+    from autoalign.errors import AutoalignError
+
+    with pytest.raises(TypeError):
+        write_files_atomic(tmp_path, {"scene_gt.json": b"{}", "refine.json": b"{}", "overlay.png": "not bytes"})
+    assert list(tmp_path.iterdir()) == []
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(AutoalignError, match="--out"):
+        write_files_atomic(tmp_path, {"scene_gt.json": b"{}", "refine.json": b"{}"})
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.undo()
+    paths = write_files_atomic(tmp_path, {"a.json": b"{}", "b.png": b"x"})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.png"]
+    assert paths["b.png"].read_bytes() == b"x"
+
+
+def test_overlay_views_include_the_worst():
+    from autoalign.overlay import choose_views
+
+    for n, worst in ((30, 5), (30, 28), (12, 7), (5, 2), (40, 0)):
+        iou = np.full(n, 0.99)
+        iou[worst] = 0.5
+        idx = choose_views(iou)
+        assert worst in idx and len(idx) == min(12, n) and idx == sorted(set(idx))
