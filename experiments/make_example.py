@@ -28,7 +28,7 @@ def make_example(out: Path = DEFAULT_OUT, seed: int = 7) -> Path:
     model = next(m for m in procedural_models() if m.name == "mug")
     mesh = mesh_from_trimesh(model.mesh, model.name)
     R = random_rotation(rng)
-    T_gt = make_pose(R, np.array([12.0, -8.0, 40.0]) - R @ mesh.centre)  # standing on a table near the origin
+    T_gt = make_pose(R, np.array([12.0, -8.0, 40.0]) - R @ mesh.centre)  # above a table, near its origin
     cams = ring_cameras(24, rng, jitter_mm=10.0, target=(0.0, 0.0, 40.0))
     if out.exists():
         shutil.rmtree(out)

@@ -141,7 +141,7 @@ def run_cli(s: StudyScene, seed_kind: str, workdir: Path) -> dict:
         return {"scene": s.name, "seed": seed_kind, "err_mm": float("inf"), "err_deg": float("inf"),
                 "wall_s": wall, "error": proc.stderr.strip()[-500:]}
     rec = json.loads((out / "refine.json").read_text())
-    T = np.asarray(rec["T_wm"], dtype=np.float64)
+    T = np.asarray(rec["pose"]["T_wm"], dtype=np.float64)
     e_t, e_r = pose_errors(T, s.T_gt, s.mesh.centre)
     return {"scene": s.name, "seed": seed_kind, "err_mm": e_t, "err_deg": e_r, "wall_s": wall,
             "iterations": rec.get("iterations"), "ambiguous": rec.get("ambiguous")}
