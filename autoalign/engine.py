@@ -126,9 +126,11 @@ def _run_schedule(obj: SilhouetteObjective, T: NDArray[np.float64], levels: tupl
     return T, traces
 
 
-def _final_loss(obj: SilhouetteObjective, T: NDArray[np.float64], level: Level) -> tuple[float, float]:
-    ev = obj.evaluate(T, level, with_derivatives=False)
-    return ev.value / len(ev.weights), float(np.mean(ev.terms.iou))
+def _final_loss(obj: SilhouetteObjective, T: NDArray[np.float64], level: Level,
+                trace: Trace | None = None) -> tuple[float, float, NDArray[np.float64]]:
+    """Mean weighted loss, mean soft IoU and view weights at ``T`` (reusing the optimiser's last evaluation)."""
+    ev = trace.final if trace is not None and trace.final is not None else obj.evaluate(T, level, with_derivatives=False)
+    return ev.value / len(ev.weights), float(np.mean(ev.terms.iou)), ev.weights
 
 
 def hard_ious(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -173,7 +175,11 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
     else:
         centre = click_centre(scene, seed, mesh.diameter) if isinstance(seed, Click) else hull_centre(scene, mesh.diameter)
         poses = poses_at(rotation_grid(opts.n_rotations), centre, mesh.centre)
+        if progress is not None:
+            progress("scoring orientations", 0, 1)
         scores = score_poses(rast, scene, poses)
+        if progress is not None:
+            progress("scoring orientations", 1, 1)
         order = np.argsort(-scores)[: opts.n_coarse]
         starts = [poses[i] for i in order]
     timings["seed"] = time.perf_counter() - t0
@@ -188,8 +194,8 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
         for stage, (score_level, stage_levels, keep) in enumerate(funnel):
             done = []
             for j, h in enumerate(pool):
-                Tc, _ = _run_schedule(obj, h.T_final, stage_levels, opts.optimizer)
-                loss, miou = _final_loss(obj, Tc, score_level)
+                Tc, tr = _run_schedule(obj, h.T_final, stage_levels, opts.optimizer)
+                loss, miou, _ = _final_loss(obj, Tc, score_level, tr[-1])
                 done.append(Hypothesis(h.T_init, Tc, loss, miou, f"search{stage}"))
                 if progress is not None:
                     progress(f"hypotheses {stage + 1}/{len(funnel)}", j + 1, len(pool))
@@ -210,14 +216,15 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
     timings["hypotheses"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    final: list[tuple[Hypothesis, list[Trace]]] = []
-    for h in finalists:
-        T, traces = _run_schedule(obj, h.T_final, rest, opts.optimizer, progress)
-        loss, miou = _final_loss(obj, T, levels[-1])
-        final.append((Hypothesis(h.T_init, T, loss, miou, "final"), traces))
+    final: list[tuple[Hypothesis, list[Trace], NDArray[np.float64]]] = []
+    for k, h in enumerate(finalists):
+        label = "refine" if len(finalists) == 1 else f"refine {k + 1}/{len(finalists)}"
+        T, traces = _run_schedule(obj, h.T_final, rest, opts.optimizer, progress, label)
+        loss, miou, weights = _final_loss(obj, T, levels[-1], traces[-1])
+        final.append((Hypothesis(h.T_init, T, loss, miou, "final"), traces, weights))
     final.sort(key=lambda x: x[0].loss)
     timings["refine"] = time.perf_counter() - t0
-    best, traces = final[0]
+    best, traces, weights = final[0]
     hyps = [f[0] for f in final] + sorted(hyps, key=lambda h: h.loss)
 
     runner = next((h for h in hyps[1:] if _differs(h.T_final, best.T_final, mesh.centre)), None)
@@ -225,7 +232,6 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
                      and runner.loss <= best.loss * (1.0 + opts.ambiguity_tol) + 1e-4)
 
     t0 = time.perf_counter()
-    ev = obj.evaluate(best.T_final, levels[-1], with_derivatives=False)
     iou_before = hard_ious(rast, scene, best.T_init)
     iou_after = hard_ious(rast, scene, best.T_final)
     timings["report"] = time.perf_counter() - t0
@@ -235,5 +241,5 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
     return RefineResult(
         T_wm=best.T_final, T_init=best.T_init, iou_before=iou_before, iou_after=iou_after,
         iterations=sum(tr.iterations for tr in traces), renders=obj.renders, timings=timings,
-        hypotheses=hyps, ambiguous=ambiguous, runner_up=runner, weights=ev.weights, history=history,
+        hypotheses=hyps, ambiguous=ambiguous, runner_up=runner, weights=weights, history=history,
         image_ids=list(scene.image_ids))

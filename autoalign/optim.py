@@ -33,6 +33,7 @@ class Trace:
     poses: list[NDArray[np.float64]] = field(default_factory=list)
     iterations: int = 0
     converged: bool = False
+    final: Evaluation | None = None  # the objective at the returned pose (LM and GN)
 
 
 Callback = Callable[[int, Evaluation], None]
@@ -107,6 +108,7 @@ def levenberg_marquardt(objective: SilhouetteObjective, T: NDArray[np.float64], 
         if _small(step, tol_mm, tol_deg):
             trace.converged = True
             break
+    trace.final = ev
     return T, trace
 
 
@@ -139,6 +141,7 @@ def gauss_newton(objective: SilhouetteObjective, T: NDArray[np.float64], level: 
         if _small(step, tol_mm, tol_deg):
             trace.converged = True
             break
+    trace.final = ev
     return T, trace
 
 

@@ -320,8 +320,14 @@ class SoftSilhouetteRasterizer:
             cy = np.clip(np.floor(seg["mid"][:, 1] - crops[sv, 1]).astype(np.int64), 0, crops[sv, 3] - 1)
             ay = atlas.row0[sv] + cy
             src[ay, cx] = 0
+            # Several segments (of different edges) can fall in one cell: the cell keeps the one
+            # whose visible edge interval passes nearest to the cell centre.
+            centre = np.stack([crops[sv, 0] + cx + 0.5, crops[sv, 1] + cy + 0.5], 1)
+            d_cell = _point_segment_dist2(centre, seg["a"], seg["b"])
+            cell = ay * atlas.shape[1] + cx
+            order = np.lexsort((-d_cell, cell))  # within a cell, nearest last: the last write wins
             owner = np.full(atlas.shape, -1, dtype=np.int64)
-            owner[ay, cx] = np.arange(n_seg)
+            owner[ay[order], cx[order]] = order
             dist, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
             lut = np.full(int(labels.max()) + 1, -1, dtype=np.int64)
             lut[labels[ay, cx]] = owner[ay, cx]
