@@ -177,7 +177,7 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
         poses = poses_at(rotation_grid(opts.n_rotations), centre, mesh.centre)
         if progress is not None:
             progress("scoring orientations", 0, 1)
-        scores = score_poses(rast, scene, poses)
+        scores, poses = score_poses(rast, scene, poses)
         if progress is not None:
             progress("scoring orientations", 1, 1)
         order = np.argsort(-scores)[: opts.n_coarse]

@@ -63,12 +63,14 @@ def _closest_point_to_rays(origins: NDArray[np.float64], dirs: NDArray[np.float6
     return np.linalg.lstsq(A, b, rcond=None)[0]
 
 
-def hull_centre(scene: Scene, diameter: float, grid: int = 40, min_fraction: float = 0.8) -> NDArray[np.float64]:
+def hull_centre(scene: Scene, diameter: float, grid: int = 40, min_fraction: float = 0.8,
+                start: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
     """Centre (mm, world) of the visual hull of the masks, for an object about ``diameter`` mm across.
 
-    The rays through the mask centroids give a first guess; a voxel grid of 1.5 diameters around it
-    is carved, keeping voxels inside the (slightly dilated) mask in at least ``min_fraction`` of the
-    views with a non-empty mask, so a few wrong masks do not empty the hull.
+    The rays through the mask centroids (or ``start``, e.g. a point on a click's ray) give a first
+    guess; a voxel grid of 1.5 diameters around it is carved, keeping voxels inside the (slightly
+    dilated) mask in at least ``min_fraction`` of the views with a non-empty mask, so a few wrong
+    masks do not empty the hull.
     """
     origins, dirs = [], []
     for cam, m in zip(scene.cameras, scene.masks):
@@ -79,7 +81,7 @@ def hull_centre(scene: Scene, diameter: float, grid: int = 40, min_fraction: flo
         dirs.append(cam.ray_directions(np.array([[xs.mean() + 0.5, ys.mean() + 0.5]]))[0])
     if not origins:
         raise AutoalignError("the masks are empty in every view; check the segmentation or --instance")
-    centre = _closest_point_to_rays(np.array(origins), np.array(dirs))
+    centre = _closest_point_to_rays(np.array(origins), np.array(dirs)) if start is None else np.asarray(start, float)
     n_views = len(origins)
     for half in (1.5 * diameter, 0.75 * diameter):
         ax = np.linspace(-half, half, grid)
@@ -120,7 +122,8 @@ def check_click(scene: Scene, click: Click, tol_px: float = CLICK_TOLERANCE_PX) 
 
 
 def click_centre(scene: Scene, click: Click, diameter: float, samples: int = 4000) -> NDArray[np.float64]:
-    """Object centre (mm, world) on the ray of a click: the middle of the depths seen inside the most masks.
+    """Object centre (mm, world) from a click: the visual hull around the middle of the depths along
+    the click's ray that fall inside the most masks.
 
     Raises :class:`AutoalignError` when the click is outside its image, names an unknown image,
     is off the mask of its image (see :func:`check_click`) or its ray falls inside no mask at all.
@@ -140,7 +143,8 @@ def click_centre(scene: Scene, click: Click, diameter: float, samples: int = 400
     # the longest run of best depths (contiguous), its middle
     runs = np.split(best, np.flatnonzero(np.diff(best) > 1) + 1)
     run = max(runs, key=len)
-    return X[run[len(run) // 2]]
+    # the click picks the object; the visual hull around that point centres it
+    return hull_centre(scene, diameter, start=X[run[len(run) // 2]])
 
 
 def rotation_grid(n: int) -> NDArray[np.float64]:
