@@ -43,6 +43,8 @@ class RefineOptions:
         n_final: best distinct ones of those refined through the rest of the schedule.
         search_level: the cheap level of the hypothesis search.
         ambiguity_tol: runner-up within this relative loss of the winner (and at another pose) means ambiguous.
+        coarse_faces: below full resolution the mesh is simplified to this many triangles
+            (a pixel there spans millimetres); full resolution always uses the mesh as given.
         competitive: a distinct hypothesis is refined to full resolution only if its loss after the
             first schedule level is within this factor of the best one's.
     """
@@ -58,6 +60,7 @@ class RefineOptions:
     search_level: Level = Level(0.125, 1.0, 20)
     ambiguity_tol: float = 0.05
     competitive: float = 1.5
+    coarse_faces: int = 5000
 
 
 @dataclass(eq=False)
@@ -165,7 +168,8 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     rast = SoftSilhouetteRasterizer(mesh)
-    obj = SilhouetteObjective(rast, scene, opts.loss, opts.robust)
+    coarse = SoftSilhouetteRasterizer(mesh.simplified(opts.coarse_faces))
+    obj = SilhouetteObjective(rast, scene, opts.loss, opts.robust, coarse_rasterizer=coarse)
     levels = opts.schedule
     timings["setup"] = time.perf_counter() - t_start
 
@@ -177,7 +181,7 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
         poses = poses_at(rotation_grid(opts.n_rotations), centre, mesh.centre)
         if progress is not None:
             progress("scoring orientations", 0, 1)
-        scores, poses = score_poses(rast, scene, poses)
+        scores, poses = score_poses(coarse, scene, poses)
         if progress is not None:
             progress("scoring orientations", 1, 1)
         order = np.argsort(-scores)[: opts.n_coarse]

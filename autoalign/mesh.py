@@ -55,6 +55,20 @@ class Mesh:
         """A trimesh view of the same geometry (no processing)."""
         return trimesh.Trimesh(self.vertices, self.faces, process=False)
 
+    def simplified(self, max_faces: int) -> "Mesh":
+        """This mesh with at most about ``max_faces`` triangles (quadric decimation), same frame and centre.
+
+        Used for the coarse, low-resolution levels, where a pixel spans millimetres; returns
+        ``self`` when the mesh is already small enough.
+        """
+        if len(self.faces) <= max_faces:
+            return self
+        tm = self.trimesh.simplify_quadric_decimation(face_count=int(max_faces))
+        out = Mesh(np.asarray(tm.vertices), np.asarray(tm.faces), name=f"{self.name}@{len(tm.faces)}")
+        out.centre = self.centre.copy()  # twists turn about the same point at every level
+        out.diameter = self.diameter
+        return out
+
     def sample_points(self, n: int, seed: int = 0) -> NDArray[np.float64]:
         """``n`` points sampled uniformly on the surface (mm, model frame), reproducibly."""
         pts, _ = trimesh.sample.sample_surface(self.trimesh, n, seed=seed)

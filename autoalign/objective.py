@@ -45,17 +45,20 @@ class SilhouetteObjective:
     """Weighted multi-view silhouette loss of one scene, with resampled targets per scale.
 
     Args:
-        rasterizer: renders the object mesh.
+        rasterizer: renders the object mesh (used at full resolution).
+        coarse_rasterizer: renders a simplified mesh at levels below full resolution (optional).
         scene: cameras and target masks.
         loss: one of :data:`autoalign.losses.LOSSES`.
         robust: re-weight views with Cauchy weights on ``1 - IoU`` (see :func:`cauchy_weights`).
     """
 
-    def __init__(self, rasterizer: SoftSilhouetteRasterizer, scene: Scene, loss: str = "iou",
-                 robust: bool = True) -> None:
+    def __init__(self, rasterizer: SoftSilhouetteRasterizer, scene: Scene, loss: str = "l2",
+                 robust: bool = True, coarse_rasterizer: SoftSilhouetteRasterizer | None = None) -> None:
         if loss not in LOSSES:
             raise ValueError(f"unknown loss {loss!r}; choose one of {sorted(LOSSES)}")
         self.rasterizer = rasterizer
+        self.coarse_rasterizer = coarse_rasterizer or rasterizer
+        self.centre_m = rasterizer.mesh.centre  # the point twists turn about, model frame (mm)
         self.scene = scene
         self.loss_name = loss
         self.loss_fn = LOSSES[loss]
@@ -78,7 +81,8 @@ class SilhouetteObjective:
                  with_derivatives: bool = True) -> Evaluation:
         """Render at ``level`` and compare. Without ``weights`` they are computed here (robust or 1)."""
         cams, tg, totals = self.at_scale(level.scale)
-        sil = self.rasterizer.render(T_wm, cams, level.sigma, with_jacobian=with_derivatives)
+        rast = self.rasterizer if level.scale >= 1.0 else self.coarse_rasterizer
+        sil = rast.render(T_wm, cams, level.sigma, with_jacobian=with_derivatives)
         self.renders += 1
         terms = self.loss_fn(sil, targets_in_crops(tg, sil), totals)
         return self.combine(terms, sil, weights)

@@ -40,7 +40,7 @@ Callback = Callable[[int, Evaluation], None]
 
 
 def _centre(objective: SilhouetteObjective, T: NDArray[np.float64]) -> NDArray[np.float64]:
-    return transform_points(T, objective.rasterizer.mesh.centre[None])[0]
+    return transform_points(T, objective.centre_m[None])[0]
 
 
 def level_tolerance(level: Level, tol_mm: float, tol_deg: float) -> tuple[float, float]:
