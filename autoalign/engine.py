@@ -15,13 +15,14 @@ from numpy.typing import NDArray
 from autoalign.bop import Scene
 from autoalign.hypotheses import poses_at, score_poses
 from autoalign.mesh import Mesh
-from autoalign.objective import Level, SilhouetteObjective
+from autoalign.losses import targets_in_crops
+from autoalign.objective import Evaluation, Level, SilhouetteObjective
 from autoalign.optim import OPTIMIZERS, Trace
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 from autoalign.se3 import rotation_angle_deg, transform_points
 from autoalign.seeding import Click, click_centre, hull_centre, rotation_grid
 
-DEFAULT_SCHEDULE: tuple[Level, ...] = (Level(0.25, 1.0, 40), Level(0.5, 1.0, 20), Level(1.0, 1.0, 15))
+DEFAULT_SCHEDULE: tuple[Level, ...] = (Level(0.25, 1.0, 40), Level(0.5, 1.0, 20), Level(1.0, 0.5, 15))
 
 Seed = NDArray[np.float64] | Click | None
 Progress = Callable[[str, int, int], None]
@@ -136,6 +137,19 @@ def _final_loss(obj: SilhouetteObjective, T: NDArray[np.float64], level: Level,
     return ev.value / len(ev.weights), float(np.mean(ev.terms.iou)), ev.weights
 
 
+def _hard_ious_of(ev: Evaluation, scene: Scene) -> NDArray[np.float64]:
+    """Per-view hard IoU from the hard masks of a full-resolution evaluation (no new ray casting)."""
+    sil = ev.silhouettes
+    tg = [m > 0.5 for m in scene.masks]
+    t_crop = targets_in_crops(tg, sil) > 0.5
+    vp = sil.view_of_pixel()
+    inter = np.bincount(vp, weights=sil.hard & t_crop, minlength=sil.n_views)
+    area = np.bincount(vp, weights=sil.hard, minlength=sil.n_views)
+    t_tot = np.array([float(t.sum()) for t in tg])
+    union = area + t_tot - inter
+    return np.where(union > 0, inter / np.maximum(union, 1.0), 1.0)
+
+
 def hard_ious(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.float64]) -> NDArray[np.float64]:
     """Per-view IoU of the ray-cast silhouette at ``T_wm`` with the scene's masks, full resolution."""
     out = []
@@ -237,7 +251,11 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
 
     t0 = time.perf_counter()
     iou_before = hard_ious(rast, scene, best.T_init)
-    iou_after = hard_ious(rast, scene, best.T_final)
+    last = traces[-1].final if traces else None
+    if last is not None and levels[-1].scale == 1.0:
+        iou_after = _hard_ious_of(last, scene)
+    else:
+        iou_after = hard_ious(rast, scene, best.T_final)
     timings["report"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     history = [{"scale": lv.scale, "sigma": lv.sigma, "values": tr.values, "iterations": tr.iterations,
