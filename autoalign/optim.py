@@ -64,85 +64,88 @@ def _record(trace: Trace, ev: Evaluation, T: NDArray[np.float64], step: NDArray[
     trace.poses.append(T.copy())
 
 
+Search = Callable[[NDArray[np.float64], Evaluation, float, float],
+                  "tuple[NDArray[np.float64], Evaluation, NDArray[np.float64]] | None"]
+
+
+def _descend(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level, search: Search,
+             tol_mm: float, tol_deg: float, callback: Callback | None) -> tuple[NDArray[np.float64], Trace]:
+    """The outer loop shared by the second-order methods.
+
+    ``search(T, ev, tol_mm, tol_deg)`` returns ``(T_new, ev_new, step)`` for a step that does not
+    increase the objective (with the view weights of ``ev``), or ``None`` when there is none left.
+    Robust weights are then re-computed from the new fit (IRLS) without a new render.
+    """
+    trace = Trace()
+    tol_mm, tol_deg = level_tolerance(level, tol_mm, tol_deg)
+    ev = objective.evaluate(T, level)
+    for it in range(level.max_iters):
+        trace.iterations = it + 1
+        found = search(T, ev, tol_mm, tol_deg)
+        if found is None:
+            trace.converged = True  # no descent direction left at this resolution
+            break
+        T, ev_new, step = found
+        ev = objective.reweighted(ev_new)
+        _record(trace, ev, T, step)
+        if callback:
+            callback(it, ev)
+        if _small(step, tol_mm, tol_deg):
+            trace.converged = True
+            break
+    trace.final = ev
+    return T, trace
+
+
 def levenberg_marquardt(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level,
                         lam: float = 1e-3, tol_mm: float = TOL_MM, tol_deg: float = TOL_DEG,
                         callback: Callback | None = None, damping_growth: float = 4.0,
                         max_step_mm: float = 30.0, max_step_deg: float = 20.0) -> tuple[NDArray[np.float64], Trace]:
     """Levenberg-Marquardt on the weighted Gauss-Newton system ``(H + lam diag(H)) step = -g``.
 
-    Robust view weights are re-computed after every accepted step (IRLS) and held fixed while a
-    step is being accepted or rejected, so the comparison is between equal objectives.
-    Steps are clipped to ``max_step_mm`` / ``max_step_deg`` (a trust region for far starts).
+    A rejected step raises the damping ``lam`` by ``damping_growth``, an accepted one lowers it
+    three-fold. Steps are clipped to ``max_step_mm`` / ``max_step_deg`` (a trust region for far starts).
     """
-    trace = Trace()
-    tol_mm, tol_deg = level_tolerance(level, tol_mm, tol_deg)
-    ev = objective.evaluate(T, level)
-    for it in range(level.max_iters):
+    state = {"lam": lam}
+
+    def search(T: NDArray[np.float64], ev: Evaluation, tol_mm: float, tol_deg: float):
         H, g = ev.gn, ev.grad
         D = np.diag(np.maximum(np.diag(H), 1e-12 * max(np.trace(H), 1e-30)))
-        accepted = False
-        while not accepted:
+        while state["lam"] <= 1e8:
             try:
-                step = -np.linalg.solve(H + lam * D, g)
+                step = -np.linalg.solve(H + state["lam"] * D, g)
             except np.linalg.LinAlgError:
                 step = np.zeros(6)
             step = _clip_step(step, max_step_mm, max_step_deg)
             T_new = apply_twist(T, step, _centre(objective, T))
             ev_new = objective.evaluate(T_new, level, weights=ev.weights)
             if ev_new.value <= ev.value:
-                accepted = True
-                lam = max(lam / 3.0, 1e-7)
-            else:
-                lam *= damping_growth
-                if lam > 1e8 or _small(step, tol_mm, tol_deg):
-                    break
-        trace.iterations = it + 1
-        if not accepted:
-            trace.converged = True  # no descent direction left at this resolution
-            break
-        T = T_new
-        ev = objective.reweighted(ev_new)
-        _record(trace, ev, T, step)
-        if callback:
-            callback(it, ev)
-        if _small(step, tol_mm, tol_deg):
-            trace.converged = True
-            break
-    trace.final = ev
-    return T, trace
+                state["lam"] = max(state["lam"] / 3.0, 1e-7)
+                return T_new, ev_new, step
+            state["lam"] *= damping_growth
+            if _small(step, tol_mm, tol_deg):
+                return None
+        return None
+
+    return _descend(objective, T, level, search, tol_mm, tol_deg, callback)
 
 
 def gauss_newton(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level,
                  tol_mm: float = TOL_MM, tol_deg: float = TOL_DEG,
                  callback: Callback | None = None) -> tuple[NDArray[np.float64], Trace]:
-    """Gauss-Newton steps ``H step = -g`` with step halving until the objective decreases."""
-    trace = Trace()
-    tol_mm, tol_deg = level_tolerance(level, tol_mm, tol_deg)
-    ev = objective.evaluate(T, level)
-    for it in range(level.max_iters):
-        step = -np.linalg.lstsq(ev.gn, ev.grad, rcond=1e-10)[0]
-        step = _clip_step(step, 30.0, 20.0)
+    """Gauss-Newton steps ``H step = -g`` with step halving (up to 12 times) until the objective decreases."""
+
+    def search(T: NDArray[np.float64], ev: Evaluation, tol_mm: float, tol_deg: float):
+        step = _clip_step(-np.linalg.lstsq(ev.gn, ev.grad, rcond=1e-10)[0], 30.0, 20.0)
         for _ in range(12):
             T_new = apply_twist(T, step, _centre(objective, T))
             ev_new = objective.evaluate(T_new, level, weights=ev.weights)
             if ev_new.value <= ev.value:
-                break
+                return T_new, ev_new, step
             step = step / 2.0
-        else:
-            trace.converged = True
-            trace.iterations = it + 1
-            break
-        trace.iterations = it + 1
-        T = T_new
-        ev = objective.reweighted(ev_new)
-        _record(trace, ev, T, step)
-        if callback:
-            callback(it, ev)
-        if _small(step, tol_mm, tol_deg):
-            trace.converged = True
-            break
-    trace.final = ev
-    return T, trace
+        return None
+
+    return _descend(objective, T, level, search, tol_mm, tol_deg, callback)
 
 
 def adam(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level,
