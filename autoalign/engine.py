@@ -258,7 +258,7 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
         iou_after = hard_ious(rast, scene, best.T_final)
     timings["report"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
-    history = [{"scale": lv.scale, "sigma": lv.sigma, "values": tr.values, "iterations": tr.iterations,
+    history = [{"scale": lv.scale, "sigma": lv.sigma, "values": tr.values, "poses": tr.poses, "iterations": tr.iterations,
                 "converged": tr.converged} for lv, tr in zip(rest, traces)]
     return RefineResult(
         T_wm=best.T_final, T_init=best.T_init, iou_before=iou_before, iou_after=iou_after,
