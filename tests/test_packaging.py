@@ -52,3 +52,14 @@ def test_installed_layout_is_nested() -> None:
     root = Path(autoalign.__file__).parent
     assert Path(autoalign.losses.__file__).parent == root / "losses"
     assert not root.is_relative_to(REPO), "tests must run against the installed package"
+
+
+def test_console_script_is_installed_and_runs() -> None:
+    import shutil
+
+    import autoalign
+
+    exe = shutil.which("autoalign")
+    assert exe is not None, "the `autoalign` command is not on PATH after installation"
+    out = subprocess.run([exe, "--version"], capture_output=True, text=True, check=True)
+    assert autoalign.__version__ in out.stdout + out.stderr
