@@ -408,7 +408,7 @@ def run_refine(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     click = None
     if args.click is not None:
-        from autoalign.seeding import Click, check_click
+        from autoalign.seeding import Click
 
         click = Click.parse(args.click)
     out = Path(args.out)
@@ -434,10 +434,9 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
         seed = read_init_pose(args.init, scene, args.obj_id, args.instance)
         seed_info.update(kind="init", init_file=str(Path(args.init).absolute()), pose=_pose(seed))
     elif click is not None:
-        from autoalign.seeding import click_centre
+        from autoalign.seeding import check_click
 
-        click_centre(scene, click, mesh.diameter)  # fail now, not after loading the renderer
-        check_click(scene, click)  # fail before the slow start-up of the renderer
+        check_click(scene, click)  # fail now, before the slow start-up of the renderer
         seed = click
         seed_info.update(kind="click", click={"image_id": click.image_id, "u": click.u, "v": click.v})
 

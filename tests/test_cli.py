@@ -518,3 +518,26 @@ def test_overlay_views_include_the_worst():
         iou[worst] = 0.5
         idx = choose_views(iou)
         assert worst in idx and len(idx) == min(12, n) and idx == sorted(set(idx))
+
+
+@pytest.mark.parametrize("seed_args", [["--click", "CLICK"], []], ids=["click", "no-seed"])
+def test_click_and_no_seed_runs_find_the_pose(data, tmp_path, seed_args):
+    """The real command with a click (deepest mask pixel of image 0) or no seed at all."""
+    import cv2
+
+    mask = cv2.imread(str(_mask(data.scene, 0)), cv2.IMREAD_GRAYSCALE) > 127
+    dist = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 5)
+    i, j = np.unravel_index(int(np.argmax(dist)), dist.shape)
+    args = [a.replace("CLICK", f"0:{j + 0.5},{i + 0.5}") for a in seed_args]
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", str(data.scene), "--model",
+                        str(data.model), "--out", str(out), "--quiet", *args],
+                       capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr
+    rec = json.loads((out / "refine.json").read_text())
+    assert rec["seed"]["kind"] == ("click" if seed_args else "hull")
+    T = np.asarray(rec["pose"]["T_wm"], dtype=float)
+    mesh = load_mesh(data.model)
+    c = mesh.centre
+    assert np.linalg.norm(T[:3, :3] @ c + T[:3, 3] - (data.T_true[:3, :3] @ c + data.T_true[:3, 3])) < 1.0
+    assert rotation_angle_deg(T[:3, :3], data.T_true[:3, :3]) < 1.0
