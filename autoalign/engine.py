@@ -45,7 +45,10 @@ class RefineOptions:
         search_level: the cheap level of the hypothesis search.
         ambiguity_tol: runner-up within this relative loss of the winner (and at another pose) means ambiguous.
         coarse_faces: below full resolution the mesh is simplified to this many triangles
-            (a pixel there spans millimetres); full resolution always uses the mesh as given.
+            (a pixel there spans millimetres).
+        fine_faces: at full resolution, meshes with more triangles are simplified to this many
+            (quadric decimation; for the LINEMOD scans the silhouettes of 20k-face versions agree
+            with the originals' at IoU >= 0.999 in every view); ``None`` renders the mesh as given.
         competitive: a distinct hypothesis is refined to full resolution only if its loss after the
             first schedule level is within this factor of the best one's.
     """
@@ -62,6 +65,7 @@ class RefineOptions:
     ambiguity_tol: float = 0.05
     competitive: float = 1.5
     coarse_faces: int = 5000
+    fine_faces: int | None = 20000
 
 
 @dataclass(eq=False)
@@ -181,7 +185,7 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
     opts = options or RefineOptions()
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
-    rast = SoftSilhouetteRasterizer(mesh)
+    rast = SoftSilhouetteRasterizer(mesh if opts.fine_faces is None else mesh.simplified(opts.fine_faces))
     coarse = SoftSilhouetteRasterizer(mesh.simplified(opts.coarse_faces))
     obj = SilhouetteObjective(rast, scene, opts.loss, opts.robust, coarse_rasterizer=coarse)
     levels = opts.schedule

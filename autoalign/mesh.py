@@ -6,6 +6,7 @@ concatenated, non-watertight meshes are fine (open boundary edges count as conto
 
 from __future__ import annotations
 
+import functools
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,7 +26,8 @@ class Mesh:
         vertices: (V, 3) float64, mm.
         faces: (F, 3) int64 vertex indices.
         edges: (E, 2) unique undirected edges.
-        edge_faces: (E, 2) indices of the faces on either side; ``-1`` for an open boundary edge.
+        edge_faces: (E, 2) indices of the faces on either side; second ``-1`` for an open boundary
+            or non-manifold edge.
         centre: (3,) centre of the axis-aligned bounding box, mm (the BOP model origin convention).
         diameter: largest distance between two vertices, mm.
         name: file stem or a given label.
@@ -38,7 +40,6 @@ class Mesh:
     edge_faces: NDArray[np.int64] = field(init=False)
     face_normals: NDArray[np.float64] = field(init=False)
     centre: NDArray[np.float64] = field(init=False)
-    diameter: float = field(init=False)
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64)
@@ -48,7 +49,11 @@ class Mesh:
         self.edges, self.edge_faces = _edge_faces(self.faces)
         lo, hi = self.vertices.min(0), self.vertices.max(0)
         self.centre = (lo + hi) / 2.0
-        self.diameter = _diameter(self.vertices)
+
+    @functools.cached_property
+    def diameter(self) -> float:
+        """Largest distance between two vertices, mm (computed on first use)."""
+        return _diameter(self.vertices)
 
     @property
     def trimesh(self) -> trimesh.Trimesh:
@@ -64,6 +69,9 @@ class Mesh:
         if len(self.faces) <= max_faces:
             return self
         tm = self.trimesh.simplify_quadric_decimation(face_count=int(max_faces))
+        # the decimator leaves collapsed triangles behind as duplicates: drop them and unused vertices
+        tm.update_faces(tm.unique_faces() & tm.nondegenerate_faces())
+        tm.remove_unreferenced_vertices()
         out = Mesh(np.asarray(tm.vertices), np.asarray(tm.faces), name=f"{self.name}@{len(tm.faces)}")
         out.centre = self.centre.copy()  # twists turn about the same point at every level
         out.diameter = self.diameter
@@ -87,7 +95,12 @@ def _diameter(V: NDArray[np.float64], max_points: int = 2500) -> float:
 
 
 def _edge_faces(faces: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Unique edges and the (up to two) faces beside each; extra faces of non-manifold edges are dropped."""
+    """Unique edges and the two faces beside each.
+
+    The second face is ``-1`` for an open boundary edge *and* for a non-manifold edge (three or
+    more faces): the renderer then treats the edge as a possible contour in every view and lets
+    its ray test decide, instead of trusting an arbitrary pair of its faces.
+    """
     F = len(faces)
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     fid = np.tile(np.arange(F), 3)
@@ -101,7 +114,7 @@ def _edge_faces(faces: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np
     counts = np.diff(np.r_[starts, len(inv_s)])
     ef = np.full((len(uniq), 2), -1, dtype=np.int64)
     ef[inv_s[starts], 0] = fid_s[starts]
-    two = counts >= 2
+    two = counts == 2
     ef[inv_s[starts[two]], 1] = fid_s[starts[two] + 1]
     return uniq.astype(np.int64), ef
 
@@ -130,8 +143,9 @@ def load_mesh(path: str | Path, name: str | None = None) -> Mesh:
     if not np.all(np.isfinite(V)):
         raise AutoalignError(f"{path}: the mesh has non-finite vertex coordinates; repair the file")
     mesh = Mesh(V, Fa, name=name or path.stem)
-    if mesh.diameter < 2.0:
-        warnings.warn(f"{path}: the model is only {mesh.diameter:.3g} units across; autoalign expects "
+    extent = float(np.linalg.norm(V.max(0) - V.min(0)))
+    if extent < 2.0:
+        warnings.warn(f"{path}: the model is only {extent:.3g} units across; autoalign expects "
                       "millimetres, so it is probably in metres (scale it by 1000)", stacklevel=2)
     return mesh
 

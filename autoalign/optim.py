@@ -21,6 +21,8 @@ from autoalign.se3 import apply_twist, transform_points
 
 TOL_MM = 0.01
 TOL_DEG = 0.001
+COARSE_MM = 0.1
+COARSE_DEG = 0.05
 
 
 @dataclass
@@ -46,11 +48,13 @@ def _centre(objective: SilhouetteObjective, T: NDArray[np.float64]) -> NDArray[n
 def level_tolerance(level: Level, tol_mm: float, tol_deg: float) -> tuple[float, float]:
     """Stopping tolerances at ``level``: the given ones at full resolution, looser when coarser.
 
-    A coarse level only has to bring the pose within reach of the next one, so its tolerance
-    grows with the pixel size squared (x16 at quarter resolution).
+    A coarse level only has to bring the pose within reach of the next one: it stops once a
+    step moves the object by less than ``COARSE_MM / scale`` and ``COARSE_DEG / scale``
+    (0.4 mm and 0.2 degrees at quarter resolution).
     """
-    f = 1.0 / max(level.scale, 1e-6) ** 2
-    return tol_mm * f, tol_deg * f * 10.0 if level.scale < 1.0 else tol_deg
+    if level.scale >= 1.0:
+        return tol_mm, tol_deg
+    return max(tol_mm, COARSE_MM / level.scale), max(tol_deg, COARSE_DEG / level.scale)
 
 
 def _small(step: NDArray[np.float64], tol_mm: float, tol_deg: float) -> bool:

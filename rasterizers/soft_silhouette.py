@@ -102,6 +102,27 @@ class CameraBatch:
         return CameraBatch(K, np.linalg.inv(K), R, t, R.transpose(0, 2, 1), -np.einsum("nji,nj->ni", R, t))
 
 
+def per_view_matvec(M: NDArray[np.float64], view: NDArray[np.int64], x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``M[view[k]] @ x[k]`` for every row ``k`` of ``x`` (n, 3), one matrix product per view.
+
+    Fast when rows come grouped by view (they are sorted first otherwise).
+    """
+    out = np.empty((len(x), M.shape[1]))
+    if len(x) == 0:
+        return out
+    order = None if np.all(view[1:] >= view[:-1]) else np.argsort(view, kind="stable")
+    v = view if order is None else view[order]
+    xs = x if order is None else x[order]
+    bounds = np.searchsorted(v, np.arange(len(M) + 1))
+    res = np.empty_like(out)
+    for i in np.flatnonzero(np.diff(bounds)):
+        res[bounds[i]:bounds[i + 1]] = xs[bounds[i]:bounds[i + 1]] @ M[i].T
+    if order is None:
+        return res
+    out[order] = res
+    return out
+
+
 def smoothstep_edge(z: NDArray[np.float64] | float) -> NDArray[np.float64]:
     """The edge profile: 0 for ``z <= -1``, 1 for ``z >= 1``, C1 cubic in between (numpy)."""
     u = np.clip((np.asarray(z, dtype=np.float64) + 1.0) / 2.0, 0.0, 1.0)
@@ -164,8 +185,8 @@ class SoftSilhouetteRasterizer:
             return np.zeros(0, dtype=bool)
         T_mw = invert(T_wm)
         R_mc = T_mw[:3, :3] @ cams.R_c2w  # (V, 3, 3) model-from-camera rotation
-        d_c = np.einsum("nij,nj->ni", cams.K_inv[view][:, :, :2], uv) + cams.K_inv[view][:, :, 2]
-        d_m = np.einsum("nij,nj->ni", R_mc[view], d_c)
+        uv1 = np.column_stack([uv, np.ones(len(uv))])
+        d_m = per_view_matvec(np.einsum("nij,njk->nik", R_mc, cams.K_inv), view, uv1)
         d_m /= np.linalg.norm(d_m, axis=1, keepdims=True)
         o_m = (cams.centres @ T_mw[:3, :3].T + T_mw[:3, 3])[view]
         return self.model_ray_hits(o_m, d_m)
@@ -364,7 +385,7 @@ class SoftSilhouetteRasterizer:
         cams = CameraBatch.of(cameras)
         flip = self._contour_matrix(T_wm, cams)  # (E, N)
         flip[:, crops[:, 2] * crops[:, 3] == 0] = False
-        edge, view = np.nonzero(flip)
+        view, edge = np.nonzero(flip.T)  # grouped by view
         empty = {"view": np.zeros(0, np.int64), "edge": np.zeros(0, np.int64), "mid": np.zeros((0, 2)),
                  "t0": np.zeros(0), "t1": np.zeros(0), "a": np.zeros((0, 2)), "b": np.zeros((0, 2))}
         if len(edge) == 0:
@@ -373,13 +394,12 @@ class SoftSilhouetteRasterizer:
         V_w = np.zeros_like(self.mesh.vertices)
         V_w[used] = transform_points(T_wm, self.mesh.vertices[used])
         ends = self.mesh.edges[edge]
-        R, t = cams.R_w2c[view], cams.t_w2c[view]
-        Xa = np.einsum("nij,nj->ni", R, V_w[ends[:, 0]]) + t
-        Xb = np.einsum("nij,nj->ni", R, V_w[ends[:, 1]]) + t
+        t = cams.t_w2c[view]
+        Xa = per_view_matvec(cams.R_w2c, view, V_w[ends[:, 0]]) + t
+        Xb = per_view_matvec(cams.R_w2c, view, V_w[ends[:, 1]]) + t
         ok = (Xa[:, 2] > _NEAR_MM) & (Xb[:, 2] > _NEAR_MM)
         view, edge, Xa, Xb = view[ok], edge[ok], Xa[ok], Xb[ok]
-        Kv = cams.K[view]
-        ua, ub = np.einsum("nij,nj->ni", Kv, Xa), np.einsum("nij,nj->ni", Kv, Xb)
+        ua, ub = per_view_matvec(cams.K, view, Xa), per_view_matvec(cams.K, view, Xb)
         A, B = ua[:, :2] / ua[:, 2:3], ub[:, :2] / ub[:, 2:3]
         d = B - A
         L = np.linalg.norm(d, axis=1)
