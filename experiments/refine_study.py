@@ -163,6 +163,8 @@ TOLERANCES = {"init": (1.0, 1.0), "click": (1.0, 1.0), "none": (1.0, 1.0), "corr
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenes", type=int, default=20, help="scenes per seed kind")
+    p.add_argument("--search-scenes", type=int, default=None,
+                   help="scenes for the slower click/none seeds (default: --scenes)")
     p.add_argument("--seeds", default=",".join(SEEDS), help="comma-separated seed kinds")
     p.add_argument("--cli", action="store_true", help="time the real command (process start included)")
     p.add_argument("--seed", type=int, default=0)
@@ -175,7 +177,8 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for kind in a.seeds.split(","):
             rows = []
-            for k in range(a.scenes):
+            n = a.scenes if kind in ("init", "corrupt") or a.search_scenes is None else a.search_scenes
+            for k in range(n):
                 s = make_study_scene(k, kind, meshes, a.seed)
                 row = run_cli(s, kind, Path(tmp)) if a.cli else run_in_process(s, kind)
                 rows.append(row)
@@ -184,7 +187,8 @@ def main(argv: list[str] | None = None) -> int:
             all_rows += rows
     mode = "command (process start included)" if a.cli else "Python API (in process)"
     lines = [f"# autoalign refine accuracy study ({mode})", "",
-             f"`python -m autoalign.experiments.refine_study --scenes {a.scenes} --seeds {a.seeds}"
+             f"`python -m autoalign.experiments.refine_study --scenes {a.scenes}"
+             f"{'' if a.search_scenes is None else f' --search-scenes {a.search_scenes}'} --seeds {a.seeds}"
              f"{' --cli' if a.cli else ''} --out {a.out}`", "",
              "| seed | scenes | success | tolerance | median err mm | median err deg | max err mm | max err deg | median wall s |",
              "|---|---|---|---|---|---|---|---|---|"]
