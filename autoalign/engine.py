@@ -46,6 +46,7 @@ class RefineOptions:
         ambiguity_tol: runner-up within this relative loss of the winner (and at another pose) means ambiguous.
         coarse_faces: below full resolution the mesh is simplified to this many triangles
             (a pixel there spans millimetres).
+        search_faces: the mesh simplified further for the orientation search (1/8 resolution).
         fine_faces: at full resolution, meshes with more triangles are simplified to this many
             (quadric decimation; for the LINEMOD scans the silhouettes of 20k-face versions agree
             with the originals' at IoU >= 0.999 in every view); ``None`` renders the mesh as given.
@@ -65,6 +66,7 @@ class RefineOptions:
     ambiguity_tol: float = 0.05
     competitive: float = 1.5
     coarse_faces: int = 5000
+    search_faces: int = 1500
     fine_faces: int | None = 20000
 
 
@@ -187,7 +189,10 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
     timings: dict[str, float] = {}
     rast = SoftSilhouetteRasterizer(mesh if opts.fine_faces is None else mesh.simplified(opts.fine_faces))
     coarse = SoftSilhouetteRasterizer(mesh.simplified(opts.coarse_faces))
-    obj = SilhouetteObjective(rast, scene, opts.loss, opts.robust, coarse_rasterizer=coarse)
+    search = coarse
+    if seed is None or isinstance(seed, Click):
+        search = SoftSilhouetteRasterizer(mesh.simplified(opts.search_faces))
+    obj = SilhouetteObjective(rast, scene, opts.loss, opts.robust, coarse_rasterizer=coarse, search_rasterizer=search)
     levels = opts.schedule
     timings["setup"] = time.perf_counter() - t_start
 
@@ -199,7 +204,7 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
         poses = poses_at(rotation_grid(opts.n_rotations), centre, mesh.centre)
         if progress is not None:
             progress("scoring orientations", 0, 1)
-        scores, poses = score_poses(coarse, scene, poses)
+        scores, poses = score_poses(search, scene, poses)
         if progress is not None:
             progress("scoring orientations", 1, 1)
         order = np.argsort(-scores)[: opts.n_coarse]

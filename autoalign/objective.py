@@ -47,17 +47,20 @@ class SilhouetteObjective:
     Args:
         rasterizer: renders the object mesh (used at full resolution).
         coarse_rasterizer: renders a simplified mesh at levels below full resolution (optional).
+        search_rasterizer: an even simpler mesh for levels at 1/8 resolution or less (optional).
         scene: cameras and target masks.
         loss: one of :data:`autoalign.losses.LOSSES`.
         robust: re-weight views with Cauchy weights on ``1 - IoU`` (see :func:`cauchy_weights`).
     """
 
     def __init__(self, rasterizer: SoftSilhouetteRasterizer, scene: Scene, loss: str = "l2",
-                 robust: bool = True, coarse_rasterizer: SoftSilhouetteRasterizer | None = None) -> None:
+                 robust: bool = True, coarse_rasterizer: SoftSilhouetteRasterizer | None = None,
+                 search_rasterizer: SoftSilhouetteRasterizer | None = None) -> None:
         if loss not in LOSSES:
             raise ValueError(f"unknown loss {loss!r}; choose one of {sorted(LOSSES)}")
         self.rasterizer = rasterizer
         self.coarse_rasterizer = coarse_rasterizer or rasterizer
+        self.search_rasterizer = search_rasterizer or self.coarse_rasterizer
         self.centre_m = rasterizer.mesh.centre  # the point twists turn about, model frame (mm)
         self.scene = scene
         self.loss_name = loss
@@ -81,7 +84,8 @@ class SilhouetteObjective:
                  with_derivatives: bool = True) -> Evaluation:
         """Render at ``level`` and compare. Without ``weights`` they are computed here (robust or 1)."""
         cams, tg, totals = self.at_scale(level.scale)
-        rast = self.rasterizer if level.scale >= 1.0 else self.coarse_rasterizer
+        rast = (self.rasterizer if level.scale >= 1.0 else
+                self.coarse_rasterizer if level.scale > 0.125 else self.search_rasterizer)
         sil = rast.render(T_wm, cams, level.sigma, with_jacobian=with_derivatives)
         self.renders += 1
         terms = self.loss_fn(sil, targets_in_crops(tg, sil), totals)

@@ -322,7 +322,7 @@ class SoftSilhouetteRasterizer:
         """Band pixels (within ``band_r`` px of the outline) with their nearest segment, and off-band regions.
 
         Returns flat band indices, their segment ids, a region id per flat pixel (-1 in the band)
-        and (R, 3) sample pixels per region (first, middle and last in scan order).
+        and (R, 3) sample pixels per region.
 
         All crops are stacked into one atlas image, separated by gaps wider than the band, so that
         one distance transform (with labels) and one connected-components pass serve every view.
@@ -357,16 +357,19 @@ class SoftSilhouetteRasterizer:
             in_band = np.zeros(atlas.shape, dtype=bool)
         off_band = atlas.valid & ~in_band
         n_lab, lab = cv2.connectedComponents(off_band.astype(np.uint8), connectivity=4)
-        oy, ox = np.nonzero(off_band)
-        flat_off = atlas.flat[oy, ox]
-        lab_off = lab[oy, ox].astype(np.int64) - 1
+        off = np.flatnonzero(off_band.ravel())  # atlas pixels, row-major
+        flat_off = atlas.flat.ravel()[off]
+        lab_off = lab.ravel()[off].astype(np.int64) - 1
         region[flat_off] = lab_off
-        order = np.argsort(lab_off, kind="stable")
-        ids = np.arange(n_lab - 1)
-        first = np.searchsorted(lab_off[order], ids)
-        last = np.searchsorted(lab_off[order], ids, side="right") - 1
-        samples = flat_off[order][np.stack([first, (first + last) // 2, last], 1)] if n_lab > 1 \
-            else np.zeros((0, 3), np.int64)
+        # three sample pixels per region without sorting: its first and last pixel in row-major
+        # order, and its first in column-major order (later writes win in a fancy assignment)
+        samples = np.zeros((n_lab - 1, 3), dtype=np.int64)
+        samples[lab_off[::-1], 0] = flat_off[::-1]
+        samples[lab_off, 1] = flat_off
+        off_t = np.flatnonzero(off_band.T.ravel())
+        ys_t, xs_t = off_t % atlas.shape[0], off_t // atlas.shape[0]
+        lab_t = lab[ys_t, xs_t].astype(np.int64) - 1
+        samples[lab_t[::-1], 2] = atlas.flat[ys_t, xs_t][::-1]
         rr, cc = np.nonzero(in_band)
         if len(rr) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), region, samples
