@@ -36,7 +36,18 @@ from autoalign.experiments.procedural_models import procedural_models
 from autoalign.experiments.synthetic import (corrupt_views, make_scene, perturb_pose, random_rotation,
                                              ring_cameras, sphere_cameras, write_synthetic_scene)
 
-LM_DIR = Path(os.environ.get("AUTOALIGN_LM_MODELS", "/work/shared/bop_models/lm"))
+def _find_lm_dir() -> Path:
+    """LINEMOD models: $AUTOALIGN_LM_MODELS, else ``shared/bop_models/lm`` beside the checkout."""
+    if "AUTOALIGN_LM_MODELS" in os.environ:
+        return Path(os.environ["AUTOALIGN_LM_MODELS"])
+    for base in (Path.cwd(), Path.cwd().parent, Path("/work")):
+        cand = base / "shared" / "bop_models" / "lm"
+        if cand.is_dir():
+            return cand
+    return Path("/work/shared/bop_models/lm")
+
+
+LM_DIR = _find_lm_dir()
 LM_ASYMMETRIC_60_200MM = (1, 4, 6, 7, 9, 12)  # LINEMOD ids without symmetries, diameter <= 200 mm
 SEEDS = ("init", "click", "none", "corrupt")
 

@@ -17,13 +17,14 @@ import trimesh
 
 from autoalign.camera import Camera
 from autoalign.experiments.procedural_models import procedural_models
+from autoalign.experiments.refine_study import LM_DIR
 from autoalign.experiments.synthetic import random_rotation, raycast_masks, sphere_cameras
 from autoalign.mesh import Mesh, load_mesh, mesh_from_trimesh
 from autoalign.rasterizers.soft_silhouette import Silhouettes, SoftSilhouetteRasterizer, smoothstep_edge
 from autoalign.se3 import apply_twist, make_pose, transform_points
 
 W, H = 640, 480
-LM_MODEL = Path("/work/shared/bop_models/lm/obj_000001.ply")
+LM_MODEL = LM_DIR / "obj_000001.ply"
 
 # Models compared with open3d: two asymmetric, non-convex procedural ones always, plus a real
 # LINEMOD model when the shared folder has it.
