@@ -13,9 +13,17 @@ Heavy modules (mitsuba/drjit) load on first use, so ``import autoalign`` stays f
 
 from __future__ import annotations
 
+import os
 from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
+
+# In a source checkout the subpackages (losses/, rasterizers/, recon/, cli/, experiments/) sit
+# beside this folder and pyproject.toml maps them to autoalign.*; let the checkout import them the
+# same way (e.g. `python -m autoalign.cli.main` run from the repository root). No-op when installed.
+_checkout = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if os.path.isfile(os.path.join(_checkout, "pyproject.toml")) and os.path.isdir(os.path.join(_checkout, "losses")):
+    __path__.append(_checkout)  # noqa: F821 - the package's own __path__
 
 _LAZY = {
     "refine": "autoalign.engine", "RefineOptions": "autoalign.engine", "RefineResult": "autoalign.engine",
