@@ -148,7 +148,7 @@ def test_worker_processes(tmp_path):
 
 
 def test_dask_local_cluster(tmp_path):
-    distributed = pytest.importorskip("dask.distributed")
+    import dask.distributed as distributed  # installed by .ci/install (the [all] extras)
     cfg = StudyConfig(model_ids=(5,), trials=1, methods=("paper", "init"), views=6,
                       setup=ImageSetup(width=160, height=120, focal=150.0))
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
