@@ -25,7 +25,7 @@ def poses_at(rotations: NDArray[np.float64], centre_w: NDArray[np.float64], cent
 class _LowResViews:
     """Crop pixels of a subset of views at low resolution, shared by all hypotheses."""
 
-    def __init__(self, rast: SoftSilhouetteRasterizer, scene: Scene, centre_w: NDArray[np.float64],
+    def __init__(self, scene: Scene, centre_w: NDArray[np.float64],
                  reach: float, scale: float, max_views: int) -> None:
         idx = np.linspace(0, len(scene) - 1, min(max_views, len(scene))).round().astype(int)
         origins, dirs, pix, tgt, view, J, g_cent, t_tot = [], [], [], [], [], [], [], []
@@ -94,7 +94,7 @@ def score_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.
     centres = poses[:, :3, 3] + np.einsum("kij,j->ki", poses[:, :3, :3], rast.mesh.centre)
     centre_w = centres.mean(0)
     reach = radius + float(np.linalg.norm(centres - centre_w, axis=1).max()) + (0.5 * radius if recentre else 0.0)
-    views = _LowResViews(rast, scene, centre_w, reach, scale, max_views)
+    views = _LowResViews(scene, centre_w, reach, scale, max_views)
     if views.n == 0:
         return np.zeros(len(poses)), poses
     pix = views.pix

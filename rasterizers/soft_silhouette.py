@@ -93,13 +93,15 @@ class CameraBatch:
     t_w2c: NDArray[np.float64]
     R_c2w: NDArray[np.float64]
     centres: NDArray[np.float64]
+    sizes: NDArray[np.int64]  # (N, 2) image width, height
 
     @staticmethod
     def of(cameras: list[Camera]) -> "CameraBatch":
         K = np.stack([c.K for c in cameras])
         R = np.stack([c.R_w2c for c in cameras])
         t = np.stack([c.t_w2c for c in cameras])
-        return CameraBatch(K, np.linalg.inv(K), R, t, R.transpose(0, 2, 1), -np.einsum("nji,nj->ni", R, t))
+        sizes = np.array([[c.width, c.height] for c in cameras], dtype=np.int64)
+        return CameraBatch(K, np.linalg.inv(K), R, t, R.transpose(0, 2, 1), -np.einsum("nji,nj->ni", R, t), sizes)
 
 
 def per_view_matvec(M: NDArray[np.float64], view: NDArray[np.int64], x: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -218,13 +220,15 @@ class SoftSilhouetteRasterizer:
 
         A view whose camera plane cuts the object gets the whole image.
         """
-        cams = CameraBatch.of(cameras)
+        return self._crops(T_wm, CameraBatch.of(cameras), margin)
+
+    def _crops(self, T_wm: NDArray[np.float64], cams: CameraBatch, margin: int) -> NDArray[np.int64]:
         Xw = transform_points(T_wm, self._hull)
         Xc = np.einsum("nij,hj->nhi", cams.R_w2c, Xw) + cams.t_w2c[:, None, :]  # (N, H, 3)
         behind = np.any(Xc[..., 2] < _NEAR_MM, axis=1)
         uvw = np.einsum("nij,nhj->nhi", cams.K, Xc)
         uv = uvw[..., :2] / np.where(np.abs(uvw[..., 2:3]) > 1e-9, uvw[..., 2:3], 1e-9)
-        size = np.array([[c.width, c.height] for c in cameras], dtype=np.int64)
+        size = cams.sizes
         lo = np.where(behind[:, None], 0, np.floor(uv.min(1)).astype(np.int64) - margin)
         hi = np.where(behind[:, None], size, np.ceil(uv.max(1)).astype(np.int64) + margin)
         lo = np.clip(lo, 0, size)
@@ -260,13 +264,14 @@ class SoftSilhouetteRasterizer:
         half = 2.0 * sigma
         band_r = half + 1.5
         margin = int(np.ceil(band_r)) + 2
-        crops = self.crops(T_wm, cameras, margin)
+        cams = CameraBatch.of(cameras)
+        crops = self._crops(T_wm, cams, margin)
         sizes = crops[:, 2] * crops[:, 3]
         offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-        seg = self._outline_segments(T_wm, cameras, crops)
+        seg = self._outline_segments(T_wm, cams, crops)
         n_out = np.bincount(seg["view"], minlength=len(cameras)).astype(np.int64)
         band, bseg, region, samples = self._band_pixels(seg, crops, offsets, band_r)
-        hard = self._hard_from_regions(T_wm, cameras, crops, offsets, band, region, samples)
+        hard = self._hard_from_regions(T_wm, cams, crops, offsets, band, region, samples)
         soft = hard.astype(np.float64)
         view_of_band = np.searchsorted(offsets, band, side="right") - 1
         if len(band) == 0:
@@ -280,21 +285,21 @@ class SoftSilhouetteRasterizer:
         A_w = transform_points(T_wm, self.mesh.vertices[ends[:, 0]])
         B_w = transform_points(T_wm, self.mesh.vertices[ends[:, 1]])
         centre_w = transform_points(T_wm, self.mesh.centre[None])[0]
-        value, jac = self._band_values(cameras, view_of_band, px, py, sign, A_w, B_w,
+        value, jac = self._band_values(cams, view_of_band, px, py, sign, A_w, B_w,
                                        seg["t0"][bseg], seg["t1"][bseg], centre_w, half, with_jacobian)
         soft[band] = value
         return Silhouettes(crops, offsets, soft, hard, band, jac, view_of_band, n_out)
 
-    def _hits_at_flat(self, T_wm: NDArray[np.float64], cameras: list[Camera], crops: NDArray[np.int64],
+    def _hits_at_flat(self, T_wm: NDArray[np.float64], cams: CameraBatch, crops: NDArray[np.int64],
                       offsets: NDArray[np.int64], flat: NDArray[np.int64]) -> NDArray[np.bool_]:
         """Ray-cast hard hits at the centres of the given flat crop pixels (any views, any order)."""
         view = np.searchsorted(offsets, flat, side="right") - 1
         local = flat - offsets[view]
         w = crops[view, 2]
         uv = np.column_stack([crops[view, 0] + local % w + 0.5, crops[view, 1] + local // w + 0.5])
-        return self.hits_at(T_wm, CameraBatch.of(cameras), view, uv)
+        return self.hits_at(T_wm, cams, view, uv)
 
-    def _hard_from_regions(self, T_wm: NDArray[np.float64], cameras: list[Camera], crops: NDArray[np.int64],
+    def _hard_from_regions(self, T_wm: NDArray[np.float64], cams: CameraBatch, crops: NDArray[np.int64],
                            offsets: NDArray[np.int64], band: NDArray[np.int64], region: NDArray[np.int64],
                            samples: NDArray[np.int64]) -> NDArray[np.bool_]:
         """The hard mask of all crop pixels from rays at band pixels and a few per off-band region.
@@ -304,7 +309,7 @@ class SoftSilhouetteRasterizer:
         segment test missed) is ray-cast pixel by pixel.
         """
         hard = np.zeros(int(offsets[-1]), dtype=bool)
-        hits = self._hits_at_flat(T_wm, cameras, crops, offsets, np.concatenate([band, samples.ravel()]))
+        hits = self._hits_at_flat(T_wm, cams, crops, offsets, np.concatenate([band, samples.ravel()]))
         hard[band] = hits[:len(band)]
         if samples.size:
             sv = hits[len(band):].reshape(samples.shape)
@@ -314,7 +319,7 @@ class SoftSilhouetteRasterizer:
             mixed = np.flatnonzero(~np.all(sv == sv[:, :1], axis=1))
             if len(mixed):
                 redo = off[np.isin(region[off], mixed)]
-                hard[redo] = self._hits_at_flat(T_wm, cameras, crops, offsets, redo)
+                hard[redo] = self._hits_at_flat(T_wm, cams, crops, offsets, redo)
         return hard
 
     def _band_pixels(self, seg: dict[str, NDArray], crops: NDArray[np.int64], offsets: NDArray[np.int64],
@@ -382,10 +387,9 @@ class SoftSilhouetteRasterizer:
         d2[seg["view"][cand] != view[:, None]] = np.inf  # a neighbour across a gap belongs to another view
         return band, cand[np.arange(len(cand)), np.argmin(d2, axis=1)], region, samples
 
-    def _outline_segments(self, T_wm: NDArray[np.float64], cameras: list[Camera],
+    def _outline_segments(self, T_wm: NDArray[np.float64], cams: CameraBatch,
                           crops: NDArray[np.int64]) -> dict[str, NDArray]:
         """Sub-pixel segments of contour edges that lie on the visible outline, all views."""
-        cams = CameraBatch.of(cameras)
         flip = self._contour_matrix(T_wm, cams)  # (E, N)
         flip[:, crops[:, 2] * crops[:, 3] == 0] = False
         view, edge = np.nonzero(flip.T)  # grouped by view
@@ -434,7 +438,7 @@ class SoftSilhouetteRasterizer:
         return {"view": sv[pair], "edge": edge[owner], "mid": mid[pair],
                 "t0": t0, "t1": t1, "a": a, "b": b}
 
-    def _band_values(self, cameras: list[Camera], view: NDArray[np.int64], px: NDArray[np.float64],
+    def _band_values(self, cams: CameraBatch, view: NDArray[np.int64], px: NDArray[np.float64],
                      py: NDArray[np.float64], sign: NDArray[np.float64], A_w: NDArray[np.float64],
                      B_w: NDArray[np.float64], t0: NDArray[np.float64], t1: NDArray[np.float64],
                      centre_w: NDArray[np.float64], half: float,
@@ -442,7 +446,8 @@ class SoftSilhouetteRasterizer:
         """Soft values of band pixels and their twist derivatives (drjit, forward-mode AD)."""
         dr, mi = self._dr, self._mi
         Float, UInt = mi.Float64, mi.UInt32
-        P = np.stack([np.concatenate([c.R_w2c.ravel(), c.t_w2c, c.K[:2].ravel()]) for c in cameras])  # (N, 18)
+        N = len(cams.K)
+        P = np.concatenate([cams.R_w2c.reshape(N, 9), cams.t_w2c, cams.K[:, :2].reshape(N, 6)], 1)  # (N, 18)
         vid = UInt(view.astype(np.uint32))
         cam = [dr.gather(Float, Float(P[:, j].copy()), vid) for j in range(18)]
         xi = [Float(0.0) for _ in range(6)]
