@@ -44,6 +44,10 @@ class Scene:
     def __len__(self) -> int:
         return len(self.cameras)
 
+    def spread(self, k: int) -> NDArray[np.int64]:
+        """Positions of at most ``k`` views evenly spread through the scene's order."""
+        return np.unique(np.linspace(0, len(self) - 1, min(k, len(self))).round().astype(np.int64))
+
     def subset(self, idx: list[int] | NDArray[np.int64]) -> "Scene":
         """A scene with only the views at positions ``idx``."""
         idx = [int(i) for i in idx]

@@ -14,7 +14,36 @@ from numpy.typing import NDArray
 
 from autoalign.bop import Scene
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
-from autoalign.se3 import make_pose
+from autoalign.se3 import invert, make_pose, rotation_angle_deg
+
+
+def flips(T_wm: NDArray[np.float64], axes_m: NDArray[np.float64], centre_m: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(len(axes), 4, 4): ``T_wm`` turned half a turn about each model axis through ``centre_m``.
+
+    The silhouettes of an elongated or flat object barely change under these turns from far
+    away, so a search can settle on one of them; trying all of them costs a few refinements.
+    """
+    out = []
+    for a in axes_m:
+        R = 2.0 * np.outer(a, a) - np.eye(3)  # rotation by pi about the unit axis a
+        out.append(T_wm @ make_pose(R, centre_m - R @ centre_m))
+    return np.stack(out)
+
+
+def orbit(T_a: NDArray[np.float64], T_b: NDArray[np.float64], max_order: int = 12,
+          tol_deg: float = 3.0) -> NDArray[np.float64]:
+    """The other poses of the cyclic group that two near-equal fits suggest, (K, 4, 4).
+
+    When ``T_b = T_a D`` and ``D`` turns by about ``360/n`` degrees (``3 <= n <= max_order``,
+    within ``tol_deg``), the object looks nearly the same under ``D``: a gear with ``n`` teeth, a
+    cross. Then ``T_a D^k`` for ``k = 2 .. n-1`` are the remaining candidates. Otherwise none.
+    """
+    D = invert(T_a) @ T_b
+    theta = rotation_angle_deg(np.eye(3), D[:3, :3])
+    n = int(round(360.0 / theta)) if theta > 1e-6 else 0
+    if not 3 <= n <= max_order or abs(n * theta - 360.0) > tol_deg * n:
+        return np.zeros((0, 4, 4))
+    return np.stack([T_a @ np.linalg.matrix_power(D, k) for k in range(2, n)])
 
 
 def poses_at(rotations: NDArray[np.float64], centre_w: NDArray[np.float64], centre_m: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -27,7 +56,7 @@ class _LowResViews:
 
     def __init__(self, scene: Scene, centre_w: NDArray[np.float64],
                  reach: float, scale: float, max_views: int) -> None:
-        idx = np.linspace(0, len(scene) - 1, min(max_views, len(scene))).round().astype(int)
+        idx = scene.spread(max_views)
         origins, dirs, pix, tgt, view, J, g_cent, t_tot = [], [], [], [], [], [], [], []
         for k in idx:
             cam = scene.cameras[k].scaled(scale)
@@ -67,15 +96,24 @@ class _LowResViews:
         self.g_cent = np.array(g_cent)
         self.J = np.array(J)
 
-    def cast(self, rast: SoftSilhouetteRasterizer, poses: NDArray[np.float64], batch_rays: int) -> NDArray[np.bool_]:
-        """(K, n_rays) hits of every pose."""
-        out = np.zeros((len(poses), len(self.O)), dtype=bool)
+    def overlap_stats(self, rast: SoftSilhouetteRasterizer, poses: NDArray[np.float64],
+                      batch_rays: int) -> NDArray[np.float64]:
+        """(K, 4, V) per pose and view: silhouette area, overlap with the mask, and the sums of
+        the silhouette's pixel x and y (px, this resolution). The hits are reduced chunk by chunk."""
+        if not hasattr(self, "_reduce"):  # (R, 4V): one matrix product reduces hits per view
+            onehot = np.zeros((len(self.view), self.n), dtype=np.float32)
+            onehot[np.arange(len(self.view)), self.view] = 1.0
+            w = np.stack([np.ones(len(self.view)), self.tgt, self.pix[:, 0], self.pix[:, 1]]).astype(np.float32)
+            self._reduce = (w[:, :, None] * onehot[None]).transpose(1, 0, 2).reshape(len(self.view), -1)
+        out = np.zeros((len(poses), 4, self.n))
         per = max(1, batch_rays // max(len(self.O), 1))
         for b0 in range(0, len(poses), per):
             chunk = poses[b0:b0 + per]
-            Om = np.concatenate([(self.O - T[:3, 3]) @ T[:3, :3] for T in chunk])  # R^T (o - t)
-            Dm = np.concatenate([self.D @ T[:3, :3] for T in chunk])
-            out[b0:b0 + len(chunk)] = rast.model_ray_hits(Om, Dm).reshape(len(chunk), -1)
+            R = chunk[:, :3, :3]
+            Om = np.matmul(self.O[None] - chunk[:, None, :3, 3], R).reshape(-1, 3)  # rows R^T (o - t)
+            Dm = np.matmul(self.D[None], R).reshape(-1, 3)
+            hits = rast.model_ray_hits(Om, Dm).reshape(len(chunk), -1)
+            out[b0:b0 + len(chunk)] = (hits.astype(np.float32) @ self._reduce).reshape(len(chunk), 4, self.n)
         return out
 
 
@@ -97,26 +135,37 @@ def score_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.
     views = _LowResViews(scene, centre_w, reach, scale, max_views)
     if views.n == 0:
         return np.zeros(len(poses)), poses
-    pix = views.pix
-    hits = views.cast(rast, poses, batch_rays)
+    stats = views.overlap_stats(rast, poses, batch_rays)
     if recentre:
+        area = stats[:, 0]
+        ok = area > 0
+        cent = stats[:, 2:4] / np.maximum(area, 1.0)[:, None]  # (K, 2, V)
+        r = np.where(ok[:, None], views.g_cent.T[None] - cent, 0.0).transpose(0, 2, 1)  # (K, V, 2)
+        J = np.where(ok[:, :, None, None], views.J[None], 0.0).reshape(len(poses), -1, 3)  # rows of empty views zeroed
+        JtJ = np.einsum("kri,krj->kij", J, J)
+        Jtr = np.einsum("kri,kr->ki", J, r.reshape(len(poses), -1))
+        solvable = ok.sum(1) >= 2
         shifts = np.zeros((len(poses), 3))
-        for j, h in enumerate(hits):
-            cnt = np.bincount(views.view, weights=h, minlength=views.n)
-            ok = cnt > 0
-            if ok.sum() < 2:
-                continue
-            cx = np.bincount(views.view, weights=h * pix[:, 0], minlength=views.n)[ok] / cnt[ok]
-            cy = np.bincount(views.view, weights=h * pix[:, 1], minlength=views.n)[ok] / cnt[ok]
-            r = (views.g_cent[ok] - np.column_stack([cx, cy])).ravel()
-            shifts[j] = np.linalg.lstsq(views.J[ok].reshape(-1, 3), r, rcond=None)[0]
-        shifts = np.clip(shifts, -0.5 * radius, 0.5 * radius)
-        poses[:, :3, 3] += shifts
-        hits = views.cast(rast, poses, batch_rays)
-    scores = np.zeros(len(poses))
-    for j, h in enumerate(hits):
-        inter = np.bincount(views.view, weights=h & views.tgt, minlength=views.n)
-        area = np.bincount(views.view, weights=h, minlength=views.n)
-        iou = inter / np.maximum(area + views.t_tot - inter, 1.0)
-        scores[j] = np.sort(iou)[int(np.floor(trim * len(iou))):].mean()
+        if solvable.any():
+            shifts[solvable] = [np.linalg.lstsq(A, b, rcond=None)[0] for A, b in zip(JtJ[solvable], Jtr[solvable])]
+        poses[:, :3, 3] += np.clip(shifts, -0.5 * radius, 0.5 * radius)
+        stats = views.overlap_stats(rast, poses, batch_rays)
+    area, inter = stats[:, 0], stats[:, 1]
+    iou = inter / np.maximum(area + views.t_tot[None] - inter, 1.0)
+    scores = np.sort(iou, axis=1)[:, int(np.floor(trim * views.n)):].mean(1)
     return scores, poses
+
+
+def best_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.float64], n: int,
+               scale: float = 0.125, shortlist: int = 48, shortlist_views: int = 12) -> NDArray[np.float64]:
+    """The ``n`` best poses by :func:`score_poses` (re-centred, best first), found coarse to fine.
+
+    All poses are scored at half of ``scale`` in ``shortlist_views`` views (a quarter of the
+    rays); only the best ``shortlist`` are scored again at ``scale``. On the procedural models
+    the top 8 came out the same as scoring every pose at ``scale``, at a quarter of the time.
+    """
+    if len(poses) > shortlist:
+        scores, _ = score_poses(rast, scene, poses, scale=scale / 2, max_views=shortlist_views)
+        poses = poses[np.argsort(-scores)[:shortlist]]
+    scores, poses = score_poses(rast, scene, poses, scale=scale)
+    return poses[np.argsort(-scores)[:n]]

@@ -55,6 +55,13 @@ class Mesh:
         """Largest distance between two vertices, mm (computed on first use)."""
         return _diameter(self.vertices)
 
+    @functools.cached_property
+    def principal_axes(self) -> NDArray[np.float64]:
+        """(3, 3) rows: unit principal axes of the surface (second moments of surface samples
+        about ``centre``), major first; model frame."""
+        d = self.sample_points(2000) - self.centre
+        return np.linalg.eigh(d.T @ d)[1][:, ::-1].T.copy()
+
     @property
     def trimesh(self) -> trimesh.Trimesh:
         """A trimesh view of the same geometry (no processing)."""
@@ -75,6 +82,7 @@ class Mesh:
         out = Mesh(np.asarray(tm.vertices), np.asarray(tm.faces), name=f"{self.name}@{len(tm.faces)}")
         out.centre = self.centre.copy()  # twists turn about the same point at every level
         out.diameter = self.diameter
+        out.principal_axes = self.principal_axes
         return out
 
     def sample_points(self, n: int, seed: int = 0) -> NDArray[np.float64]:

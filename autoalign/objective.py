@@ -22,11 +22,13 @@ class Level:
         scale: image resolution relative to the input (0.25 = a quarter of the width).
         sigma: edge softness in pixels of that resolution.
         max_iters: iteration budget of the stage.
+        max_views: use at most this many views, spread through the scene (``None``: all).
     """
 
     scale: float
     sigma: float
     max_iters: int
+    max_views: int | None = None
 
 
 @dataclass
@@ -66,24 +68,29 @@ class SilhouetteObjective:
         self.loss_name = loss
         self.loss_fn = LOSSES[loss]
         self.robust = robust
-        self._levels: dict[float, tuple[list[Camera], list[NDArray[np.float32]], NDArray[np.float64]]] = {}
+        self._levels: dict[tuple[float, int | None],
+                           tuple[list[Camera], list[NDArray[np.float32]], NDArray[np.float64]]] = {}
         self.renders = 0
 
-    def at_scale(self, scale: float) -> tuple[list[Camera], list[NDArray[np.float32]], NDArray[np.float64]]:
-        """Cameras, area-resampled targets and per-view target sums at ``scale`` (cached)."""
-        if scale not in self._levels:
-            cams = [c.scaled(scale) for c in self.scene.cameras]
+    def at_scale(self, scale: float, max_views: int | None = None
+                 ) -> tuple[list[Camera], list[NDArray[np.float32]], NDArray[np.float64]]:
+        """Cameras, area-resampled targets and per-view target sums at ``scale`` (cached),
+        of at most ``max_views`` views spread through the scene (see :meth:`Scene.spread`)."""
+        key = (scale, max_views)
+        if key not in self._levels:
+            scene = self.scene if max_views is None else self.scene.subset(self.scene.spread(max_views))
+            cams = [c.scaled(scale) for c in scene.cameras]
             tg = [m.astype(np.float32) if scale == 1.0 else
                   cv2.resize(m.astype(np.float32), (c.width, c.height), interpolation=cv2.INTER_AREA)
-                  for m, c in zip(self.scene.masks, cams)]
+                  for m, c in zip(scene.masks, cams)]
             totals = np.array([float(t.sum()) for t in tg])
-            self._levels[scale] = (cams, tg, totals)
-        return self._levels[scale]
+            self._levels[key] = (cams, tg, totals)
+        return self._levels[key]
 
     def evaluate(self, T_wm: NDArray[np.float64], level: Level, weights: NDArray[np.float64] | None = None,
                  with_derivatives: bool = True) -> Evaluation:
         """Render at ``level`` and compare. Without ``weights`` they are computed here (robust or 1)."""
-        cams, tg, totals = self.at_scale(level.scale)
+        cams, tg, totals = self.at_scale(level.scale, level.max_views)
         rast = (self.rasterizer if level.scale >= 1.0 else
                 self.coarse_rasterizer if level.scale > 0.125 else self.search_rasterizer)
         sil = rast.render(T_wm, cams, level.sigma, with_jacobian=with_derivatives)

@@ -21,6 +21,7 @@ from autoalign.se3 import apply_twist, transform_points
 
 TOL_MM = 0.01
 TOL_DEG = 0.001
+FTOL = 1e-3
 COARSE_MM = 0.1
 COARSE_DEG = 0.05
 
@@ -104,11 +105,17 @@ def _descend(objective: SilhouetteObjective, T: NDArray[np.float64], level: Leve
 def levenberg_marquardt(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level,
                         lam: float = 1e-3, tol_mm: float = TOL_MM, tol_deg: float = TOL_DEG,
                         callback: Callback | None = None, damping_growth: float = 4.0,
-                        max_step_mm: float = 30.0, max_step_deg: float = 20.0) -> tuple[NDArray[np.float64], Trace]:
+                        max_step_mm: float = 30.0, max_step_deg: float = 20.0,
+                        ftol: float = FTOL) -> tuple[NDArray[np.float64], Trace]:
     """Levenberg-Marquardt on the weighted Gauss-Newton system ``(H + lam diag(H)) step = -g``.
 
     A rejected step raises the damping ``lam`` by ``damping_growth``, an accepted one lowers it
     three-fold. Steps are clipped to ``max_step_mm`` / ``max_step_deg`` (a trust region for far starts).
+    Besides the step-size test it stops when a step fails whose predicted decrease (from the
+    Gauss-Newton model) was below ``ftol`` of the objective: the objective's own noise (outlines
+    discretised in pixels) is then larger than what the model can still gain. Without this rule
+    LM kept rendering rejected sub-micrometre steps (five or more at full resolution) until the
+    damping had shrunk them below the step tolerance, without a better pose.
     """
     state = {"lam": lam}
 
@@ -121,13 +128,14 @@ def levenberg_marquardt(objective: SilhouetteObjective, T: NDArray[np.float64], 
             except np.linalg.LinAlgError:
                 step = np.zeros(6)
             step = _clip_step(step, max_step_mm, max_step_deg)
+            predicted = -(g @ step + 0.5 * step @ H @ step)
             T_new = apply_twist(T, step, _centre(objective, T))
             ev_new = objective.evaluate(T_new, level, weights=ev.weights)
             if ev_new.value <= ev.value:
                 state["lam"] = max(state["lam"] / 3.0, 1e-7)
                 return T_new, ev_new, step
             state["lam"] *= damping_growth
-            if _small(step, tol_mm, tol_deg):
+            if _small(step, tol_mm, tol_deg) or predicted < ftol * ev.value:
                 return None
         return None
 

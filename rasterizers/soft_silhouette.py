@@ -371,10 +371,9 @@ class SoftSilhouetteRasterizer:
         samples = np.zeros((n_lab - 1, 3), dtype=np.int64)
         samples[lab_off[::-1], 0] = flat_off[::-1]
         samples[lab_off, 1] = flat_off
-        off_t = np.flatnonzero(off_band.T.ravel())
-        ys_t, xs_t = off_t % atlas.shape[0], off_t // atlas.shape[0]
-        lab_t = lab[ys_t, xs_t].astype(np.int64) - 1
-        samples[lab_t[::-1], 2] = atlas.flat[ys_t, xs_t][::-1]
+        lab_t = lab.T.ravel()  # column-major copies
+        in_t = np.flatnonzero(lab_t)
+        samples[lab_t[in_t[::-1]].astype(np.int64) - 1, 2] = atlas.flat.T.ravel()[in_t[::-1]]
         rr, cc = np.nonzero(in_band)
         if len(rr) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), region, samples
@@ -383,9 +382,19 @@ class SoftSilhouetteRasterizer:
         nearest = np.pad(lut[labels], 1, mode="edge")
         cand = np.stack([nearest[rr + 1 + dy, cc + 1 + dx] for dy, dx in _CANDIDATE_OFFSETS], 1)
         p = np.stack([crops[view, 0] + cc + 0.5, crops[view, 1] + rr - atlas.row0[view] + 0.5], 1)
-        d2 = _point_segment_dist2(p[:, None, :], seg["a"][cand], seg["b"][cand])
-        d2[seg["view"][cand] != view[:, None]] = np.inf  # a neighbour across a gap belongs to another view
-        return band, cand[np.arange(len(cand)), np.argmin(d2, axis=1)], region, samples
+        # Distances only where a candidate differs from the best so far (mostly all five agree);
+        # a neighbour across a gap belongs to another view and is never taken.
+        best = cand[:, 0].copy()
+        d_best = _point_segment_dist2(p, seg["a"][best], seg["b"][best])
+        d_best[seg["view"][best] != view] = np.inf
+        for k in range(1, cand.shape[1]):
+            alt = cand[:, k]
+            i = np.flatnonzero((alt != best) & (seg["view"][alt] == view))
+            d = _point_segment_dist2(p[i], seg["a"][alt[i]], seg["b"][alt[i]])
+            m = d < d_best[i]
+            best[i[m]] = alt[i[m]]
+            d_best[i[m]] = d[m]
+        return band, best, region, samples
 
     def _outline_segments(self, T_wm: NDArray[np.float64], cams: CameraBatch,
                           crops: NDArray[np.int64]) -> dict[str, NDArray]:
@@ -524,10 +533,11 @@ class _Atlas:
 
 def _point_segment_dist2(p: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
     """Squared distance from points ``p`` to segments ``[a, b]`` (broadcast over leading axes)."""
-    d = b - a
-    t = np.clip(np.sum((p - a) * d, -1) / np.maximum(np.sum(d * d, -1), 1e-18), 0.0, 1.0)
-    e = a + t[..., None] * d - p
-    return np.sum(e * e, -1)
+    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    qx, qy = p[..., 0] - a[..., 0], p[..., 1] - a[..., 1]
+    t = np.clip((qx * dx + qy * dy) / np.maximum(dx * dx + dy * dy, 1e-18), 0.0, 1.0)
+    ex, ey = t * dx - qx, t * dy - qy
+    return ex * ex + ey * ey
 
 
 def _crop_pixel_centres(crop: NDArray[np.int64]) -> NDArray[np.float64]:
