@@ -1,4 +1,5 @@
-"""Cheap scoring of many orientation hypotheses at low resolution (hard ray-cast IoU).
+"""Orientation hypotheses: cheap scoring of many at low resolution (hard ray-cast IoU), and
+the extra candidates a search needs on near-symmetric objects (half-turn flips, cyclic orbits).
 
 Every hypothesis is first re-centred so that its silhouettes' centroids match the masks'
 centroids (a least-squares 3-D shift from the 2-D centroid offsets of all views), then scored
@@ -95,16 +96,16 @@ class _LowResViews:
         self.t_tot = np.array(t_tot)
         self.g_cent = np.array(g_cent)
         self.J = np.array(J)
+        # (R, 4V): one matrix product reduces a pose's hits to area, overlap, sum x, sum y per view
+        onehot = np.zeros((len(self.view), self.n), dtype=np.float32)
+        onehot[np.arange(len(self.view)), self.view] = 1.0
+        w = np.stack([np.ones(len(self.view)), self.tgt, self.pix[:, 0], self.pix[:, 1]]).astype(np.float32)
+        self._reduce = (w[:, :, None] * onehot[None]).transpose(1, 0, 2).reshape(len(self.view), -1)
 
     def overlap_stats(self, rast: SoftSilhouetteRasterizer, poses: NDArray[np.float64],
                       batch_rays: int) -> NDArray[np.float64]:
         """(K, 4, V) per pose and view: silhouette area, overlap with the mask, and the sums of
         the silhouette's pixel x and y (px, this resolution). The hits are reduced chunk by chunk."""
-        if not hasattr(self, "_reduce"):  # (R, 4V): one matrix product reduces hits per view
-            onehot = np.zeros((len(self.view), self.n), dtype=np.float32)
-            onehot[np.arange(len(self.view)), self.view] = 1.0
-            w = np.stack([np.ones(len(self.view)), self.tgt, self.pix[:, 0], self.pix[:, 1]]).astype(np.float32)
-            self._reduce = (w[:, :, None] * onehot[None]).transpose(1, 0, 2).reshape(len(self.view), -1)
         out = np.zeros((len(poses), 4, self.n))
         per = max(1, batch_rays // max(len(self.O), 1))
         for b0 in range(0, len(poses), per):

@@ -5,7 +5,8 @@
 * :func:`adam` — the first-order reference.
 
 Each runs one :class:`~autoalign.objective.Level` of the coarse-to-fine schedule and stops when a step
-moves the object by less than ``tol_mm`` and ``tol_deg``.
+moves the object by less than ``tol_mm`` and ``tol_deg`` (Levenberg-Marquardt also when a failed
+step's predicted decrease was below ``ftol`` of the objective).
 """
 
 from __future__ import annotations
