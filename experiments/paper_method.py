@@ -34,7 +34,7 @@ exactly (brute force); tests check the fast path against it.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import cv2
@@ -49,6 +49,19 @@ from autoalign.se3 import transform_points
 
 _NEAR_MM = 1.0
 _MAX_RAYS = 2_000_000  # rays per ray-cast call (memory bound)
+
+
+def _ray_batches(counts: NDArray[np.int64], limit: int = _MAX_RAYS) -> Iterator[tuple[int, int]]:
+    """``(start, stop)`` runs of consecutive items whose ray counts sum to at most ``limit``
+    (an item larger than ``limit`` gets a run of its own)."""
+    start, K = 0, len(counts)
+    while start < K:
+        stop, total = start + 1, int(counts[start])
+        while stop < K and total + counts[stop] <= limit:
+            total += int(counts[stop])
+            stop += 1
+        yield start, stop
+        start = stop
 
 
 @dataclass(frozen=True)
@@ -304,13 +317,7 @@ class CandidateScorer:
         tflat = target.ravel()
         W = cam.width
         sizes = boxes[:, 2] * boxes[:, 3]
-        start = 0
-        while start < K:
-            stop = start + 1
-            total = int(sizes[start])
-            while stop < K and total + sizes[stop] <= _MAX_RAYS:
-                total += int(sizes[stop])
-                stop += 1
+        for start, stop in _ray_batches(sizes):
             sz = sizes[start:stop]
             bx = boxes[start:stop]
             n = int(sz.sum())
@@ -333,7 +340,6 @@ class CandidateScorer:
                 hits = self.rast.model_ray_hits(O, D)
                 inter[start:stop] += np.bincount(kid, weights=hits & tflat[flat], minlength=stop - start)
                 area[start:stop] += np.bincount(kid, weights=hits, minlength=stop - start)
-            start = stop
         self.view_renders += K
         return inter, area
 
@@ -398,13 +404,7 @@ class CandidateScorer:
         tot_m, tot_mt = float(current.sum()), float((current & target).sum())
         Dw = dimg[flat]
         counts = np.searchsorted(dv, radii, side="right")
-        start = 0
-        while start < K:
-            stop = start + 1
-            total = int(counts[start])
-            while stop < K and total + counts[stop] <= _MAX_RAYS:
-                total += int(counts[stop])
-                stop += 1
+        for start, stop in _ray_batches(counts):
             cs = counts[start:stop]
             n = int(cs.sum())
             if n:
@@ -426,7 +426,6 @@ class CandidateScorer:
                 hits = self.rast.model_ray_hits(O, D)
                 inter[start:stop] += np.bincount(kid, weights=hits & tg, minlength=stop - start)
                 area[start:stop] += np.bincount(kid, weights=hits, minlength=stop - start)
-            start = stop
         inter += tot_mt - cum_mt[counts]
         area += tot_m - cum_m[counts]
         self.view_renders += K
