@@ -56,8 +56,11 @@ class RefineOptions:
         orbits: when the result is ambiguous and the runner-up is a 1/n turn (n = 3..12) away,
             try the other poses of that turn's orbit (see :func:`~autoalign.hypotheses.orbit`)
             and refine the one whose full-resolution hard IoU beats the winner's by ``orbit_margin``.
-        competitive: a distinct hypothesis is refined to full resolution only if its loss after the
-            first schedule level is within this factor of the best one's.
+        competitive: a distinct hypothesis is refined to the next level only if its loss at this one
+            is within this factor of the best one's.
+        abandon: in the search, a hypothesis is given up when after two iterations its loss is
+            above this multiple of the best loss found in the same stage (on the simulated study
+            no hypothesis leading to the answer was ever above 3x after two iterations).
     """
 
     loss: str = "l2"
@@ -71,6 +74,7 @@ class RefineOptions:
     search_level: Level = Level(0.125, 1.0, 10, max_views=20)
     ambiguity_tol: float = 0.05
     competitive: float = 1.5
+    abandon: float = 4.0
     flips: bool = True
     orbits: bool = True
     orbit_margin: float = 0.001
@@ -81,7 +85,11 @@ class RefineOptions:
 
 @dataclass(eq=False)
 class Hypothesis:
-    """One start tried: its initial pose, its final pose, loss and mean IoU."""
+    """One start tried: its initial pose, its final pose, loss and mean IoU.
+
+    ``loss`` is the mean weighted loss at the last level it reached; for a finalist not polished at
+    the last level (see :func:`refine`) it is its loss there scaled by the polishing gain of the best.
+    """
 
     T_init: NDArray[np.float64]
     T_final: NDArray[np.float64]
@@ -124,18 +132,20 @@ class RefineResult:
 
 
 def _run_schedule(obj: SilhouetteObjective, T: NDArray[np.float64], levels: tuple[Level, ...], optimizer: str,
-                  progress: Progress | None = None, label: str = "refine") -> tuple[NDArray[np.float64], list[Trace]]:
+                  progress: Progress | None = None, label: str = "refine",
+                  give_up: Callable[[int, Evaluation], bool] | None = None) -> tuple[NDArray[np.float64], list[Trace]]:
+    """Run ``levels`` in turn from ``T``; ``give_up(iteration, evaluation)`` returning True ends a level early."""
     opt = OPTIMIZERS[optimizer]
     traces = []
     total = sum(lv.max_iters for lv in levels)
     done = 0
     for lv in levels:
-        cb = None
-        if progress is not None:
-            base = done
+        base = done
 
-            def cb(it: int, ev: Any, base: int = base) -> None:
+        def cb(it: int, ev: Evaluation, base: int = base) -> bool:
+            if progress is not None:
                 progress(label, base + it + 1, total)
+            return give_up is not None and give_up(it, ev)
 
         T, tr = opt(obj, T, lv, callback=cb)
         traces.append(tr)
@@ -230,7 +240,10 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
 
             def run(todo: list[Hypothesis]) -> None:
                 for j, h in enumerate(todo):
-                    Tc, tr = _run_schedule(obj, h.T_final, stage_levels, opts.optimizer)
+                    # hopeless once, after two iterations, far worse than the best of this stage so far
+                    bar = opts.abandon * min((d.loss for d in done), default=np.inf)
+                    Tc, tr = _run_schedule(obj, h.T_final, stage_levels, opts.optimizer,
+                                           give_up=lambda it, ev, bar=bar: it >= 1 and ev.value / len(ev.weights) > bar)
                     loss, miou, _ = _final_loss(obj, Tc, score_level, tr[-1])
                     done.append(Hypothesis(h.T_init, Tc, loss, miou, f"search{stage}"))
                     if progress is not None:
@@ -251,7 +264,7 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
         # ambiguity is judged on final losses, but a clearly worse pose need not be polished.
         finalists = [h for h in pool if h.loss <= pool[0].loss * opts.competitive + 1e-4]
         hyps.extend(h for h in pool if h not in finalists)
-        rest = levels[1:]
+        rest = levels[1:] or levels  # a one-level schedule polishes the funnel's result at that level
     else:
         finalists = [Hypothesis(starts[0], starts[0], float("nan"), float("nan"), "seed")]
         rest = levels
@@ -273,8 +286,39 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
                          and runner.loss <= ranked[0].loss * (1.0 + opts.ambiguity_tol) + 1e-4)
         return ranked, runner, ambiguous
 
-    for k, h in enumerate(finalists):
-        finish(h, rest, "refine" if len(finalists) == 1 else f"refine {k + 1}/{len(finalists)}")
+    # Finalists go through the levels together, best first; after each level below the last, one
+    # that is no longer competitive with the best stops there (it cannot be the answer, nor
+    # ambiguous with it). At the last level only the best is polished: another is rendered once
+    # and its loss scaled by the best's polishing gain (from the same level before, the same
+    # gain); it is polished too only if that estimate is clearly (ambiguity_tol) better than the
+    # best. On a symmetric object the runner-up is an equivalent pose: polishing it bought nothing.
+    alive = [(h, h.T_final, []) for h in finalists]  # (hypothesis, pose so far, traces so far)
+    gain = 1.0
+    for li, lv in enumerate(rest):
+        at_last = li == len(rest) - 1
+        scored: list[tuple[Hypothesis, NDArray[np.float64], list[Trace], tuple[float, float, NDArray[np.float64]]]] = []
+        for k, (h, T, traces) in enumerate(alive):
+            if at_last and k > 0:
+                ev = obj.evaluate(T, lv, with_derivatives=False)
+                estimate = ev.value / len(ev.weights) * gain
+                if estimate >= scored[0][3][0] * (1.0 - opts.ambiguity_tol):
+                    scored.append((h, T, traces, (estimate, float(np.mean(ev.terms.iou)), ev.weights)))
+                    continue
+            label = "refine" if len(alive) == 1 else f"refine {k + 1}/{len(alive)}"
+            T, tr = _run_schedule(obj, T, (lv,), opts.optimizer, progress, f"{label} (level {li + 1}/{len(rest)})")
+            scored.append((h, T, traces + tr, _final_loss(obj, T, lv, tr[-1])))
+            if k == 0 and tr[-1].start is not None:  # the best's polishing gain at this level
+                gain = scored[0][3][0] / max(tr[-1].start.value / len(tr[-1].start.weights), 1e-12)
+        scored.sort(key=lambda x: x[3][0])
+        if not at_last:
+            bar = scored[0][3][0] * opts.competitive + 1e-4
+            hyps.extend(Hypothesis(h.T_init, T, loss, miou, f"level {lv.scale:g}")
+                        for h, T, _, (loss, miou, _) in scored if loss > bar)
+            scored = [x for x in scored if x[3][0] <= bar]
+        alive = [(h, T, traces) for h, T, traces, _ in scored]
+    for h, T, traces, (loss, miou, weights) in scored:
+        final.append((Hypothesis(h.T_init, T, loss, miou, "final"), traces, weights, rest))
+    final.sort(key=lambda x: x[0].loss)
     ranked, runner, ambiguous = judge()
     if ambiguous and opts.orbits and runner is not None:
         # Two near-equal fits a fraction 1/n of a turn apart: the rest of that turn's orbit may

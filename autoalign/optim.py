@@ -5,8 +5,8 @@
 * :func:`adam` — the first-order reference.
 
 Each runs one :class:`~autoalign.objective.Level` of the coarse-to-fine schedule and stops when a step
-moves the object by less than ``tol_mm`` and ``tol_deg`` (Levenberg-Marquardt also when a failed
-step's predicted decrease was below ``ftol`` of the objective).
+moves the object by less than ``tol_mm`` and ``tol_deg`` (Levenberg-Marquardt also when a step's
+predicted decrease, and for an accepted step its actual one, was below ``ftol`` of the objective).
 """
 
 from __future__ import annotations
@@ -38,9 +38,12 @@ class Trace:
     iterations: int = 0
     converged: bool = False
     final: Evaluation | None = None  # the objective at the returned pose (LM and GN)
+    start: Evaluation | None = None  # the objective at the starting pose (LM and GN)
 
 
-Callback = Callable[[int, Evaluation], None]
+Callback = Callable[[int, Evaluation], "bool | None"]
+"""``callback(iteration, evaluation)`` after each accepted iteration; returning ``True`` stops the
+optimiser there (the trace is then not ``converged``)."""
 
 
 def _centre(objective: SilhouetteObjective, T: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -71,32 +74,33 @@ def _record(trace: Trace, ev: Evaluation, T: NDArray[np.float64], step: NDArray[
 
 
 Search = Callable[[NDArray[np.float64], Evaluation, float, float],
-                  "tuple[NDArray[np.float64], Evaluation, NDArray[np.float64]] | None"]
+                  "tuple[NDArray[np.float64], Evaluation, NDArray[np.float64], bool] | None"]
 
 
 def _descend(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level, search: Search,
              tol_mm: float, tol_deg: float, callback: Callback | None) -> tuple[NDArray[np.float64], Trace]:
     """The outer loop shared by the second-order methods.
 
-    ``search(T, ev, tol_mm, tol_deg)`` returns ``(T_new, ev_new, step)`` for a step that does not
-    increase the objective (with the view weights of ``ev``), or ``None`` when there is none left.
+    ``search(T, ev, tol_mm, tol_deg)`` returns ``(T_new, ev_new, step, last)`` for a step that does
+    not increase the objective (with the view weights of ``ev``; ``last``: it gained too little to
+    go on), or ``None`` when there is none left.
     Robust weights are then re-computed from the new fit (IRLS) without a new render.
     """
     trace = Trace()
     tol_mm, tol_deg = level_tolerance(level, tol_mm, tol_deg)
-    ev = objective.evaluate(T, level)
+    ev = trace.start = objective.evaluate(T, level)
     for it in range(level.max_iters):
         trace.iterations = it + 1
         found = search(T, ev, tol_mm, tol_deg)
         if found is None:
             trace.converged = True  # no descent direction left at this resolution
             break
-        T, ev_new, step = found
+        T, ev_new, step, last = found
         ev = objective.reweighted(ev_new)
         _record(trace, ev, T, step)
-        if callback:
-            callback(it, ev)
-        if _small(step, tol_mm, tol_deg):
+        if callback and callback(it, ev):
+            break
+        if last or _small(step, tol_mm, tol_deg):
             trace.converged = True
             break
     trace.final = ev
@@ -112,11 +116,13 @@ def levenberg_marquardt(objective: SilhouetteObjective, T: NDArray[np.float64], 
 
     A rejected step raises the damping ``lam`` by ``damping_growth``, an accepted one lowers it
     three-fold. Steps are clipped to ``max_step_mm`` / ``max_step_deg`` (a trust region for far starts).
-    Besides the step-size test it stops when a step fails whose predicted decrease (from the
-    Gauss-Newton model) was below ``ftol`` of the objective: the objective's own noise (outlines
+    Besides the step-size test it stops when a step's predicted decrease (from the Gauss-Newton
+    model) was below ``ftol`` of the objective and the step either failed or, accepted, gained
+    less than that too (the test of scipy's ``least_squares``): the objective's own noise (outlines
     discretised in pixels) is then larger than what the model can still gain. Without this rule
-    LM kept rendering rejected sub-micrometre steps (five or more at full resolution) until the
-    damping had shrunk them below the step tolerance, without a better pose.
+    LM kept rendering sub-micrometre steps at full resolution (accepted ones gaining 1e-5 of the
+    objective, then five or more rejected ones) until they fell below the step tolerance,
+    without a better pose.
     """
     state = {"lam": lam}
 
@@ -132,11 +138,12 @@ def levenberg_marquardt(objective: SilhouetteObjective, T: NDArray[np.float64], 
             predicted = -(g @ step + 0.5 * step @ H @ step)
             T_new = apply_twist(T, step, _centre(objective, T))
             ev_new = objective.evaluate(T_new, level, weights=ev.weights)
+            negligible = predicted < ftol * ev.value
             if ev_new.value <= ev.value:
                 state["lam"] = max(state["lam"] / 3.0, 1e-7)
-                return T_new, ev_new, step
+                return T_new, ev_new, step, negligible and ev.value - ev_new.value < ftol * ev.value
             state["lam"] *= damping_growth
-            if _small(step, tol_mm, tol_deg) or predicted < ftol * ev.value:
+            if _small(step, tol_mm, tol_deg) or negligible:
                 return None
         return None
 
@@ -154,7 +161,7 @@ def gauss_newton(objective: SilhouetteObjective, T: NDArray[np.float64], level: 
             T_new = apply_twist(T, step, _centre(objective, T))
             ev_new = objective.evaluate(T_new, level, weights=ev.weights)
             if ev_new.value <= ev.value:
-                return T_new, ev_new, step
+                return T_new, ev_new, step, False
             step = step / 2.0
         return None
 
@@ -173,6 +180,8 @@ def adam(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level,
     lr = np.array([lr_mm] * 3 + [np.radians(lr_deg)] * 3)
     for it in range(level.max_iters):
         ev = objective.evaluate(T, level)
+        if it == 0:
+            trace.start = ev
         g = ev.grad
         m = betas[0] * m + (1 - betas[0]) * g
         v = betas[1] * v + (1 - betas[1]) * g * g
@@ -182,8 +191,8 @@ def adam(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level,
         T = apply_twist(T, step, _centre(objective, T))
         trace.iterations = it + 1
         _record(trace, ev, T, step)
-        if callback:
-            callback(it, ev)
+        if callback and callback(it, ev):
+            break
         if _small(step, tol_mm, tol_deg):
             trace.converged = True
             break

@@ -35,20 +35,24 @@ class Click:
 
 
 def _mask_support(scene: Scene, X: NDArray[np.float64], dilate_px: int = 0) -> NDArray[np.int64]:
-    """How many views see each world point ``X`` (N, 3) inside their mask; (N,) counts."""
+    """How many views see each world point ``X`` (N, 3, mm) inside their mask; (N,) counts.
+
+    Points are projected in single precision: they are voxel centres, a pixel apart at worst.
+    """
     count = np.zeros(len(X), dtype=np.int64)
     kernel = np.ones((2 * dilate_px + 1,) * 2, np.uint8) if dilate_px else None
+    Xh = np.column_stack([X, np.ones(len(X))]).astype(np.float32)
     for cam, m in zip(scene.cameras, scene.masks):
-        Xc = cam.to_camera(X)
-        ok = Xc[:, 2] > 1.0
-        uv = np.full((len(X), 2), -1.0)
-        uv[ok] = (Xc[ok] @ cam.K.T)[:, :2] / Xc[ok, 2:3]
-        j, i = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        P = cam.K @ np.column_stack([cam.R_w2c, cam.t_w2c])  # world to homogeneous pixels, (3, 4)
+        uvw = Xh @ P.T.astype(np.float32)
+        z = uvw[:, 2]
+        ok = z > 1.0
+        zs = np.where(ok, z, 1.0)
+        j = np.floor(uvw[:, 0] / zs).astype(np.int64)
+        i = np.floor(uvw[:, 1] / zs).astype(np.int64)
         inside = ok & (j >= 0) & (i >= 0) & (j < cam.width) & (i < cam.height)
         mm = cv2.dilate((m > 0.5).astype(np.uint8), kernel) if kernel is not None else (m > 0.5)
-        hit = np.zeros(len(X), dtype=bool)
-        hit[inside] = mm[i[inside], j[inside]] > 0
-        count += hit
+        count[inside] += mm[i[inside], j[inside]] > 0
     return count
 
 

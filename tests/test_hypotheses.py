@@ -103,3 +103,20 @@ def test_without_flips_and_orbits_those_trials_fail() -> None:
         res = autoalign.refine(scene, mesh, options=opts)
         e = pose_errors(res.T_wm, geo.T_gt, mesh.centre, None, sym)
         assert e.rot_err_deg > 10.0, (name, e.rot_err_deg)
+
+
+def test_pruning_saves_renders_not_answers() -> None:
+    """Giving up hopeless hypotheses in the search (``abandon``) and polishing only the best
+    finalist at full resolution cost nothing in the answer: the same pose, fewer renders.
+    The z-bracket's search has many starts that settle on half turns; the can's two finalists
+    are equivalent poses (it is symmetric), so the result is ambiguous either way."""
+    for name, expect_ambiguous in (("z_bracket", False), ("can_plain", True)):
+        mesh, sym, geo, scene = _trial(name, 0)
+        pruned = autoalign.refine(scene, mesh)
+        full = autoalign.refine(scene, mesh, options=autoalign.RefineOptions(abandon=np.inf, competitive=np.inf,
+                                                                               ambiguity_tol=-np.inf))
+        assert pruned.renders < full.renders, (name, pruned.renders, full.renders)
+        assert pruned.ambiguous == expect_ambiguous
+        for res in (pruned, full):
+            e = pose_errors(res.T_wm, geo.T_gt, mesh.centre, None, sym)
+            assert e.pos_err_mm < 0.05 and e.rot_err_deg < 0.1, (name, e.pos_err_mm, e.rot_err_deg)

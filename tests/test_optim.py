@@ -10,7 +10,7 @@ from autoalign.experiments.synthetic import make_scene
 from autoalign.objective import Level, SilhouetteObjective
 from autoalign.optim import levenberg_marquardt
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
-from autoalign.se3 import rotation_angle_deg
+from autoalign.se3 import apply_twist, rotation_angle_deg, transform_points
 
 
 def test_lm_stops_at_the_noise_floor_without_extra_renders() -> None:
@@ -35,3 +35,28 @@ def test_lm_stops_at_the_noise_floor_without_extra_renders() -> None:
     for T in poses:
         assert np.linalg.norm(T[:3, 3] - geo.T_gt[:3, 3]) < 0.01
         assert rotation_angle_deg(T[:3, :3], geo.T_gt[:3, :3]) < 0.01
+
+
+def test_lm_stops_after_an_accepted_step_that_gains_too_little() -> None:
+    """At full resolution after the half-resolution level (as the engine runs them), LM stops once an
+    accepted step's actual and predicted gains are both below ``ftol`` of the objective: fewer
+    accepted steps (the rule for failed steps cannot change their number) and fewer renders than
+    going on until the steps are below the step tolerance (``ftol=0``), and as good a pose."""
+    entry = get_model("procedural44", 11)
+    geo = make_trial(entry.mesh.centre, entry.mesh.diameter, 0, 11, 0, 40, 100.0, ImageSetup())
+    scene = make_scene(entry.mesh, geo.T_gt, geo.cameras)
+    start = apply_twist(geo.T_gt, np.array([2.0, -2.0, 1.0, *np.radians([1.0, 1.5, -0.5])]),
+                        transform_points(geo.T_gt, entry.mesh.centre[None])[0])
+    obj = SilhouetteObjective(SoftSilhouetteRasterizer(entry.mesh), scene)
+    T_half, _ = levenberg_marquardt(obj, start, Level(0.5, 1.0, 20))
+    runs = []
+    for ftol in (1e-3, 0.0):
+        obj.renders = 0
+        T, trace = levenberg_marquardt(obj, T_half, Level(1.0, 0.5, 15), ftol=ftol)
+        assert trace.converged
+        runs.append((obj.renders, T, len(trace.values)))
+    (r_on, T_on, n_on), (r_off, T_off, n_off) = runs
+    assert n_on < n_off and r_on < r_off, runs
+    for T in (T_on, T_off):
+        assert np.linalg.norm(T[:3, 3] - geo.T_gt[:3, 3]) < 0.02
+        assert rotation_angle_deg(T[:3, :3], geo.T_gt[:3, :3]) < 0.02
