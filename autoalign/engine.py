@@ -96,6 +96,7 @@ class Hypothesis:
     loss: float
     mean_iou: float
     stage: str
+    path: tuple[tuple[Level, Trace], ...] = ()  # the levels it went through from T_init, in order
 
 
 @dataclass
@@ -106,14 +107,15 @@ class RefineResult:
         T_wm: world-from-model pose (4x4, mm).
         T_init: the starting pose of the winning hypothesis.
         iou_before / iou_after: per-view hard-mask IoU at full resolution.
-        iterations: optimiser iterations of the winner, all levels.
+        iterations: optimiser iterations of the winner from its start, every level it went through
+            (the hypothesis search's included).
         renders: soft renders used in total.
         timings: seconds per stage.
         hypotheses: every start tried, best first.
         ambiguous: a clearly different pose fits almost as well (symmetric or ambiguous object).
         runner_up: the best hypothesis at a different pose, if any.
         weights: final per-view robust weights (low = the mask disagrees with the rest).
-        history: objective per accepted iteration of the winner, per level.
+        history: objective and pose per accepted iteration of the winner, per level it went through.
     """
 
     T_wm: NDArray[np.float64]
@@ -245,7 +247,7 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
                     Tc, tr = _run_schedule(obj, h.T_final, stage_levels, opts.optimizer,
                                            give_up=lambda it, ev, bar=bar: it >= 1 and ev.value / len(ev.weights) > bar)
                     loss, miou, _ = _final_loss(obj, Tc, score_level, tr[-1])
-                    done.append(Hypothesis(h.T_init, Tc, loss, miou, f"search{stage}"))
+                    done.append(Hypothesis(h.T_init, Tc, loss, miou, f"search{stage}", h.path + tuple(zip(stage_levels, tr))))
                     if progress is not None:
                         progress(f"hypotheses {stage + 1}/{len(funnel)}", j + 1, len(todo))
 
@@ -271,12 +273,12 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
     timings["hypotheses"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    final: list[tuple[Hypothesis, list[Trace], NDArray[np.float64], tuple[Level, ...]]] = []
+    final: list[tuple[Hypothesis, NDArray[np.float64]]] = []  # (finalist, its view weights)
 
     def finish(h: Hypothesis, stage_levels: tuple[Level, ...], label: str) -> None:
         T, traces = _run_schedule(obj, h.T_final, stage_levels, opts.optimizer, progress, label)
         loss, miou, weights = _final_loss(obj, T, levels[-1], traces[-1])
-        final.append((Hypothesis(h.T_init, T, loss, miou, "final"), traces, weights, stage_levels))
+        final.append((Hypothesis(h.T_init, T, loss, miou, "final", h.path + tuple(zip(stage_levels, traces))), weights))
         final.sort(key=lambda x: x[0].loss)
 
     def judge() -> tuple[list[Hypothesis], Hypothesis | None, bool]:
@@ -292,32 +294,33 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
     # and its loss scaled by the best's polishing gain (from the same level before, the same
     # gain); it is polished too only if that estimate is clearly (ambiguity_tol) better than the
     # best. On a symmetric object the runner-up is an equivalent pose: polishing it bought nothing.
-    alive = [(h, h.T_final, []) for h in finalists]  # (hypothesis, pose so far, traces so far)
+    alive = [(h, h.T_final, h.path) for h in finalists]  # (hypothesis, pose so far, levels run so far)
     gain = 1.0
     for li, lv in enumerate(rest):
         at_last = li == len(rest) - 1
-        scored: list[tuple[Hypothesis, NDArray[np.float64], list[Trace], tuple[float, float, NDArray[np.float64]]]] = []
-        for k, (h, T, traces) in enumerate(alive):
+        scored: list[tuple[Hypothesis, NDArray[np.float64], tuple[tuple[Level, Trace], ...],
+                           tuple[float, float, NDArray[np.float64]]]] = []
+        for k, (h, T, path) in enumerate(alive):
             if at_last and k > 0:
                 ev = obj.evaluate(T, lv, with_derivatives=False)
                 estimate = ev.value / len(ev.weights) * gain
                 if estimate >= scored[0][3][0] * (1.0 - opts.ambiguity_tol):
-                    scored.append((h, T, traces, (estimate, float(np.mean(ev.terms.iou)), ev.weights)))
+                    scored.append((h, T, path, (estimate, float(np.mean(ev.terms.iou)), ev.weights)))
                     continue
             label = "refine" if len(alive) == 1 else f"refine {k + 1}/{len(alive)}"
             T, tr = _run_schedule(obj, T, (lv,), opts.optimizer, progress, f"{label} (level {li + 1}/{len(rest)})")
-            scored.append((h, T, traces + tr, _final_loss(obj, T, lv, tr[-1])))
+            scored.append((h, T, path + ((lv, tr[-1]),), _final_loss(obj, T, lv, tr[-1])))
             if k == 0 and tr[-1].start is not None:  # the best's polishing gain at this level
                 gain = scored[0][3][0] / max(tr[-1].start.value / len(tr[-1].start.weights), 1e-12)
         scored.sort(key=lambda x: x[3][0])
         if not at_last:
             bar = scored[0][3][0] * opts.competitive + 1e-4
-            hyps.extend(Hypothesis(h.T_init, T, loss, miou, f"level {lv.scale:g}")
-                        for h, T, _, (loss, miou, _) in scored if loss > bar)
+            hyps.extend(Hypothesis(h.T_init, T, loss, miou, f"level {lv.scale:g}", path)
+                        for h, T, path, (loss, miou, _) in scored if loss > bar)
             scored = [x for x in scored if x[3][0] <= bar]
-        alive = [(h, T, traces) for h, T, traces, _ in scored]
-    for h, T, traces, (loss, miou, weights) in scored:
-        final.append((Hypothesis(h.T_init, T, loss, miou, "final"), traces, weights, rest))
+        alive = [(h, T, path) for h, T, path, _ in scored]
+    for h, T, path, (loss, miou, weights) in scored:
+        final.append((Hypothesis(h.T_init, T, loss, miou, "final", path), weights))
     final.sort(key=lambda x: x[0].loss)
     ranked, runner, ambiguous = judge()
     if ambiguous and opts.orbits and runner is not None:
@@ -327,26 +330,27 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
         if len(cands):
             ious = np.array([float(np.mean(hard_ious(rast, scene, T))) for T in cands])
             if ious.max() > float(np.mean(hard_ious(rast, scene, ranked[0].T_final))) + opts.orbit_margin:
-                T = cands[int(np.argmax(ious))]
-                finish(Hypothesis(T, T, float("nan"), float("nan"), "orbit"), levels[-1:], "refine orbit")
+                T = cands[int(np.argmax(ious))]  # reached from the best's path by a known turn
+                finish(Hypothesis(ranked[0].T_init, T, float("nan"), float("nan"), "orbit", ranked[0].path),
+                       levels[-1:], "refine orbit")
                 ranked, runner, ambiguous = judge()
     timings["refine"] = time.perf_counter() - t0
-    best, traces, weights, run_levels = final[0]
+    best, weights = final[0]
     hyps = ranked
 
     t0 = time.perf_counter()
     iou_before = hard_ious(rast, scene, best.T_init)
-    last = traces[-1].final if traces else None
-    if last is not None and levels[-1].scale == 1.0:
-        iou_after = _hard_ious_of(last, scene)
+    last_level, last_trace = best.path[-1] if best.path else (None, None)
+    if last_trace is not None and last_trace.final is not None and last_level.scale == 1.0 and last_level.max_views is None:
+        iou_after = _hard_ious_of(last_trace.final, scene)
     else:
         iou_after = hard_ious(rast, scene, best.T_final)
     timings["report"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     history = [{"scale": lv.scale, "sigma": lv.sigma, "values": tr.values, "poses": tr.poses, "iterations": tr.iterations,
-                "converged": tr.converged} for lv, tr in zip(run_levels, traces)]
+                "converged": tr.converged} for lv, tr in best.path]
     return RefineResult(
         T_wm=best.T_final, T_init=best.T_init, iou_before=iou_before, iou_after=iou_after,
-        iterations=sum(tr.iterations for tr in traces), renders=obj.renders, timings=timings,
+        iterations=sum(tr.iterations for _, tr in best.path), renders=obj.renders, timings=timings,
         hypotheses=hyps, ambiguous=ambiguous, runner_up=runner, weights=weights, history=history,
         image_ids=list(scene.image_ids))
