@@ -6,7 +6,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -193,6 +193,89 @@ def _differs(A: NDArray[np.float64], B: NDArray[np.float64], centre_m: NDArray[n
     return bool(dc > mm or rotation_angle_deg(A[:3, :3], B[:3, :3]) > deg)
 
 
+def _search(obj: SilhouetteObjective, starts: list[NDArray[np.float64]], mesh: Mesh, opts: RefineOptions,
+            progress: Progress | None) -> tuple[list[Hypothesis], list[Hypothesis]]:
+    """The orientation funnel: every start at ``opts.search_level`` (plus the best one's half
+    turns), the best ``n_mid`` distinct at the schedule's first level, of which the best
+    ``n_final`` distinct and competitive ones are returned as finalists (best first), with all the
+    others. A hypothesis is given up once, after two iterations, its loss is ``opts.abandon``
+    times the best of its stage so far."""
+    levels = opts.schedule
+    others: list[Hypothesis] = []
+    pool = [Hypothesis(T, T, float("nan"), float("nan"), "start") for T in starts]
+    funnel = [(opts.search_level, opts.n_mid), (levels[0], opts.n_final)]
+    for stage, (level, keep) in enumerate(funnel):
+        done: list[Hypothesis] = []
+
+        def run(todo: list[Hypothesis]) -> None:
+            for j, h in enumerate(todo):
+                bar = opts.abandon * min((d.loss for d in done), default=np.inf)
+                Tc, tr = _run_schedule(obj, h.T_final, (level,), opts.optimizer,
+                                       give_up=lambda it, ev, bar=bar: it >= 1 and ev.value / len(ev.weights) > bar)
+                loss, miou, _ = _final_loss(obj, Tc, level, tr[-1])
+                done.append(Hypothesis(h.T_init, Tc, loss, miou, f"search{stage}", h.path + ((level, tr[-1]),)))
+                if progress is not None:
+                    progress(f"hypotheses {stage + 1}/{len(funnel)}", j + 1, len(todo))
+
+        run(pool)
+        if stage == 0 and opts.flips:  # the half turns of the best one compete too
+            best = min(done, key=lambda h: h.loss).T_final
+            run([Hypothesis(T, T, float("nan"), float("nan"), "flip")
+                 for T in flips(best, mesh.principal_axes, mesh.centre)])
+        done.sort(key=lambda h: h.loss)
+        pool = []
+        for h in done:  # keep distinct poses only
+            if len(pool) < keep and all(_differs(h.T_final, f.T_final, mesh.centre) for f in pool):
+                pool.append(h)
+        others.extend(h for h in done if h not in pool)
+    # A distinct runner-up goes on only while it is competitive: a clearly worse pose need not be polished.
+    finalists = [h for h in pool if h.loss <= pool[0].loss * opts.competitive + 1e-4]
+    return finalists, others + [h for h in pool if h not in finalists]
+
+
+def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple[Level, ...], opts: RefineOptions,
+            progress: Progress | None) -> tuple[list[tuple[Hypothesis, NDArray[np.float64]]], list[Hypothesis]]:
+    """Take the finalists (best first) through ``levels`` together.
+
+    After each level below the last, one no longer within ``opts.competitive`` of the best stops
+    there (it can be neither the answer nor ambiguous with it). At the last level only the best is
+    polished: another is rendered once and its loss scaled by the best's polishing gain (from the
+    same level before, the same gain); it is polished too only if that estimate is clearly
+    (``ambiguity_tol``) better than the best. On a symmetric object the runner-up is an equivalent
+    pose, and polishing it bought nothing.
+
+    Returns ``([(hypothesis, view weights)], best first, stage "final")`` and the ones that stopped early.
+    """
+    alive, dropped = list(finalists), []
+    scored: list[tuple[Hypothesis, NDArray[np.float64]]] = []
+    gain = 1.0
+    for li, lv in enumerate(levels):
+        at_last = li == len(levels) - 1
+        scored = []
+        for k, h in enumerate(alive):
+            if at_last and k > 0:
+                ev = obj.evaluate(h.T_final, lv, with_derivatives=False)
+                estimate = ev.value / len(ev.weights) * gain
+                if estimate >= scored[0][0].loss * (1.0 - opts.ambiguity_tol):
+                    scored.append((Hypothesis(h.T_init, h.T_final, estimate, float(np.mean(ev.terms.iou)), "final",
+                                              h.path), ev.weights))
+                    continue
+            label = "refine" if len(alive) == 1 else f"refine {k + 1}/{len(alive)}"
+            T, tr = _run_schedule(obj, h.T_final, (lv,), opts.optimizer, progress, f"{label} (level {li + 1}/{len(levels)})")
+            loss, miou, weights = _final_loss(obj, T, lv, tr[-1])
+            scored.append((Hypothesis(h.T_init, T, loss, miou, "final", h.path + ((lv, tr[-1]),)), weights))
+            start = tr[-1].start
+            if k == 0 and start is not None:  # the best's polishing gain at this level
+                gain = loss / max(start.value / len(start.weights), 1e-12)
+        scored.sort(key=lambda x: x[0].loss)
+        if not at_last:
+            bar = scored[0][0].loss * opts.competitive + 1e-4
+            dropped.extend(replace(h, stage=f"level {lv.scale:g}") for h, _ in scored if h.loss > bar)
+            scored = [x for x in scored if x[0].loss <= bar]
+        alive = [h for h, _ in scored]
+    return scored, dropped
+
+
 def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions | None = None,
            progress: Progress | None = None) -> RefineResult:
     """Find the world-from-model pose of ``mesh`` whose silhouettes match the masks of ``scene``.
@@ -230,50 +313,18 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
             progress("scoring orientations", 1, 1)
     timings["seed"] = time.perf_counter() - t0
 
-    hyps: list[Hypothesis] = []
     t0 = time.perf_counter()
     if len(starts) > 1:
-        # A funnel: every start at the search level, the best distinct few at the first schedule
-        # level, the best distinct n_final through the rest of the schedule.
-        pool = [Hypothesis(T, T, float("nan"), float("nan"), "start") for T in starts]
-        funnel = [(opts.search_level, (opts.search_level,), opts.n_mid), (levels[0], levels[:1], opts.n_final)]
-        for stage, (score_level, stage_levels, keep) in enumerate(funnel):
-            done: list[Hypothesis] = []
-
-            def run(todo: list[Hypothesis]) -> None:
-                for j, h in enumerate(todo):
-                    # hopeless once, after two iterations, far worse than the best of this stage so far
-                    bar = opts.abandon * min((d.loss for d in done), default=np.inf)
-                    Tc, tr = _run_schedule(obj, h.T_final, stage_levels, opts.optimizer,
-                                           give_up=lambda it, ev, bar=bar: it >= 1 and ev.value / len(ev.weights) > bar)
-                    loss, miou, _ = _final_loss(obj, Tc, score_level, tr[-1])
-                    done.append(Hypothesis(h.T_init, Tc, loss, miou, f"search{stage}", h.path + tuple(zip(stage_levels, tr))))
-                    if progress is not None:
-                        progress(f"hypotheses {stage + 1}/{len(funnel)}", j + 1, len(todo))
-
-            run(pool)
-            if stage == 0 and opts.flips:  # the half turns of the best one compete too
-                best = min(done, key=lambda h: h.loss).T_final
-                run([Hypothesis(T, T, float("nan"), float("nan"), "flip")
-                     for T in flips(best, mesh.principal_axes, mesh.centre)])
-            done.sort(key=lambda h: h.loss)
-            pool = []
-            for h in done:  # keep distinct poses only
-                if len(pool) < keep and all(_differs(h.T_final, f.T_final, mesh.centre) for f in pool):
-                    pool.append(h)
-            hyps.extend(h for h in done if h not in pool)
-        # A distinct runner-up is carried to full resolution only while it is competitive:
-        # ambiguity is judged on final losses, but a clearly worse pose need not be polished.
-        finalists = [h for h in pool if h.loss <= pool[0].loss * opts.competitive + 1e-4]
-        hyps.extend(h for h in pool if h not in finalists)
-        rest = levels[1:] or levels  # a one-level schedule polishes the funnel's result at that level
+        finalists, hyps = _search(obj, starts, mesh, opts, progress)
+        rest = levels[1:] or levels  # a one-level schedule polishes the search's result at that level
     else:
-        finalists = [Hypothesis(starts[0], starts[0], float("nan"), float("nan"), "seed")]
+        finalists, hyps = [Hypothesis(starts[0], starts[0], float("nan"), float("nan"), "seed")], []
         rest = levels
     timings["hypotheses"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    final: list[tuple[Hypothesis, NDArray[np.float64]]] = []  # (finalist, its view weights)
+    final, dropped = _polish(obj, finalists, rest, opts, progress)
+    hyps.extend(dropped)
 
     def finish(h: Hypothesis, stage_levels: tuple[Level, ...], label: str) -> None:
         T, traces = _run_schedule(obj, h.T_final, stage_levels, opts.optimizer, progress, label)
@@ -288,40 +339,6 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
                          and runner.loss <= ranked[0].loss * (1.0 + opts.ambiguity_tol) + 1e-4)
         return ranked, runner, ambiguous
 
-    # Finalists go through the levels together, best first; after each level below the last, one
-    # that is no longer competitive with the best stops there (it cannot be the answer, nor
-    # ambiguous with it). At the last level only the best is polished: another is rendered once
-    # and its loss scaled by the best's polishing gain (from the same level before, the same
-    # gain); it is polished too only if that estimate is clearly (ambiguity_tol) better than the
-    # best. On a symmetric object the runner-up is an equivalent pose: polishing it bought nothing.
-    alive = [(h, h.T_final, h.path) for h in finalists]  # (hypothesis, pose so far, levels run so far)
-    gain = 1.0
-    for li, lv in enumerate(rest):
-        at_last = li == len(rest) - 1
-        scored: list[tuple[Hypothesis, NDArray[np.float64], tuple[tuple[Level, Trace], ...],
-                           tuple[float, float, NDArray[np.float64]]]] = []
-        for k, (h, T, path) in enumerate(alive):
-            if at_last and k > 0:
-                ev = obj.evaluate(T, lv, with_derivatives=False)
-                estimate = ev.value / len(ev.weights) * gain
-                if estimate >= scored[0][3][0] * (1.0 - opts.ambiguity_tol):
-                    scored.append((h, T, path, (estimate, float(np.mean(ev.terms.iou)), ev.weights)))
-                    continue
-            label = "refine" if len(alive) == 1 else f"refine {k + 1}/{len(alive)}"
-            T, tr = _run_schedule(obj, T, (lv,), opts.optimizer, progress, f"{label} (level {li + 1}/{len(rest)})")
-            scored.append((h, T, path + ((lv, tr[-1]),), _final_loss(obj, T, lv, tr[-1])))
-            if k == 0 and tr[-1].start is not None:  # the best's polishing gain at this level
-                gain = scored[0][3][0] / max(tr[-1].start.value / len(tr[-1].start.weights), 1e-12)
-        scored.sort(key=lambda x: x[3][0])
-        if not at_last:
-            bar = scored[0][3][0] * opts.competitive + 1e-4
-            hyps.extend(Hypothesis(h.T_init, T, loss, miou, f"level {lv.scale:g}", path)
-                        for h, T, path, (loss, miou, _) in scored if loss > bar)
-            scored = [x for x in scored if x[3][0] <= bar]
-        alive = [(h, T, path) for h, T, path, _ in scored]
-    for h, T, path, (loss, miou, weights) in scored:
-        final.append((Hypothesis(h.T_init, T, loss, miou, "final", path), weights))
-    final.sort(key=lambda x: x[0].loss)
     ranked, runner, ambiguous = judge()
     if ambiguous and opts.orbits and runner is not None:
         # Two near-equal fits a fraction 1/n of a turn apart: the rest of that turn's orbit may
