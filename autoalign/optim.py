@@ -118,7 +118,7 @@ def levenberg_marquardt(objective: SilhouetteObjective, T: NDArray[np.float64], 
     three-fold. Steps are clipped to ``max_step_mm`` / ``max_step_deg`` (a trust region for far starts).
     Besides the step-size test it stops when a step's predicted decrease (from the Gauss-Newton
     model) was below ``ftol`` of the objective and the step either failed or, accepted, gained
-    less than that too (the test of scipy's ``least_squares``): the objective's own noise (outlines
+    less than that too (MINPACK's ``ftol`` test): the objective's own noise (outlines
     discretised in pixels) is then larger than what the model can still gain. Without this rule
     LM kept rendering sub-micrometre steps at full resolution (accepted ones gaining 1e-5 of the
     objective, then five or more rejected ones) until they fell below the step tolerance,

@@ -37,7 +37,8 @@ class Click:
 def _mask_support(scene: Scene, X: NDArray[np.float64], dilate_px: int = 0) -> NDArray[np.int64]:
     """How many views see each world point ``X`` (N, 3, mm) inside their mask; (N,) counts.
 
-    Points are projected in single precision: they are voxel centres, a pixel apart at worst.
+    Projected in single precision: for points within metres of the cameras the error is far
+    below a pixel, and the points are voxel centres of a carving grid.
     """
     count = np.zeros(len(X), dtype=np.int64)
     kernel = np.ones((2 * dilate_px + 1,) * 2, np.uint8) if dilate_px else None
