@@ -235,7 +235,8 @@ def _search(obj: SilhouetteObjective, starts: list[NDArray[np.float64]], mesh: M
 
 
 def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple[Level, ...], opts: RefineOptions,
-            progress: Progress | None) -> tuple[list[tuple[Hypothesis, NDArray[np.float64]]], list[Hypothesis]]:
+            progress: Progress | None, label: str = "refine"
+            ) -> tuple[list[tuple[Hypothesis, NDArray[np.float64]]], list[Hypothesis]]:
     """Take the finalists (best first) through ``levels`` together.
 
     After each level below the last, one no longer within ``opts.competitive`` of the best stops
@@ -261,8 +262,8 @@ def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple
                     scored.append((Hypothesis(h.T_init, h.T_final, estimate, float(np.mean(ev.terms.iou)), "final",
                                               h.path), ev.weights))
                     continue
-            label = "refine" if len(alive) == 1 else f"refine {k + 1}/{len(alive)}"
-            T, tr = _run_schedule(obj, h.T_final, (lv,), opts.optimizer, progress, f"{label} (level {li + 1}/{len(levels)})")
+            name = label if len(alive) == 1 else f"{label} {k + 1}/{len(alive)}"
+            T, tr = _run_schedule(obj, h.T_final, (lv,), opts.optimizer, progress, f"{name} (level {li + 1}/{len(levels)})")
             loss, miou, weights = _final_loss(obj, T, lv, tr[-1])
             scored.append((Hypothesis(h.T_init, T, loss, miou, "final", h.path + ((lv, tr[-1]),)), weights))
             start = tr[-1].start
@@ -327,12 +328,6 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
     final, dropped = _polish(obj, finalists, rest, opts, progress)
     hyps.extend(dropped)
 
-    def finish(h: Hypothesis, stage_levels: tuple[Level, ...], label: str) -> None:
-        T, traces = _run_schedule(obj, h.T_final, stage_levels, opts.optimizer, progress, label)
-        loss, miou, weights = _final_loss(obj, T, levels[-1], traces[-1])
-        final.append((Hypothesis(h.T_init, T, loss, miou, "final", h.path + tuple(zip(stage_levels, traces))), weights))
-        final.sort(key=lambda x: x[0].loss)
-
     def judge() -> tuple[list[Hypothesis], Hypothesis | None, bool]:
         ranked = [f[0] for f in final] + sorted(hyps, key=lambda h: h.loss)
         runner = next((h for h in ranked[1:] if _differs(h.T_final, ranked[0].T_final, mesh.centre)), None)
@@ -349,8 +344,10 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
             ious = np.array([float(np.mean(hard_ious(rast, scene, T))) for T in cands])
             if ious.max() > float(np.mean(hard_ious(rast, scene, ranked[0].T_final))) + opts.orbit_margin:
                 T = cands[int(np.argmax(ious))]  # reached from the best's path by a known turn
-                finish(Hypothesis(ranked[0].T_init, T, float("nan"), float("nan"), "orbit", ranked[0].path),
-                       levels[-1:], "refine orbit")
+                polished, _ = _polish(obj, [Hypothesis(ranked[0].T_init, T, float("nan"), float("nan"), "orbit",
+                                                       ranked[0].path)], levels[-1:], opts, progress, "refine orbit")
+                final.extend(polished)
+                final.sort(key=lambda x: x[0].loss)
                 ranked, runner, ambiguous = judge()
     timings["refine"] = time.perf_counter() - t0
     best, weights = final[0]

@@ -45,7 +45,6 @@ METHOD_NOTES = {
 }
 
 
-
 # ----------------------------------------------------------------------------------------------
 # Atomic writes
 # ----------------------------------------------------------------------------------------------
@@ -219,6 +218,13 @@ def condition_table(records: list[dict[str, Any]], part: str, include_main: bool
     return "\n".join(lines) + "\n"
 
 
+def _paper_failures(failed: list[dict[str, Any]]) -> tuple[int, int]:
+    """``(flip, stuck)`` counts among failed paper trials (see :func:`paper_gap_table`); the rest are slow."""
+    flip = sum(r["iou_mean"] >= 0.85 and r["rot_err_deg"] >= 150 for r in failed)
+    stuck = sum(r["iou_mean"] < 0.85 for r in failed)
+    return flip, stuck
+
+
 def paper_gap_table(records: list[dict[str, Any]], condition: str = "main") -> str:
     """Where the paper's procedure succeeds and how it fails, from its own trials (measured).
 
@@ -239,8 +245,7 @@ def paper_gap_table(records: list[dict[str, Any]], condition: str = "main") -> s
         ok = [r for r in g if r["success_cols"]]
         its = [r["iters_to_cols"] for r in ok if r["iters_to_cols"] is not None]
         bad = [r for r in g if not r["success_cols"]]
-        flip = sum(r["iou_mean"] >= 0.85 and r["rot_err_deg"] >= 150 for r in bad)
-        stuck = sum(r["iou_mean"] < 0.85 for r in bad)
+        flip, stuck = _paper_failures(bad)
         name = "all" if (lo, hi) == (0, 180.01) else f"{lo}-{min(hi, 180):.0f} deg"
         lines.append(f"| {name} | {len(g)} | {_fmt(100 * len(ok) / len(g), 1)} % | "
                      f"{_fmt(np.mean(its)) if its else '-'} / {_fmt(np.median(its), 1) if its else '-'} | "
@@ -251,11 +256,10 @@ def paper_gap_table(records: list[dict[str, Any]], condition: str = "main") -> s
 def paper_gap_text(records: list[dict[str, Any]], condition: str = "main") -> str:
     """The written explanation of the gap to the reported 10.36 iterations, with this run's counts."""
     rs = [r for r in records if r["condition"] == condition and r["method"] == "paper"]
-    bad = [r for r in rs if not r["success_cols"]]
     if not rs:
         return ""
-    stuck = sum(r["iou_mean"] < 0.85 for r in bad)
-    flip = sum(r["iou_mean"] >= 0.85 and r["rot_err_deg"] >= 150 for r in bad)
+    bad = [r for r in rs if not r["success_cols"]]
+    flip, stuck = _paper_failures(bad)
     med_init = float(np.median(_arr(rs, "init_rot_err_deg")))
     return (
         f"Why `paper` needs more iterations, and converges less often, than the reported "
