@@ -22,7 +22,7 @@ from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 from autoalign.se3 import rotation_angle_deg, transform_points
 from autoalign.seeding import Click, click_centre, hull_centre, rotation_grid
 
-DEFAULT_SCHEDULE: tuple[Level, ...] = (Level(0.25, 1.0, 40), Level(0.5, 1.0, 20), Level(1.0, 0.5, 15))
+DEFAULT_SCHEDULE: tuple[Level, ...] = (Level(0.25, 1.0, 40), Level(1.0, 0.5, 15))
 
 Seed = NDArray[np.float64] | Click | None
 Progress = Callable[[str, int, int], None]
@@ -53,7 +53,8 @@ class RefineOptions:
         flips: after the search level, also refine the best hypothesis turned half a turn about
             each principal axis of the mesh (the search otherwise settled on such a flip of thin
             or flat objects in 2 of 44 simulated trials).
-        orbits: when the result is ambiguous and the runner-up is a 1/n turn (n = 3..12) away,
+        orbits: when the runner-up reached the last level within ``competitive`` of the best (a
+            loss estimated from one render there can be off by 10%) and is a 1/n turn (n = 3..12) away,
             try the other poses of that turn's orbit (see :func:`~autoalign.hypotheses.orbit`)
             and refine the one whose full-resolution hard IoU beats the winner's by ``orbit_margin``.
         competitive: a distinct hypothesis is refined to the next level only if its loss at this one
@@ -89,7 +90,8 @@ class Hypothesis:
     """One start tried: its initial pose, its final pose, loss and mean IoU.
 
     ``loss`` is the mean weighted loss at the last level it reached; for a finalist not polished at
-    the last level (see :func:`refine`) it is its loss there scaled by the polishing gain of the best.
+    the last level (``estimated``, see :func:`_polish`) it is its loss there scaled by the polishing
+    gain of the best. An estimated loss never outranks a measured one.
     """
 
     T_init: NDArray[np.float64]
@@ -98,6 +100,11 @@ class Hypothesis:
     mean_iou: float
     stage: str
     path: tuple[tuple[Level, Trace], ...] = ()  # the levels it went through from T_init, in order
+    estimated: bool = False
+
+    def rank(self) -> tuple[bool, float]:
+        """Sort key, best first: measured losses before estimated ones, then by loss."""
+        return self.estimated, self.loss
 
 
 @dataclass
@@ -260,7 +267,7 @@ def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple
                 estimate = ev.value / len(ev.weights) * gain
                 if estimate >= scored[0][0].loss * (1.0 - opts.ambiguity_tol):
                     scored.append((Hypothesis(h.T_init, h.T_final, estimate, float(np.mean(ev.terms.iou)), "final",
-                                              h.path), ev.weights))
+                                              h.path, estimated=True), ev.weights))
                     continue
             name = label if len(alive) == 1 else f"{label} {k + 1}/{len(alive)}"
             T, tr = _run_schedule(obj, h.T_final, (lv,), opts.optimizer, progress, f"{name} (level {li + 1}/{len(levels)})")
@@ -269,7 +276,7 @@ def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple
             start = tr[-1].start
             if k == 0 and start is not None:  # the best's polishing gain at this level
                 gain = loss / max(start.value / len(start.weights), 1e-12)
-        scored.sort(key=lambda x: x[0].loss)
+        scored.sort(key=lambda x: x[0].rank())  # an estimate ranks last: had it been clearly better, it was polished
         if not at_last:
             bar = scored[0][0].loss * opts.competitive + 1e-4
             dropped.extend(replace(h, stage=f"level {lv.scale:g}") for h, _ in scored if h.loss > bar)
@@ -336,7 +343,8 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
         return ranked, runner, ambiguous
 
     ranked, runner, ambiguous = judge()
-    if ambiguous and opts.orbits and runner is not None:
+    if (opts.orbits and runner is not None and runner.stage == "final"
+            and runner.loss <= ranked[0].loss * opts.competitive + 1e-4):
         # Two near-equal fits a fraction 1/n of a turn apart: the rest of that turn's orbit may
         # hold a better one (a gear whose key only shows at full resolution). Hard IoU picks it.
         cands = orbit(ranked[0].T_final, runner.T_final)
@@ -347,7 +355,7 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
                 polished, _ = _polish(obj, [Hypothesis(ranked[0].T_init, T, float("nan"), float("nan"), "orbit",
                                                        ranked[0].path)], levels[-1:], opts, progress, "refine orbit")
                 final.extend(polished)
-                final.sort(key=lambda x: x[0].loss)
+                final.sort(key=lambda x: x[0].rank())
                 ranked, runner, ambiguous = judge()
     timings["refine"] = time.perf_counter() - t0
     best, weights = final[0]

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from autoalign.bop import Scene
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
-from autoalign.se3 import invert, make_pose, rotation_angle_deg
+from autoalign.se3 import invert, make_pose, rotation_angle_deg, so3_exp, so3_log
 
 
 def flips(T_wm: NDArray[np.float64], axes_m: NDArray[np.float64], centre_m: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -37,14 +37,21 @@ def orbit(T_a: NDArray[np.float64], T_b: NDArray[np.float64], max_order: int = 1
 
     When ``T_b = T_a D`` and ``D`` turns by about ``360/n`` degrees (``3 <= n <= max_order``,
     within ``tol_deg``), the object looks nearly the same under ``D``: a gear with ``n`` teeth, a
-    cross. Then ``T_a D^k`` for ``k = 2 .. n-1`` are the remaining candidates. Otherwise none.
+    cross. Then ``T_a E^k`` for ``k = 2 .. n-1`` are the remaining candidates, where ``E`` is ``D``
+    made an exact symmetry: a turn by exactly ``360/n`` degrees about ``D``'s axis, with no slide
+    along it (the runner-up's own error, a tenth of a degree, would otherwise grow k-fold along
+    the orbit). Otherwise none.
     """
     D = invert(T_a) @ T_b
-    theta = rotation_angle_deg(np.eye(3), D[:3, :3])
+    w = so3_log(D[:3, :3])
+    theta = float(np.degrees(np.linalg.norm(w)))
     n = int(round(360.0 / theta)) if theta > 1e-6 else 0
     if not 3 <= n <= max_order or abs(n * theta - 360.0) > tol_deg * n:
         return np.zeros((0, 4, 4))
-    return np.stack([T_a @ np.linalg.matrix_power(D, k) for k in range(2, n)])
+    R = so3_exp(w * (360.0 / n) / theta)
+    p = np.linalg.lstsq(np.eye(3) - R, D[:3, 3], rcond=None)[0]  # a point on the axis
+    E = make_pose(R, p - R @ p)
+    return np.stack([T_a @ np.linalg.matrix_power(E, k) for k in range(2, n)])
 
 
 def poses_at(rotations: NDArray[np.float64], centre_w: NDArray[np.float64], centre_m: NDArray[np.float64]) -> NDArray[np.float64]:

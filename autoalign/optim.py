@@ -5,8 +5,8 @@
 * :func:`adam` — the first-order reference.
 
 Each runs one :class:`~autoalign.objective.Level` of the coarse-to-fine schedule and stops when a step
-moves the object by less than ``tol_mm`` and ``tol_deg`` (Levenberg-Marquardt also when a step's
-predicted decrease, and for an accepted step its actual one, was below ``ftol`` of the objective).
+moves the object by less than ``tol_mm`` and ``tol_deg`` (Levenberg-Marquardt also, before trying
+it, when the next step's predicted decrease is below ``ftol`` of the objective).
 """
 
 from __future__ import annotations
@@ -74,33 +74,35 @@ def _record(trace: Trace, ev: Evaluation, T: NDArray[np.float64], step: NDArray[
 
 
 Search = Callable[[NDArray[np.float64], Evaluation, float, float],
-                  "tuple[NDArray[np.float64], Evaluation, NDArray[np.float64], bool] | None"]
+                  "tuple[NDArray[np.float64], Evaluation, NDArray[np.float64]] | None"]
 
 
 def _descend(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level, search: Search,
              tol_mm: float, tol_deg: float, callback: Callback | None) -> tuple[NDArray[np.float64], Trace]:
     """The outer loop shared by the second-order methods.
 
-    ``search(T, ev, tol_mm, tol_deg)`` returns ``(T_new, ev_new, step, last)`` for a step that does
-    not increase the objective (with the view weights of ``ev``; ``last``: it gained too little to
-    go on), or ``None`` when there is none left.
-    Robust weights are then re-computed from the new fit (IRLS) without a new render.
+    ``search(T, ev, tol_mm, tol_deg)`` returns ``(T_new, ev_new, step)`` for a step that does
+    not increase the objective (with the view weights of ``ev``), or ``None`` when there is none
+    worth trying. Robust weights are then re-computed from the new fit (IRLS) without a new render.
+    An iteration is one call that tried at least one step (rendered).
     """
     trace = Trace()
     tol_mm, tol_deg = level_tolerance(level, tol_mm, tol_deg)
     ev = trace.start = objective.evaluate(T, level)
     for it in range(level.max_iters):
-        trace.iterations = it + 1
+        renders = objective.renders
         found = search(T, ev, tol_mm, tol_deg)
+        if objective.renders > renders:  # an iteration tries at least one step
+            trace.iterations = it + 1
         if found is None:
             trace.converged = True  # no descent direction left at this resolution
             break
-        T, ev_new, step, last = found
+        T, ev_new, step = found
         ev = objective.reweighted(ev_new)
         _record(trace, ev, T, step)
         if callback and callback(it, ev):
             break
-        if last or _small(step, tol_mm, tol_deg):
+        if _small(step, tol_mm, tol_deg):
             trace.converged = True
             break
     trace.final = ev
@@ -116,15 +118,19 @@ def levenberg_marquardt(objective: SilhouetteObjective, T: NDArray[np.float64], 
 
     A rejected step raises the damping ``lam`` by ``damping_growth``, an accepted one lowers it
     three-fold. Steps are clipped to ``max_step_mm`` / ``max_step_deg`` (a trust region for far starts).
-    Besides the step-size test it stops when a step's predicted decrease (from the Gauss-Newton
-    model) was below ``ftol`` of the objective and the step either failed or, accepted, gained
-    less than that too (MINPACK's ``ftol`` test): the objective's own noise (outlines
-    discretised in pixels) is then larger than what the model can still gain. Without this rule
-    LM kept rendering sub-micrometre steps at full resolution (accepted ones gaining 1e-5 of the
-    objective, then five or more rejected ones) until they fell below the step tolerance,
-    without a better pose.
+
+    Besides the step-size test it stops, without trying it (nothing is rendered), at a step whose
+    decrease predicted by the Gauss-Newton model is below ``ftol`` of the objective (MINPACK's
+    ``ftol`` test; ``ftol / scale`` below full resolution, where the next level goes on). The
+    objective's own noise (outlines discretised in pixels) is then larger than what the model can
+    still gain: without this rule LM kept rendering sub-micrometre steps at full resolution, each
+    gaining 1e-5 of the objective, without a better pose. What it leaves is a few hundredths of
+    a pixel in the images, mostly in directions the silhouettes barely see (a flashlight's small
+    button turning it about its axis by a few tenths of a degree).
     """
     state = {"lam": lam}
+    scale = min(level.scale, 1.0)
+    f_tol = ftol / scale
 
     def search(T: NDArray[np.float64], ev: Evaluation, tol_mm: float, tol_deg: float):
         H, g = ev.gn, ev.grad
@@ -136,15 +142,14 @@ def levenberg_marquardt(objective: SilhouetteObjective, T: NDArray[np.float64], 
                 step = np.zeros(6)
             step = _clip_step(step, max_step_mm, max_step_deg)
             predicted = -(g @ step + 0.5 * step @ H @ step)
+            if predicted < f_tol * ev.value or _small(step, tol_mm, tol_deg):
+                return None
             T_new = apply_twist(T, step, _centre(objective, T))
             ev_new = objective.evaluate(T_new, level, weights=ev.weights)
-            negligible = predicted < ftol * ev.value
             if ev_new.value <= ev.value:
                 state["lam"] = max(state["lam"] / 3.0, 1e-7)
-                return T_new, ev_new, step, negligible and ev.value - ev_new.value < ftol * ev.value
+                return T_new, ev_new, step
             state["lam"] *= damping_growth
-            if _small(step, tol_mm, tol_deg) or negligible:
-                return None
         return None
 
     return _descend(objective, T, level, search, tol_mm, tol_deg, callback)
@@ -161,7 +166,7 @@ def gauss_newton(objective: SilhouetteObjective, T: NDArray[np.float64], level: 
             T_new = apply_twist(T, step, _centre(objective, T))
             ev_new = objective.evaluate(T_new, level, weights=ev.weights)
             if ev_new.value <= ev.value:
-                return T_new, ev_new, step, False
+                return T_new, ev_new, step
             step = step / 2.0
         return None
 

@@ -118,7 +118,7 @@ def test_pruning_saves_renders_not_answers() -> None:
         assert pruned.renders < full.renders, (name, pruned.renders, full.renders)
         assert pruned.ambiguous == expect_ambiguous
         # iterations and history follow the winner's whole path, search levels included
-        assert [h["scale"] for h in pruned.history] == [0.125, 0.25, 0.5, 1.0]
+        assert [h["scale"] for h in pruned.history] == [0.125, 0.25, 1.0]
         assert pruned.iterations == sum(h["iterations"] for h in pruned.history)
         for res in (pruned, full):
             e = pose_errors(res.T_wm, geo.T_gt, mesh.centre, None, sym)
