@@ -23,12 +23,16 @@ class Level:
         sigma: edge softness in pixels of that resolution.
         max_iters: iteration budget of the stage.
         max_views: use at most this many views, spread through the scene (``None``: all).
+        ftol: Levenberg-Marquardt stops before a step predicted to decrease the objective by
+            less than this fraction of it (``None``: ``optim.FTOL / scale``, the loss's own noise
+            growing as the resolution drops; see :func:`~autoalign.optim.levenberg_marquardt`).
     """
 
     scale: float
     sigma: float
     max_iters: int
     max_views: int | None = None
+    ftol: float | None = None
 
 
 @dataclass

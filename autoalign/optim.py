@@ -121,7 +121,8 @@ def levenberg_marquardt(objective: SilhouetteObjective, T: NDArray[np.float64], 
 
     Besides the step-size test it stops, without trying it (nothing is rendered), at a step whose
     decrease predicted by the Gauss-Newton model is below ``ftol`` of the objective (MINPACK's
-    ``ftol`` test; ``ftol / scale`` below full resolution, where the next level goes on). The
+    ``ftol`` test; ``ftol / scale`` below full resolution, where the next level goes on, unless
+    the level sets its own ``Level.ftol``). The
     objective's own noise (outlines discretised in pixels) is then larger than what the model can
     still gain: without this rule LM kept rendering sub-micrometre steps at full resolution, each
     gaining 1e-5 of the objective, without a better pose. What it leaves is a few hundredths of
@@ -129,8 +130,7 @@ def levenberg_marquardt(objective: SilhouetteObjective, T: NDArray[np.float64], 
     button turning it about its axis by a few tenths of a degree).
     """
     state = {"lam": lam}
-    scale = min(level.scale, 1.0)
-    f_tol = ftol / scale
+    f_tol = level.ftol if level.ftol is not None else ftol / min(level.scale, 1.0)
 
     def search(T: NDArray[np.float64], ev: Evaluation, tol_mm: float, tol_deg: float):
         H, g = ev.gn, ev.grad

@@ -299,9 +299,9 @@ def _paper_choices(opts: dict[str, Any] | None) -> str:
             "- Iterations are argmax moves (one view each, idle ones included); autoalign's (and adam's) are "
             "optimiser iterations over all views along the winning hypothesis' whole path, from its start "
             "(one of the scored orientations at the visual-hull centre) through the search level (1/8 "
-            "resolution) to full resolution; the scoring of the 384 orientations and the other hypotheses "
-            "count in renders and time, not in iterations. Their error curves start at that start, the "
-            "paper's at T_init.\n")
+            "resolution) and 1/4 to full resolution, an iteration being a step tried (rendered), accepted "
+            "or not; the scoring of the 384 orientations and the other hypotheses count in renders and "
+            "time, not in iterations. Their error curves start at that start, the paper's at T_init.\n")
 
 
 def markdown(records: list[dict[str, Any]], config: dict[str, Any] | None = None) -> str:
