@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.bop import Scene
-from autoalign.hypotheses import best_poses, flips, orbit, poses_at
+from autoalign.hypotheses import best_poses, flips, orbit, polish_poses, poses_at
 from autoalign.mesh import Mesh
 from autoalign.losses import targets_in_crops
 from autoalign.objective import Evaluation, Level, SilhouetteObjective
@@ -40,6 +40,8 @@ class RefineOptions:
         schedule: coarse-to-fine levels (scale, sigma in px, iterations).
         n_rotations: orientation hypotheses scored when the orientation is unknown.
         n_coarse: best-scoring hypotheses refined at ``search_level``.
+        polish_deg: before that, each is moved to the best of itself and its turns by +- these
+            angles (degrees) about the model axes, by hard IoU (:func:`~autoalign.hypotheses.polish_poses`).
         n_mid: best distinct ones of those refined at the first schedule level.
         n_final: best distinct ones of those refined through the rest of the schedule.
         search_level: the cheap level of the hypothesis search (its ``ftol`` the full-resolution one).
@@ -71,6 +73,7 @@ class RefineOptions:
     schedule: tuple[Level, ...] = DEFAULT_SCHEDULE
     n_rotations: int = 384
     n_coarse: int = 8
+    polish_deg: tuple[float, ...] = (10.0, 5.0)
     n_mid: int = 3
     n_final: int = 2
     # In the search a hypothesis may still be far off and descend slowly (1-2% per step): the
@@ -94,7 +97,8 @@ class Hypothesis:
 
     ``loss`` is the mean weighted loss at the last level it reached; for a finalist not polished at
     the last level (``estimated``, see :func:`_polish`) it is its loss there scaled by the polishing
-    gain of the best. An estimated loss never outranks a measured one.
+    gain of the best. An estimated loss never outranks a measured one. ``path`` holds the levels
+    it went through from ``T_init``, in order; a flip or orbit candidate continues its parent's.
     """
 
     T_init: NDArray[np.float64]
@@ -102,7 +106,7 @@ class Hypothesis:
     loss: float
     mean_iou: float
     stage: str
-    path: tuple[tuple[Level, Trace], ...] = ()  # the levels it went through from T_init, in order
+    path: tuple[tuple[Level, Trace], ...] = ()
     estimated: bool = False
 
     def rank(self) -> tuple[bool, float]:
@@ -116,7 +120,7 @@ class RefineResult:
 
     Attributes:
         T_wm: world-from-model pose (4x4, mm).
-        T_init: the starting pose of the winning hypothesis.
+        T_init: the starting pose of the winning hypothesis (a scored, polished orientation, or the seed).
         iou_before / iou_after: per-view hard-mask IoU at full resolution.
         iterations: optimiser iterations of the winner from its start, every level it went through
             (the hypothesis search's included).
@@ -229,10 +233,10 @@ def _search(obj: SilhouetteObjective, starts: list[NDArray[np.float64]], mesh: M
                     progress(f"hypotheses {stage + 1}/{len(funnel)}", j + 1, len(todo))
 
         run(pool)
-        if stage == 0 and opts.flips:  # the half turns of the best one compete too
-            best = min(done, key=lambda h: h.loss).T_final
-            run([Hypothesis(T, T, float("nan"), float("nan"), "flip")
-                 for T in flips(best, mesh.principal_axes, mesh.centre)])
+        if stage == 0 and opts.flips:  # the half turns of the best one compete too, from its path
+            best = min(done, key=lambda h: h.loss)
+            run([Hypothesis(best.T_init, T, float("nan"), float("nan"), "flip", best.path)
+                 for T in flips(best.T_final, mesh.principal_axes, mesh.centre)])
         done.sort(key=lambda h: h.loss)
         pool = []
         for h in done:  # keep distinct poses only
@@ -320,7 +324,7 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
         poses = poses_at(rotation_grid(opts.n_rotations), centre, mesh.centre)
         if progress is not None:
             progress("scoring orientations", 0, 1)
-        starts = list(best_poses(search, scene, poses, opts.n_coarse))
+        starts = list(polish_poses(search, scene, best_poses(search, scene, poses, opts.n_coarse), opts.polish_deg))
         if progress is not None:
             progress("scoring orientations", 1, 1)
     timings["seed"] = time.perf_counter() - t0

@@ -1,5 +1,6 @@
-"""Orientation hypotheses: cheap scoring of many at low resolution (hard ray-cast IoU), and
-the extra candidates a search needs on near-symmetric objects (half-turn flips, cyclic orbits).
+"""Orientation hypotheses: cheap scoring of many at low resolution (hard ray-cast IoU), a local
+pattern search that sharpens the best of them, and the extra candidates a search needs on
+near-symmetric objects (half-turn flips, cyclic orbits).
 
 Every hypothesis is first re-centred so that its silhouettes' centroids match the masks'
 centroids (a least-squares 3-D shift from the 2-D centroid offsets of all views), then scored
@@ -177,3 +178,29 @@ def best_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.f
         poses = poses[np.argsort(-scores)[:shortlist]]
     scores, poses = score_poses(rast, scene, poses, scale=scale)
     return poses[np.argsort(-scores)[:n]]
+
+
+def polish_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.float64],
+                 steps_deg: tuple[float, ...] = (10.0, 5.0), scale: float = 0.125,
+                 max_views: int = 20) -> NDArray[np.float64]:
+    """Each pose (K, 4, 4) moved by a pattern search on its hard IoU (:func:`score_poses`).
+
+    For each step ``d`` in ``steps_deg`` in turn, a pose is replaced by the best of itself and its
+    six turns by ``+-d`` degrees about the model's x, y and z axes through the mesh centre, each
+    re-centred (without that, a candidate's translation error decides more than its turn does).
+    The orientation grid's best poses are typically 15-30 degrees off; the optimiser's iterations
+    from the polished ones are fewer (see the README's simulation results).
+    """
+    poses = np.array(poses, dtype=np.float64)
+    c = rast.mesh.centre
+    for d in steps_deg:
+        turns = []
+        for axis in np.eye(3):
+            for sign in (1.0, -1.0):
+                R = so3_exp(sign * np.radians(d) * axis)
+                turns.append(make_pose(R, c - R @ c))
+        cand = np.concatenate([poses[:, None], poses[:, None] @ np.stack(turns)[None]], axis=1)  # (K, 7, 4, 4)
+        scores, cand = score_poses(rast, scene, cand.reshape(-1, 4, 4), scale=scale, max_views=max_views)
+        cand = cand.reshape(len(poses), -1, 4, 4)
+        poses = cand[np.arange(len(poses)), np.argmax(scores.reshape(len(poses), -1), axis=1)]
+    return poses
