@@ -19,6 +19,11 @@ from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 from autoalign.se3 import invert, make_pose, rotation_angle_deg, so3_exp, so3_log
 
 
+def _turn_about(R: NDArray[np.float64], point: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The 4x4 rigid motion turning by ``R`` about ``point`` (which stays fixed)."""
+    return make_pose(R, point - R @ point)
+
+
 def flips(T_wm: NDArray[np.float64], axes_m: NDArray[np.float64], centre_m: NDArray[np.float64]) -> NDArray[np.float64]:
     """(len(axes), 4, 4): ``T_wm`` turned half a turn about each model axis through ``centre_m``.
 
@@ -28,7 +33,7 @@ def flips(T_wm: NDArray[np.float64], axes_m: NDArray[np.float64], centre_m: NDAr
     out = []
     for a in axes_m:
         R = 2.0 * np.outer(a, a) - np.eye(3)  # rotation by pi about the unit axis a
-        out.append(T_wm @ make_pose(R, centre_m - R @ centre_m))
+        out.append(T_wm @ _turn_about(R, centre_m))
     return np.stack(out)
 
 
@@ -51,7 +56,7 @@ def orbit(T_a: NDArray[np.float64], T_b: NDArray[np.float64], max_order: int = 1
         return np.zeros((0, 4, 4))
     R = so3_exp(w * (360.0 / n) / theta)
     p = np.linalg.lstsq(np.eye(3) - R, D[:3, 3], rcond=None)[0]  # a point on the axis
-    E = make_pose(R, p - R @ p)
+    E = _turn_about(R, p)
     return np.stack([T_a @ np.linalg.matrix_power(E, k) for k in range(2, n)])
 
 
@@ -198,7 +203,7 @@ def polish_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np
         for axis in np.eye(3):
             for sign in (1.0, -1.0):
                 R = so3_exp(sign * np.radians(d) * axis)
-                turns.append(make_pose(R, c - R @ c))
+                turns.append(_turn_about(R, c))
         cand = np.concatenate([poses[:, None], poses[:, None] @ np.stack(turns)[None]], axis=1)  # (K, 7, 4, 4)
         scores, cand = score_poses(rast, scene, cand.reshape(-1, 4, 4), scale=scale, max_views=max_views)
         cand = cand.reshape(len(poses), -1, 4, 4)

@@ -38,7 +38,7 @@ COLOURS = {"paper": "tab:red", "autoalign": "tab:blue", "adam": "tab:green", "au
 METHOD_NOTES = {
     "paper": "the paper's greedy argmax-IoU procedure (experiments/paper_method.py), from T_init",
     "autoalign": "autoalign.engine.refine(scene, mesh, seed=None): visual-hull centre + 384 orientation "
-                 "hypotheses, LM coarse-to-fine (the paper's T_init carries no orientation information)",
+                 "hypotheses (best 8 polished by hard-IoU pattern search), LM coarse-to-fine (the paper's T_init carries no orientation information)",
     "adam": "the same with RefineOptions(optimizer='adam')",
     "autoalign-seeded": "refine(scene, mesh, seed=T_init): local refinement from the paper's initial pose",
     "init": "no refinement (the initial pose)",
@@ -298,10 +298,13 @@ def _paper_choices(opts: dict[str, Any] | None) -> str:
             f"pose staying within {o.stall_mm:g} mm / {o.stall_deg:g} deg) or after {o.max_iters} iterations.\n"
             "- Iterations are argmax moves (one view each, idle ones included); autoalign's (and adam's) are "
             "optimiser iterations over all views along the winning hypothesis' whole path, from its start "
-            "(one of the scored orientations at the visual-hull centre) through the search level (1/8 "
-            "resolution) and 1/4 to full resolution, an iteration being a step tried (rendered), accepted "
-            "or not; the scoring of the 384 orientations and the other hypotheses count in renders and "
-            "time, not in iterations. Their error curves start at that start, the paper's at T_init.\n")
+            "(one of the scored orientations at the visual-hull centre, polished by two rounds of hard-IoU "
+            "pattern search over turns of 10 and 5 degrees) through the search level (1/8 resolution) and 1/4 "
+            "to full resolution, an iteration being a step tried (rendered), accepted or not (a half-turn flip "
+            "of the search's best continues that one's path); the other hypotheses count in renders and time, "
+            "the scoring and polishing of the orientations (batched hard-mask ray casting at 1/16-1/8 "
+            "resolution) in time only, none in iterations. Their error curves start "
+            "at that start, the paper's at T_init.\n")
 
 
 def markdown(records: list[dict[str, Any]], config: dict[str, Any] | None = None) -> str:
