@@ -123,10 +123,13 @@ class _LowResViews:
         per = max(1, batch_rays // max(len(self.O), 1))
         for b0 in range(0, len(poses), per):
             chunk = poses[b0:b0 + per]
-            R = chunk[:, :3, :3]
-            Om = np.matmul(self.O[None] - chunk[:, None, :3, 3], R).reshape(-1, 3)  # rows R^T (o - t)
-            Dm = np.matmul(self.D[None], R).reshape(-1, 3)
-            hits = rast.model_ray_hits(Om, Dm).reshape(len(chunk), -1)
+            Rt = chunk[:, :3, :3].transpose(0, 2, 1)
+            # model-frame rays R^T (o - t) and R^T d, laid out (3, K * rays) for the ray caster
+            Om = np.matmul(Rt, self.O.T[None] - chunk[:, :3, 3, None])
+            Dm = np.matmul(Rt, self.D.T[None])
+            hits = rast.model_ray_hits_columns(
+                np.ascontiguousarray(Om.transpose(1, 0, 2), dtype=np.float32).reshape(3, -1),
+                np.ascontiguousarray(Dm.transpose(1, 0, 2), dtype=np.float32).reshape(3, -1)).reshape(len(chunk), -1)
             out[b0:b0 + len(chunk)] = (hits.astype(np.float32) @ self._reduce).reshape(len(chunk), 4, self.n)
         return out
 

@@ -174,10 +174,15 @@ class SoftSilhouetteRasterizer:
         """Whether model-frame rays (N, 3) hit the mesh; one vectorised mitsuba call."""
         if len(origins_m) == 0:
             return np.zeros(0, dtype=bool)
+        return self.model_ray_hits_columns(np.ascontiguousarray(np.asarray(origins_m).T, dtype=np.float32),
+                                           np.ascontiguousarray(np.asarray(dirs_m).T, dtype=np.float32))
+
+    def model_ray_hits_columns(self, origins_m: NDArray[np.float32], dirs_m: NDArray[np.float32]) -> NDArray[np.bool_]:
+        """:meth:`model_ray_hits` for rays given as (3, N) C-contiguous float32 rows x, y, z (no transpose)."""
+        if origins_m.shape[1] == 0:
+            return np.zeros(0, dtype=bool)
         mi = self._mi
-        o = np.ascontiguousarray(np.asarray(origins_m).T, dtype=np.float32)
-        d = np.ascontiguousarray(np.asarray(dirs_m).T, dtype=np.float32)
-        ray = mi.Ray3f(mi.Point3f(*(mi.Float(x) for x in o)), mi.Vector3f(*(mi.Float(x) for x in d)))
+        ray = mi.Ray3f(mi.Point3f(*(mi.Float(x) for x in origins_m)), mi.Vector3f(*(mi.Float(x) for x in dirs_m)))
         return np.array(self._scene.ray_test(ray), dtype=bool)
 
     def hits_at(self, T_wm: NDArray[np.float64], cams: "CameraBatch", view: NDArray[np.int64],
