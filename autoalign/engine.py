@@ -22,7 +22,7 @@ from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 from autoalign.se3 import rotation_angle_deg, transform_points
 from autoalign.seeding import Click, click_centre, hull_centre, rotation_grid
 
-DEFAULT_SCHEDULE: tuple[Level, ...] = (Level(0.25, 1.0, 40), Level(1.0, 0.5, 15))
+DEFAULT_SCHEDULE: tuple[Level, ...] = (Level(0.25, 1.0, 40), Level(1.0, 0.5, 30))
 
 Seed = NDArray[np.float64] | Click | None
 Progress = Callable[[str, int, int], None]
