@@ -324,7 +324,8 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
         poses = poses_at(rotation_grid(opts.n_rotations), centre, mesh.centre)
         if progress is not None:
             progress("scoring orientations", 0, 1)
-        starts = list(polish_poses(search, scene, best_poses(search, scene, poses, opts.n_coarse), opts.polish_deg))
+        top = best_poses(search, scene, poses, opts.n_coarse)
+        starts = list(polish_poses(search, scene, top, opts.polish_deg))
         if progress is not None:
             progress("scoring orientations", 1, 1)
     timings["seed"] = time.perf_counter() - t0

@@ -38,7 +38,8 @@ COLOURS = {"paper": "tab:red", "autoalign": "tab:blue", "adam": "tab:green", "au
 METHOD_NOTES = {
     "paper": "the paper's greedy argmax-IoU procedure (experiments/paper_method.py), from T_init",
     "autoalign": "autoalign.engine.refine(scene, mesh, seed=None): visual-hull centre + 384 orientation "
-                 "hypotheses (best 8 polished by hard-IoU pattern search), LM coarse-to-fine (the paper's T_init carries no orientation information)",
+                 "hypotheses (best 8 polished by hard-IoU pattern search), LM coarse-to-fine (the paper's T_init "
+                 "carries no orientation information)",
     "adam": "the same with RefineOptions(optimizer='adam')",
     "autoalign-seeded": "refine(scene, mesh, seed=T_init): local refinement from the paper's initial pose",
     "init": "no refinement (the initial pose)",
