@@ -71,7 +71,7 @@ class _LowResViews:
     def __init__(self, scene: Scene, centre_w: NDArray[np.float64],
                  reach: float, scale: float, max_views: int) -> None:
         idx = scene.spread(max_views)
-        origins, dirs, pix, tgt, view, J, g_cent, t_tot = [], [], [], [], [], [], [], []
+        centres, dirs, pix, tgt, view, J, g_cent, t_tot = [], [], [], [], [], [], [], []
         for k in idx:
             cam = scene.cameras[k].scaled(scale)
             mask = cv2.resize(scene.masks[k].astype(np.float32), (cam.width, cam.height),
@@ -88,7 +88,7 @@ class _LowResViews:
             gx, gy = np.meshgrid(np.arange(x0, x1) + 0.5, np.arange(y0, y1) + 0.5)
             uv = np.column_stack([gx.ravel(), gy.ravel()])
             n = len(t_tot)
-            origins.append(np.broadcast_to(cam.centre, (len(uv), 3)))
+            centres.append(cam.centre)
             dirs.append(cam.ray_directions(uv))
             pix.append(uv)
             tgt.append(mask[y0:y1, x0:x1].ravel())
@@ -101,7 +101,7 @@ class _LowResViews:
             P = np.array([[cam.K[0, 0], cam.K[0, 1], cam.K[0, 2] - uc[0]], [0.0, cam.K[1, 1], cam.K[1, 2] - uc[1]]]) / z
             J.append(P @ cam.R_w2c)
         self.n = len(t_tot)
-        self.O = np.concatenate(origins) if origins else np.zeros((0, 3))
+        self.centres = np.array(centres).reshape(-1, 3)
         self.D = np.concatenate(dirs) if dirs else np.zeros((0, 3))
         self.tgt = np.concatenate(tgt) if tgt else np.zeros(0, bool)
         self.view = np.concatenate(view) if view else np.zeros(0, np.int64)
@@ -109,34 +109,18 @@ class _LowResViews:
         self.t_tot = np.array(t_tot)
         self.g_cent = np.array(g_cent)
         self.J = np.array(J)
-        # (R, 4V): one matrix product reduces a pose's hits to area, overlap, sum x, sum y per view
-        onehot = np.zeros((len(self.view), self.n), dtype=np.float32)
-        onehot[np.arange(len(self.view)), self.view] = 1.0
-        w = np.stack([np.ones(len(self.view)), self.tgt, self.pix[:, 0], self.pix[:, 1]]).astype(np.float32)
-        self._reduce = (w[:, :, None] * onehot[None]).transpose(1, 0, 2).reshape(len(self.view), -1)
+        # per ray: what a hit adds to its view's area, overlap, sum of x and sum of y
+        self._weights = np.column_stack([np.ones(len(self.view)), self.tgt, self.pix])
 
-    def overlap_stats(self, rast: SoftSilhouetteRasterizer, poses: NDArray[np.float64],
-                      batch_rays: int) -> NDArray[np.float64]:
+    def overlap_stats(self, rast: SoftSilhouetteRasterizer, poses: NDArray[np.float64]) -> NDArray[np.float64]:
         """(K, 4, V) per pose and view: silhouette area, overlap with the mask, and the sums of
-        the silhouette's pixel x and y (px, this resolution). The hits are reduced chunk by chunk."""
-        out = np.zeros((len(poses), 4, self.n))
-        per = max(1, batch_rays // max(len(self.O), 1))
-        for b0 in range(0, len(poses), per):
-            chunk = poses[b0:b0 + per]
-            Rt = chunk[:, :3, :3].transpose(0, 2, 1)
-            # model-frame rays R^T (o - t) and R^T d, laid out (3, K * rays) for the ray caster
-            Om = np.matmul(Rt, self.O.T[None] - chunk[:, :3, 3, None])
-            Dm = np.matmul(Rt, self.D.T[None])
-            hits = rast.model_ray_hits_columns(
-                np.ascontiguousarray(Om.transpose(1, 0, 2), dtype=np.float32).reshape(3, -1),
-                np.ascontiguousarray(Dm.transpose(1, 0, 2), dtype=np.float32).reshape(3, -1)).reshape(len(chunk), -1)
-            out[b0:b0 + len(chunk)] = (hits.astype(np.float32) @ self._reduce).reshape(len(chunk), 4, self.n)
-        return out
+        the silhouette's pixel x and y (px, this resolution)."""
+        return rast.posed_hit_sums(poses, self.centres, self.D, self.view, self._weights)
 
 
 def score_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.float64],
                 scale: float = 0.125, max_views: int = 20, trim: float = 0.2,
-                batch_rays: int = 4_000_000, recentre: bool = True) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+                recentre: bool = True) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Robust mean hard IoU of each pose against the masks, at ``scale`` of the image size.
 
     Returns ``(scores, poses)``: with ``recentre`` each pose's translation is first corrected so
@@ -152,7 +136,7 @@ def score_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.
     views = _LowResViews(scene, centre_w, reach, scale, max_views)
     if views.n == 0:
         return np.zeros(len(poses)), poses
-    stats = views.overlap_stats(rast, poses, batch_rays)
+    stats = views.overlap_stats(rast, poses)
     if recentre:
         area = stats[:, 0]
         ok = area > 0
@@ -166,7 +150,7 @@ def score_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.
         if solvable.any():
             shifts[solvable] = [np.linalg.lstsq(A, b, rcond=None)[0] for A, b in zip(JtJ[solvable], Jtr[solvable])]
         poses[:, :3, 3] += np.clip(shifts, -0.5 * radius, 0.5 * radius)
-        stats = views.overlap_stats(rast, poses, batch_rays)
+        stats = views.overlap_stats(rast, poses)
     area, inter = stats[:, 0], stats[:, 1]
     iou = inter / np.maximum(area + views.t_tot[None] - inter, 1.0)
     scores = np.sort(iou, axis=1)[:, int(np.floor(trim * views.n)):].mean(1)

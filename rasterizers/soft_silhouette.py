@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.backend import drjit, mitsuba
+from autoalign.backend import drjit, jit_array, mitsuba
 from autoalign.camera import Camera
 from autoalign.mesh import Mesh
 from autoalign.se3 import invert, transform_points
@@ -148,8 +148,8 @@ class SoftSilhouetteRasterizer:
         m = mi.Mesh(mesh.name, vertex_count=len(mesh.vertices), face_count=len(mesh.faces),
                     has_vertex_normals=False, has_vertex_texcoords=False)
         params = mi.traverse(m)
-        params["vertex_positions"] = mi.Float(mesh.vertices.astype(np.float32).ravel())
-        params["faces"] = mi.UInt32(mesh.faces.astype(np.uint32).ravel())
+        params["vertex_positions"] = jit_array(mi.Float, mesh.vertices.ravel(), np.float32)
+        params["faces"] = jit_array(mi.UInt32, mesh.faces.ravel(), np.uint32)
         params.update()
         self._scene = mi.load_dict({"type": "scene", "object": m})
         hull = mesh.trimesh.convex_hull.vertices if len(mesh.vertices) > 4 else mesh.vertices
@@ -174,16 +174,49 @@ class SoftSilhouetteRasterizer:
         """Whether model-frame rays (N, 3) hit the mesh; one vectorised mitsuba call."""
         if len(origins_m) == 0:
             return np.zeros(0, dtype=bool)
-        return self.model_ray_hits_columns(np.ascontiguousarray(np.asarray(origins_m).T, dtype=np.float32),
-                                           np.ascontiguousarray(np.asarray(dirs_m).T, dtype=np.float32))
-
-    def model_ray_hits_columns(self, origins_m: NDArray[np.float32], dirs_m: NDArray[np.float32]) -> NDArray[np.bool_]:
-        """:meth:`model_ray_hits` for rays given as (3, N) C-contiguous float32 rows x, y, z (no transpose)."""
-        if origins_m.shape[1] == 0:
-            return np.zeros(0, dtype=bool)
         mi = self._mi
-        ray = mi.Ray3f(mi.Point3f(*(mi.Float(x) for x in origins_m)), mi.Vector3f(*(mi.Float(x) for x in dirs_m)))
-        return np.array(self._scene.ray_test(ray), dtype=bool)
+        o = [jit_array(mi.Float, origins_m[:, i], np.float32) for i in range(3)]
+        d = [jit_array(mi.Float, dirs_m[:, i], np.float32) for i in range(3)]
+        return np.array(self._scene.ray_test(mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d))), dtype=bool)
+
+    def posed_hit_sums(self, poses: NDArray[np.float64], centres_w: NDArray[np.float64], dirs_w: NDArray[np.float64],
+                       ray_view: NDArray[np.int64], weights: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Weighted hit counts of a fixed set of world rays, per pose and view, in one drjit kernel.
+
+        Args:
+            poses: (K, 4, 4) world-from-model poses of the mesh.
+            centres_w: (V, 3) camera centres (the rays' origins), world frame, mm.
+            dirs_w: (R, 3) unit ray directions, world frame.
+            ray_view: (R,) the view (row of ``centres_w``) each ray starts from.
+            weights: (R, C) per-ray weights.
+
+        Returns:
+            (K, C, V): ``sum of weights[r, c]`` over the rays ``r`` of view ``v`` that hit the mesh at
+            ``poses[k]``. The K x R model-frame rays are formed, cast and reduced inside the kernel,
+            never as arrays (sums in double precision: exact for counts and pixel coordinates).
+        """
+        dr, mi = self._dr, self._mi
+        K, V, R, C = len(poses), len(centres_w), len(dirs_w), weights.shape[1]
+        out = np.zeros((K, C, V))
+        if K == 0 or R == 0:
+            return out
+        Rt = poses[:, :3, :3].transpose(0, 2, 1)  # model from world
+        o_m = np.einsum("kij,kvj->kvi", Rt, centres_w[None] - poses[:, None, :3, 3]).reshape(K * V, 3)
+        UInt, Float = mi.UInt32, mi.Float
+        ray = dr.arange(UInt, K * R)
+        k = ray // dr.opaque(UInt, R)  # opaque sizes: one compiled kernel for all of them
+        r = ray - k * dr.opaque(UInt, R)
+        kv = k * dr.opaque(UInt, V) + dr.gather(UInt, jit_array(UInt, ray_view, np.uint32), r)
+        o = [dr.gather(Float, jit_array(Float, o_m[:, i], np.float32), kv) for i in range(3)]
+        rot = [dr.gather(Float, jit_array(Float, Rt[:, i, j], np.float32), k) for i in range(3) for j in range(3)]
+        d = [dr.gather(Float, jit_array(Float, dirs_w[:, j], np.float32), r) for j in range(3)]
+        d_m = [rot[3 * i] * d[0] + rot[3 * i + 1] * d[1] + rot[3 * i + 2] * d[2] for i in range(3)]
+        hit = self._scene.ray_test(mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d_m)))
+        sums = dr.zeros(mi.Float64, K * V * C)
+        for c in range(C):
+            w = dr.gather(mi.Float64, jit_array(mi.Float64, weights[:, c], np.float64), r)
+            dr.scatter_reduce(dr.ReduceOp.Add, sums, w, kv * dr.opaque(UInt, C) + c, active=hit)
+        return np.array(sums, dtype=np.float64).reshape(K, V, C).transpose(0, 2, 1)
 
     def hits_at(self, T_wm: NDArray[np.float64], cams: "CameraBatch", view: NDArray[np.int64],
                 uv: NDArray[np.float64]) -> NDArray[np.bool_]:
@@ -462,8 +495,8 @@ class SoftSilhouetteRasterizer:
         Float, UInt = mi.Float64, mi.UInt32
         N = len(cams.K)
         P = np.concatenate([cams.R_w2c.reshape(N, 9), cams.t_w2c, cams.K[:, :2].reshape(N, 6)], 1)  # (N, 18)
-        vid = UInt(view.astype(np.uint32))
-        cam = [dr.gather(Float, Float(P[:, j].copy()), vid) for j in range(18)]
+        vid = jit_array(UInt, view, np.uint32)
+        cam = [dr.gather(Float, jit_array(Float, P[:, j], np.float64), vid) for j in range(18)]
         xi = [Float(0.0) for _ in range(6)]
         if with_jacobian:
             for x in xi:
@@ -472,7 +505,7 @@ class SoftSilhouetteRasterizer:
 
         def moved(X: NDArray[np.float64]) -> list:
             # X + v + w x (X - c), to first order in the twist (exact derivative at xi = 0)
-            x = [Float(X[:, j].copy()) for j in range(3)]
+            x = [jit_array(Float, X[:, j], np.float64) for j in range(3)]
             r = [x[0] - c[0], x[1] - c[1], x[2] - c[2]]
             wx = [xi[4] * r[2] - xi[5] * r[1], xi[5] * r[0] - xi[3] * r[2], xi[3] * r[1] - xi[4] * r[0]]
             return [x[j] + xi[j] + wx[j] for j in range(3)]
@@ -487,16 +520,16 @@ class SoftSilhouetteRasterizer:
 
         eu, ev = project(moved(A_w))
         fu, fv = project(moved(B_w))
-        s0, s1 = Float(t0), Float(t1)
+        s0, s1 = jit_array(Float, t0, np.float64), jit_array(Float, t1, np.float64)
         au, av = eu + s0 * (fu - eu), ev + s0 * (fv - ev)  # the sub-segment [t0, t1] of the edge
         bu, bv = eu + s1 * (fu - eu), ev + s1 * (fv - ev)
-        qx, qy = Float(px), Float(py)
+        qx, qy = jit_array(Float, px, np.float64), jit_array(Float, py, np.float64)
         dx, dy = bu - au, bv - av
         t = ((qx - au) * dx + (qy - av) * dy) / dr.maximum(dx * dx + dy * dy, 1e-18)
         t = dr.clip(t, 0.0, 1.0)
         ex, ey = au + t * dx - qx, av + t * dy - qy
         dist = dr.sqrt(dr.maximum(ex * ex + ey * ey, 1e-18))
-        z = Float(sign) * dist / dr.opaque(Float, half)
+        z = jit_array(Float, sign, np.float64) * dist / dr.opaque(Float, half)
         u = dr.clip((z + 1.0) * 0.5, 0.0, 1.0)
         s = u * u * (3.0 - 2.0 * u)
         outputs = [dr.detach(s)]

@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from autoalign import backend
@@ -56,3 +57,35 @@ def test_fresh_process_finds_llvm_without_env() -> None:
     variant, path = out.stdout.split()
     assert variant == "llvm_ad_rgb"
     assert (backend.llvm_major(path) or 0) >= 16
+
+
+def test_aligned_copy_starts_on_the_boundary_and_keeps_the_values() -> None:
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=1000)
+    for offset in range(8):  # views starting 8 bytes apart
+        out = backend.aligned_copy(base[offset:offset + 500], np.float32)
+        assert out.ctypes.data % backend.JIT_ALIGN == 0
+        assert out.dtype == np.float32 and out.flags.c_contiguous
+        np.testing.assert_array_equal(out, base[offset:offset + 500].astype(np.float32))
+
+
+def test_jit_arrays_compile_one_kernel_whatever_the_numpy_alignment() -> None:
+    """drjit specialises a kernel on whether each input starts on a 64-byte boundary; numpy buffers
+    16 bytes apart used to give two compiled kernels for one computation (0.1 s each)."""
+    mi, dr = backend.mitsuba(), backend.drjit()
+    base = np.arange(4096 + 64, dtype=np.float64)
+    start = (-base.ctypes.data % 128) // 8  # first element on a 128-byte boundary
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        hashes = []
+        for offset in (0, 2, 8, 3):  # 0, 16, 64 and 24 bytes past the boundary
+            view = base[start + offset:start + offset + 4096]
+            dr.kernel_history()  # clears it
+            x = backend.jit_array(mi.Float64, view, np.float64)
+            y = x * dr.opaque(mi.Float64, 2.5) + 1.25
+            dr.eval(y)
+            np.testing.assert_array_equal(np.array(y), view * 2.5 + 1.25)
+            hashes += [k["hash"] for k in dr.kernel_history() if str(k["type"]).endswith("JIT")]
+        assert len(hashes) == 4 and len(set(hashes)) == 1, hashes
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
