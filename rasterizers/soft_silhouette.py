@@ -220,16 +220,26 @@ class SoftSilhouetteRasterizer:
 
     def hits_at(self, T_wm: NDArray[np.float64], cams: "CameraBatch", view: NDArray[np.int64],
                 uv: NDArray[np.float64]) -> NDArray[np.bool_]:
-        """Hard hits of the rays through continuous pixel coordinates ``uv`` (N, 2) of views ``view`` (N,)."""
+        """Hard hits of the rays through continuous pixel coordinates ``uv`` (N, 2) of views ``view`` (N,).
+
+        The model-frame rays are formed inside the ray-casting kernel (double precision, then
+        rounded to the caster's single precision) from per-view tables, never as arrays.
+        """
         if len(view) == 0:
             return np.zeros(0, dtype=bool)
+        dr, mi = self._dr, self._mi
+        F64 = mi.Float64
         T_mw = invert(T_wm)
-        R_mc = T_mw[:3, :3] @ cams.R_c2w  # (V, 3, 3) model-from-camera rotation
-        uv1 = np.column_stack([uv, np.ones(len(uv))])
-        d_m = per_view_matvec(np.einsum("nij,njk->nik", R_mc, cams.K_inv), view, uv1)
-        d_m /= np.linalg.norm(d_m, axis=1, keepdims=True)
-        o_m = (cams.centres @ T_mw[:3, :3].T + T_mw[:3, 3])[view]
-        return self.model_ray_hits(o_m, d_m)
+        M = np.einsum("ij,njk,nkl->nil", T_mw[:3, :3], cams.R_c2w, cams.K_inv).reshape(-1, 9)  # pixel -> model dir
+        C_m = cams.centres @ T_mw[:3, :3].T + T_mw[:3, 3]  # (V, 3) camera centres, model frame
+        v = jit_array(mi.UInt32, view, np.uint32)
+        u, w = jit_array(F64, uv[:, 0], np.float64), jit_array(F64, uv[:, 1], np.float64)
+        m = [dr.gather(F64, jit_array(F64, M[:, j], np.float64), v) for j in range(9)]
+        d = [m[3 * i] * u + m[3 * i + 1] * w + m[3 * i + 2] for i in range(3)]
+        inv_norm = dr.rsqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        o = [dr.gather(mi.Float, jit_array(mi.Float, C_m[:, i], np.float32), v) for i in range(3)]
+        ray = mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*(mi.Float(x * inv_norm) for x in d)))
+        return np.array(self._scene.ray_test(ray), dtype=bool)
 
     def pixel_hits(self, T_wm: NDArray[np.float64], cameras: list[Camera],
                    uv: list[NDArray[np.float64]]) -> list[NDArray[np.bool_]]:

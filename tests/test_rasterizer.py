@@ -233,13 +233,13 @@ def test_work_grows_with_outline_not_faces_times_pixels():
         mesh = _ellipsoid(count)
         ras = SoftSilhouetteRasterizer(mesh)
         n_rays = [0]
-        cast = ras.model_ray_hits
+        cast = ras.hits_at
 
-        def counting(o, d, cast=cast, n_rays=n_rays):
-            n_rays[0] += len(o)
-            return cast(o, d)
+        def counting(T, cams, view, uv, cast=cast, n_rays=n_rays):
+            n_rays[0] += len(view)
+            return cast(T, cams, view, uv)
 
-        ras.model_ray_hits = counting  # count every ray the renderer casts
+        ras.hits_at = counting  # count every ray the renderer casts
         sil = ras.render(T_wm, cams, sigma=1.0)
         stats[count] = dict(faces=len(mesh.faces), band=len(sil.band), pixels=len(sil.soft),
                             rays=n_rays[0], outline=int(sil.n_outline.sum()))
