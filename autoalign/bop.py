@@ -8,8 +8,6 @@ Layout written: ``scene_gt.json`` with ``cam_R_m2c`` / ``cam_t_m2c`` (mm) per im
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,6 +16,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from autoalign.atomic_files import write_json_atomic
 from autoalign.camera import Camera
 from autoalign.errors import AutoalignError
 from autoalign.se3 import invert, make_pose
@@ -201,20 +200,6 @@ def scene_gt_dict(T_wm: NDArray[np.float64], cameras: list[Camera], image_ids: l
         R, t = pose_in_camera(T_wm, cam)
         out[str(im)] = [{"obj_id": int(obj_id), "cam_R_m2c": R, "cam_t_m2c": t}]
     return out
-
-
-def write_json_atomic(path: str | Path, data: Any) -> None:
-    """Write JSON to ``path`` via a temporary file in the same folder and an atomic rename."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=1)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def write_scene(out_dir: str | Path, scene: Scene, T_wm: NDArray[np.float64], obj_id: int = 1,

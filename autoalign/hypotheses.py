@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from autoalign.bop import Scene
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
-from autoalign.se3 import invert, make_pose, rotation_angle_deg, so3_exp, so3_log
+from autoalign.se3 import invert, make_pose, so3_exp, so3_log
 
 
 def _turn_about(R: NDArray[np.float64], point: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from autoalign import __version__
+from autoalign.atomic_files import write_files_atomic as write_files_atomic_at
 from autoalign.errors import AutoalignError
 
 PROG = "autoalign"
@@ -284,29 +285,15 @@ def _remove_empty_dirs(created: list[Path]) -> None:
 
 
 def write_files_atomic(out: Path, files: dict[str, bytes]) -> dict[str, Path]:
-    """Write every ``name -> bytes`` to a temporary file in ``out``, then rename them all into place.
+    """Write every ``name -> bytes`` into ``out`` atomically (:mod:`autoalign.atomic_files`): all or none.
 
     If any write fails no temporary file is left behind and no target file is touched.
     """
-    temps: list[tuple[str, str]] = []
     try:
-        for name, data in files.items():
-            fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=out)
-            temps.append((name, tmp))
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-                f.flush()
-                os.fsync(f.fileno())
-        for name, tmp in temps:
-            os.replace(tmp, out / name)
-    except BaseException as exc:
-        for _, tmp in temps:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-        if isinstance(exc, OSError):
-            raise AutoalignError(f"--out {out}: cannot write the outputs ({exc.strerror or exc}); "
-                                 "free some space or choose another --out") from None
-        raise
+        write_files_atomic_at({out / name: data for name, data in files.items()})
+    except OSError as exc:
+        raise AutoalignError(f"--out {out}: cannot write the outputs ({exc.strerror or exc}); "
+                             "free some space or choose another --out") from None
     return {name: out / name for name in files}
 
 

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from autoalign.bop import write_json_atomic
+from autoalign.atomic_files import write_json_atomic, write_text_atomic
 from autoalign.engine import RefineOptions, refine
 from autoalign.mesh import Mesh, mesh_from_trimesh
 from autoalign.objective import Level, SilhouetteObjective
@@ -123,9 +123,7 @@ def main(argv: list[str] | None = None) -> int:
                      f"{r['band_px']:.0f} | {r['crop_px']:.0f} | {r['err_mm']:.3f} | {r['err_deg']:.3f} |")
     a.out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(a.out / "bench_refine.json", rows)
-    tmp = a.out / ".bench_refine.md.tmp"
-    tmp.write_text("\n".join(lines) + "\n")
-    os.replace(tmp, a.out / "bench_refine.md")
+    write_text_atomic(a.out / "bench_refine.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from autoalign.bop import scene_gt_dict, write_json_atomic
+from autoalign.atomic_files import write_json_atomic
+from autoalign.bop import scene_gt_dict
 from autoalign.mesh import mesh_from_trimesh
 from autoalign.se3 import make_pose
 from autoalign.experiments.procedural_models import procedural_models

@@ -622,7 +622,7 @@ def write_models(out_dir: str | Path, models: Sequence[ProceduralModel] | None =
     Also writes ``models_names.json`` (id -> name, symmetry description). Returns the
     models_info content keyed by integer id.
     """
-    from autoalign.bop import write_json_atomic
+    from autoalign.atomic_files import write_json_atomic
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

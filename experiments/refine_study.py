@@ -29,7 +29,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from autoalign.bop import Scene, scene_gt_dict, write_json_atomic
+from autoalign.atomic_files import write_json_atomic, write_text_atomic
+from autoalign.bop import Scene, scene_gt_dict
 from autoalign.mesh import Mesh, load_mesh, mesh_from_trimesh
 from autoalign.se3 import make_pose, rotation_angle_deg, transform_points
 from autoalign.experiments.procedural_models import procedural_models
@@ -209,9 +210,7 @@ def main(argv: list[str] | None = None) -> int:
                      f"{r['median_err_deg']:.3f} | {r['max_err_mm']:.3f} | {r['max_err_deg']:.3f} | {r['median_wall_s']:.2f} |")
     suffix = "_cli" if a.cli else ""
     write_json_atomic(a.out / f"results{suffix}.json", {"summary": results, "rows": all_rows})
-    tmp_md = a.out / f".results{suffix}.md.tmp"
-    tmp_md.write_text("\n".join(lines) + "\n")
-    os.replace(tmp_md, a.out / f"results{suffix}.md")
+    write_text_atomic(a.out / f"results{suffix}.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

@@ -10,8 +10,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import os
-import tempfile
 from collections import defaultdict
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -19,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from autoalign.atomic_files import write_bytes_atomic, write_text_atomic
 from autoalign.experiments.metrics import CRITERIA, auc
 from autoalign.experiments.paper_method import DISCRETISATIONS, PaperOptions
 from autoalign.experiments.protocol import PAPER_ITERATIONS, PROTOCOL_CHOICES
@@ -50,30 +49,11 @@ METHOD_NOTES = {
 # Atomic writes
 # ----------------------------------------------------------------------------------------------
 
-def _atomic_bytes(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def atomic_write_text(path: str | Path, text: str) -> None:
-    """Write ``text`` to ``path`` via a temporary file and ``os.replace``."""
-    _atomic_bytes(Path(path), text.encode())
-
-
 def atomic_savefig(fig: Any, path: str | Path) -> None:
     """Save a matplotlib figure as PNG via a temporary file and ``os.replace``."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    _atomic_bytes(Path(path), buf.getvalue())
+    write_bytes_atomic(path, buf.getvalue())
 
 
 # ----------------------------------------------------------------------------------------------
@@ -88,7 +68,7 @@ def write_csv(records: list[dict[str, Any]], path: str | Path) -> None:
     for r in sorted(records, key=lambda r: (r.get("condition", ""), r.get("method", ""), r.get("model_id", 0),
                                             r.get("trial", 0))):
         w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in CSV_COLUMNS})
-    atomic_write_text(path, buf.getvalue())
+    write_text_atomic(path, buf.getvalue())
 
 
 def _methods(records: Iterable[dict[str, Any]]) -> list[str]:
@@ -516,7 +496,7 @@ def write_reports(out_dir: str | Path) -> dict[str, Path]:
     config = json.loads(cfg_path.read_text()) if cfg_path.is_file() else None
     paths = {"csv": out / "trials.csv", "markdown": out / "results.md"}
     write_csv(records, paths["csv"])
-    atomic_write_text(paths["markdown"], markdown(records, config))
+    write_text_atomic(paths["markdown"], markdown(records, config))
     (out / "plots").mkdir(exist_ok=True)
     if records:
         for name, fn in PLOTS.items():

@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from autoalign.atomic_files import write_bytes_atomic, write_json_atomic
 from autoalign.errors import AutoalignError
 from autoalign.experiments.metrics import CRITERIA, PoseErrors, Symmetries, pose_errors, success
 from autoalign.experiments.paper_method import PaperOptions
@@ -418,12 +419,7 @@ def repair_jsonl(path: str | Path) -> int:
             bad += 1
     if bad == 0 and (not raw or raw.endswith(b"\n")):
         return 0
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(b"".join(x + b"\n" for x in good))
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    write_bytes_atomic(path, b"".join(x + b"\n" for x in good))
     return bad
 
 
@@ -454,7 +450,6 @@ def _check_config(out: Path, cfg: StudyConfig) -> None:
         if old is not None and old != json.loads(json.dumps(fp)):
             raise AutoalignError(f"{p}: this output folder holds trials of other settings ({old}); "
                                  "use a new --out folder or the same --models, --seed and image settings")
-    from autoalign.bop import write_json_atomic
 
     write_json_atomic(p, {"fingerprint": fp, "last_run": {"trials": cfg.trials, "views": cfg.views,
                                                           "methods": list(cfg.methods), "parts": list(cfg.parts),

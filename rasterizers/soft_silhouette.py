@@ -197,15 +197,14 @@ class SoftSilhouetteRasterizer:
         """
         dr, mi = self._dr, self._mi
         K, V, R, C = len(poses), len(centres_w), len(dirs_w), weights.shape[1]
-        out = np.zeros((K, C, V))
         if K == 0 or R == 0:
-            return out
+            return np.zeros((K, C, V))
         Rt = poses[:, :3, :3].transpose(0, 2, 1)  # model from world
         o_m = np.einsum("kij,kvj->kvi", Rt, centres_w[None] - poses[:, None, :3, 3]).reshape(K * V, 3)
         UInt, Float = mi.UInt32, mi.Float
-        ray = dr.arange(UInt, K * R)
-        k = ray // dr.opaque(UInt, R)  # opaque sizes: one compiled kernel for all of them
-        r = ray - k * dr.opaque(UInt, R)
+        i = dr.arange(UInt, K * R)  # ray i is ray r of pose k
+        k = i // dr.opaque(UInt, R)  # opaque sizes: one compiled kernel for all of them
+        r = i - k * dr.opaque(UInt, R)
         kv = k * dr.opaque(UInt, V) + dr.gather(UInt, jit_array(UInt, ray_view, np.uint32), r)
         o = [dr.gather(Float, jit_array(Float, o_m[:, i], np.float32), kv) for i in range(3)]
         rot = [dr.gather(Float, jit_array(Float, Rt[:, i, j], np.float32), k) for i in range(3) for j in range(3)]

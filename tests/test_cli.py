@@ -16,7 +16,8 @@ import cv2
 import numpy as np
 import pytest
 
-from autoalign.bop import scene_gt_dict, write_json_atomic
+from autoalign.atomic_files import write_json_atomic
+from autoalign.bop import scene_gt_dict
 from autoalign.cli.main import OUTPUT_FILES, main
 from autoalign.experiments.procedural_models import procedural_models
 from autoalign.experiments.synthetic import (

@@ -8,7 +8,6 @@ All big checks use 640x480 cameras with fx = fy = 600 (``sphere_cameras`` defaul
 from __future__ import annotations
 
 from functools import lru_cache
-from pathlib import Path
 
 import cv2
 import numpy as np
