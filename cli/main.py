@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from autoalign import __version__
-from autoalign.atomic_files import write_files_atomic as write_files_atomic_at
+from autoalign.atomic_files import write_files_atomic
 from autoalign.errors import AutoalignError
 
 PROG = "autoalign"
@@ -284,13 +284,13 @@ def _remove_empty_dirs(created: list[Path]) -> None:
             break
 
 
-def write_files_atomic(out: Path, files: dict[str, bytes]) -> dict[str, Path]:
+def write_outputs(out: Path, files: dict[str, bytes]) -> dict[str, Path]:
     """Write every ``name -> bytes`` into ``out`` atomically (:mod:`autoalign.atomic_files`): all or none.
 
     If any write fails no temporary file is left behind and no target file is touched.
     """
     try:
-        write_files_atomic_at({out / name: data for name, data in files.items()})
+        write_files_atomic({out / name: data for name, data in files.items()})
     except OSError as exc:
         raise AutoalignError(f"--out {out}: cannot write the outputs ({exc.strerror or exc}); "
                              "free some space or choose another --out") from None
@@ -517,7 +517,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
         "refine.json": json.dumps(_jsonable(report), indent=1, allow_nan=False).encode(),
         "overlay.png": encode_png(overlay),
     }
-    paths = write_files_atomic(out, files)
+    paths = write_outputs(out, files)
     elapsed = time.perf_counter() - t_start
 
     # ---------------------------------------------------------------- report

@@ -487,15 +487,15 @@ def test_quiet_run_warns_about_a_bad_mask(data, tmp_path, capsys):
 # Pieces
 # --------------------------------------------------------------------------------------------
 
-def test_write_files_atomic_leaves_nothing_on_failure(tmp_path, monkeypatch):
+def test_write_outputs_leaves_nothing_on_failure(tmp_path, monkeypatch):
     import errno
     import os
 
-    from autoalign.cli.main import write_files_atomic
+    from autoalign.cli.main import write_outputs
     from autoalign.errors import AutoalignError
 
     with pytest.raises(TypeError):
-        write_files_atomic(tmp_path, {"scene_gt.json": b"{}", "refine.json": b"{}", "overlay.png": "not bytes"})
+        write_outputs(tmp_path, {"scene_gt.json": b"{}", "refine.json": b"{}", "overlay.png": "not bytes"})
     assert list(tmp_path.iterdir()) == []
 
     def full(fd):
@@ -503,10 +503,10 @@ def test_write_files_atomic_leaves_nothing_on_failure(tmp_path, monkeypatch):
 
     monkeypatch.setattr(os, "fsync", full)
     with pytest.raises(AutoalignError, match="--out"):
-        write_files_atomic(tmp_path, {"scene_gt.json": b"{}", "refine.json": b"{}"})
+        write_outputs(tmp_path, {"scene_gt.json": b"{}", "refine.json": b"{}"})
     assert list(tmp_path.iterdir()) == []
     monkeypatch.undo()
-    paths = write_files_atomic(tmp_path, {"a.json": b"{}", "b.png": b"x"})
+    paths = write_outputs(tmp_path, {"a.json": b"{}", "b.png": b"x"})
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.png"]
     assert paths["b.png"].read_bytes() == b"x"
 
