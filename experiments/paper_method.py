@@ -314,7 +314,7 @@ class CandidateScorer:
         if K == 0:
             return inter, area
         cam, target, _, dimg = self.view_at(view, scale)
-        tflat = target.ravel()
+        weights = np.column_stack([np.ones(len(dimg)), target.ravel()])  # a hit adds to area and, on target, overlap
         W = cam.width
         sizes = boxes[:, 2] * boxes[:, 3]
         for start, stop in _ray_batches(sizes):
@@ -326,20 +326,11 @@ class CandidateScorer:
                 local = np.arange(n) - np.repeat(np.cumsum(sz) - sz, sz)
                 w = bx[kid, 2]
                 flat = (bx[kid, 1] + local // w) * W + bx[kid, 0] + local % w
-                D = dimg[flat]
-                O = np.empty((n, 3), dtype=np.float32)
-                ends = np.cumsum(sz)
-                for j, k in enumerate(range(start, stop)):
-                    a, b = int(ends[j] - sz[j]), int(ends[j])
-                    if a == b:
-                        continue
-                    R, t = poses[k, :3, :3].astype(np.float32), poses[k, :3, 3]
-                    np.matmul(D[a:b], R, out=D[a:b])
-                    O[a:b] = (poses[k, :3, :3].T @ (cam.centre - t))
                 self.rays += n
-                hits = self.rast.model_ray_hits(O, D)
-                inter[start:stop] += np.bincount(kid, weights=hits & tflat[flat], minlength=stop - start)
-                area[start:stop] += np.bincount(kid, weights=hits, minlength=stop - start)
+                sums = self.rast.posed_hit_sums(poses[start:stop], cam.centre[None], dimg, np.zeros(len(dimg), np.int64),
+                                                weights, pairs=(kid, flat))
+                area[start:stop] += sums[:, 0, 0]
+                inter[start:stop] += sums[:, 1, 0]
         self.view_renders += K
         return inter, area
 
@@ -403,29 +394,19 @@ class CandidateScorer:
         cum_mt = np.concatenate([[0], np.cumsum(cur & tgt)])
         tot_m, tot_mt = float(current.sum()), float((current & target).sum())
         Dw = dimg[flat]
+        weights = np.column_stack([np.ones(len(flat)), tgt])
         counts = np.searchsorted(dv, radii, side="right")
         for start, stop in _ray_batches(counts):
             cs = counts[start:stop]
             n = int(cs.sum())
-            if n:
+            if n:  # pose k re-casts the counts[k] pixels nearest the contour
                 kid = np.repeat(np.arange(stop - start), cs)
-                D = np.empty((n, 3), dtype=np.float32)
-                O = np.empty((n, 3), dtype=np.float32)
-                tg = np.empty(n, dtype=bool)
-                a = 0
-                for j, k in enumerate(range(start, stop)):
-                    c = int(cs[j])
-                    if c == 0:
-                        continue
-                    R, t = poses[k, :3, :3], poses[k, :3, 3]
-                    np.matmul(Dw[:c], R.astype(np.float32), out=D[a:a + c])
-                    O[a:a + c] = R.T @ (cam.centre - t)
-                    tg[a:a + c] = tgt[:c]
-                    a += c
+                nearest = np.arange(n) - np.repeat(np.cumsum(cs) - cs, cs)
                 self.rays += n
-                hits = self.rast.model_ray_hits(O, D)
-                inter[start:stop] += np.bincount(kid, weights=hits & tg, minlength=stop - start)
-                area[start:stop] += np.bincount(kid, weights=hits, minlength=stop - start)
+                sums = self.rast.posed_hit_sums(poses[start:stop], cam.centre[None], Dw, np.zeros(len(Dw), np.int64),
+                                                weights, pairs=(kid, nearest))
+                area[start:stop] += sums[:, 0, 0]
+                inter[start:stop] += sums[:, 1, 0]
         inter += tot_mt - cum_mt[counts]
         area += tot_m - cum_m[counts]
         self.view_renders += K

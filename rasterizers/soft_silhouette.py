@@ -180,31 +180,37 @@ class SoftSilhouetteRasterizer:
         return np.array(self._scene.ray_test(mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d))), dtype=bool)
 
     def posed_hit_sums(self, poses: NDArray[np.float64], centres_w: NDArray[np.float64], dirs_w: NDArray[np.float64],
-                       ray_view: NDArray[np.int64], weights: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Weighted hit counts of a fixed set of world rays, per pose and view, in one drjit kernel.
+                       ray_view: NDArray[np.int64], weights: NDArray[np.float64],
+                       pairs: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None) -> NDArray[np.float64]:
+        """Weighted hit counts of world rays cast at many poses of the mesh, per pose and view, in one drjit kernel.
 
         Args:
             poses: (K, 4, 4) world-from-model poses of the mesh.
             centres_w: (V, 3) camera centres (the rays' origins), world frame, mm.
-            dirs_w: (R, 3) unit ray directions, world frame.
+            dirs_w: (R, 3) ray directions (any length), world frame.
             ray_view: (R,) the view (row of ``centres_w``) each ray starts from.
             weights: (R, C) per-ray weights.
+            pairs: ``(pose_index, ray_index)``, (N,) each: cast just these rays at these poses
+                (``None``: every ray at every pose).
 
         Returns:
-            (K, C, V): ``sum of weights[r, c]`` over the rays ``r`` of view ``v`` that hit the mesh at
-            ``poses[k]``. The K x R model-frame rays are formed, cast and reduced inside the kernel,
+            (K, C, V): ``sum of weights[r, c]`` over the rays ``r`` of view ``v`` cast at ``poses[k]``
+            that hit the mesh. The model-frame rays are formed, cast and reduced inside the kernel,
             never as arrays (sums in double precision: exact for counts and pixel coordinates).
         """
         dr, mi = self._dr, self._mi
         K, V, R, C = len(poses), len(centres_w), len(dirs_w), weights.shape[1]
-        if K == 0 or R == 0:
+        if K == 0 or R == 0 or (pairs is not None and len(pairs[0]) == 0):
             return np.zeros((K, C, V))
         Rt = poses[:, :3, :3].transpose(0, 2, 1)  # model from world
         o_m = np.einsum("kij,kvj->kvi", Rt, centres_w[None] - poses[:, None, :3, 3]).reshape(K * V, 3)
         UInt, Float = mi.UInt32, mi.Float
-        i = dr.arange(UInt, K * R)  # ray i is ray r of pose k
-        k = i // dr.opaque(UInt, R)  # opaque sizes: one compiled kernel for all of them
-        r = i - k * dr.opaque(UInt, R)
+        if pairs is None:
+            i = dr.arange(UInt, K * R)  # ray i is ray r of pose k
+            k = i // dr.opaque(UInt, R)  # opaque sizes: one compiled kernel for all of them
+            r = i - k * dr.opaque(UInt, R)
+        else:
+            k, r = jit_array(UInt, pairs[0], np.uint32), jit_array(UInt, pairs[1], np.uint32)
         kv = k * dr.opaque(UInt, V) + dr.gather(UInt, jit_array(UInt, ray_view, np.uint32), r)
         o = [dr.gather(Float, jit_array(Float, o_m[:, i], np.float32), kv) for i in range(3)]
         rot = [dr.gather(Float, jit_array(Float, Rt[:, i, j], np.float32), k) for i in range(3) for j in range(3)]
