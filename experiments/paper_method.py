@@ -12,8 +12,8 @@ the camera's x axis (the text says "rotated about z-axis"): ``rot_axis = "x"`` i
 ``"z"`` the alternative. The IoU is that of view ``i`` alone (``I^{i}`` in the equation).
 
 Silhouettes come from the same ray caster as autoalign's
-(:meth:`SoftSilhouetteRasterizer.model_ray_hits`, mitsuba on the CPU), scored against the same
-target masks. The argmax over ~1700 candidates per iteration is computed in one batched ray-cast
+(:meth:`SoftSilhouetteRasterizer.posed_hit_sums`, mitsuba on the CPU: each candidate's rays are
+moved to its model frame, cast and counted in one kernel), scored against the same target masks. The argmax over ~1700 candidates per iteration is computed in one batched ray-cast
 per stage:
 
 1. every candidate's projected-hull bounding box bounds its silhouette, and the largest image
