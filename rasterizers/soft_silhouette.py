@@ -206,9 +206,9 @@ class SoftSilhouetteRasterizer:
         o_m = np.einsum("kij,kvj->kvi", Rt, centres_w[None] - poses[:, None, :3, 3]).reshape(K * V, 3)
         UInt, Float = mi.UInt32, mi.Float
         if pairs is None:
-            i = dr.arange(UInt, K * R)  # ray i is ray r of pose k
-            k = i // dr.opaque(UInt, R)  # opaque sizes: one compiled kernel for all of them
-            r = i - k * dr.opaque(UInt, R)
+            flat = dr.arange(UInt, K * R)  # k * R + r: ray r cast at pose k
+            k = flat // dr.opaque(UInt, R)  # opaque sizes: one compiled kernel for all of them
+            r = flat - k * dr.opaque(UInt, R)
         else:
             k, r = jit_array(UInt, pairs[0], np.uint32), jit_array(UInt, pairs[1], np.uint32)
         kv = k * dr.opaque(UInt, V) + dr.gather(UInt, jit_array(UInt, ray_view, np.uint32), r)
