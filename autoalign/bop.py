@@ -3,12 +3,22 @@
 Layout read: ``SCENE/scene_camera.json`` (per image ``cam_K`` [9, px], ``cam_R_w2c`` [9, row-major],
 ``cam_t_w2c`` [3, mm]) and instance masks ``SCENE/mask_visib/{im_id:06d}_{inst:06d}.png``.
 Layout written: ``scene_gt.json`` with ``cam_R_m2c`` / ``cam_t_m2c`` (mm) per image.
+
+``cam_K`` is in the OpenCV / BOP pixel convention (centre of pixel (0, 0) at (0, 0)); it is
+converted to autoalign's internal one on import and back on export (see :mod:`autoalign.camera`).
+
+Mask files: a pixel is the object where the mask is non-zero (in any colour channel of a colour
+image; an alpha channel is ignored). Grey-level (0/255), 0/1 and colour masks are all read
+correctly, but one scene must use one kind: a mixture means files from different tools and is an
+error naming one file of each kind. A mask that is empty everywhere is treated as missing (the
+segmenter found nothing), not as "the object is absent", and is listed in ``Scene.empty``.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+import re
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +42,7 @@ class Scene:
         image_ids: BOP image id of each view.
         path: the scene folder, if read from disk.
         skipped: image ids that had a camera but no mask file.
+        empty: image ids whose mask file is empty (treated as missing, not used).
     """
 
     cameras: list[Camera]
@@ -39,6 +50,7 @@ class Scene:
     image_ids: list[int]
     path: Path | None = None
     skipped: tuple[int, ...] = ()
+    empty: tuple[int, ...] = ()
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -47,11 +59,23 @@ class Scene:
         """Positions of at most ``k`` views evenly spread through the scene's order."""
         return np.unique(np.linspace(0, len(self) - 1, min(k, len(self))).round().astype(np.int64))
 
+    def without_empty_masks(self) -> "Scene":
+        """The views whose mask is not empty; the others' image ids are added to ``empty``.
+
+        An empty mask means the segmenter found nothing there, not that the object is absent:
+        compared as a target it would pull the silhouette out of that view.
+        """
+        keep = [i for i, m in enumerate(self.masks) if np.any(np.asarray(m) > 0.5)]
+        if len(keep) == len(self):
+            return self
+        dropped = tuple(self.image_ids[i] for i in range(len(self)) if i not in set(keep))
+        return replace(self.subset(keep), empty=tuple(sorted(self.empty + dropped)))
+
     def subset(self, idx: list[int] | NDArray[np.int64]) -> "Scene":
         """A scene with only the views at positions ``idx``."""
         idx = [int(i) for i in idx]
         return Scene([self.cameras[i] for i in idx], [self.masks[i] for i in idx],
-                     [self.image_ids[i] for i in idx], self.path, self.skipped)
+                     [self.image_ids[i] for i in idx], self.path, self.skipped, self.empty)
 
 
 def _read_json(path: Path, what: str) -> Any:
@@ -77,7 +101,8 @@ def _floats(entry: dict[str, Any], key: str, n: int, path: Path, where: str, fix
 
 
 def read_cameras(scene_dir: Path) -> dict[int, tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]:
-    """``{im_id: (K, R_w2c, t_w2c)}`` from ``scene_camera.json``, validated."""
+    """``{im_id: (K, R_w2c, t_w2c)}`` from ``scene_camera.json``, validated; ``K`` as in the file
+    (OpenCV / BOP convention: build cameras with :meth:`Camera.from_opencv`)."""
     path = scene_dir / "scene_camera.json"
     fix = "every image needs cam_K (9 numbers), cam_R_w2c (9, row-major) and cam_t_w2c (3, mm)"
     data = _read_json(path, f"a BOP scene folder needs scene_camera.json ({fix})")
@@ -95,6 +120,9 @@ def read_cameras(scene_dir: Path) -> dict[int, tuple[NDArray[np.float64], NDArra
         K = _floats(entry, "cam_K", 9, path, where, fix).reshape(3, 3)
         R = _floats(entry, "cam_R_w2c", 9, path, where, fix).reshape(3, 3)
         t = _floats(entry, "cam_t_w2c", 3, path, where, fix)
+        if not (K[0, 0] > 0 and K[1, 1] > 0) or np.any(K[2] != [0.0, 0.0, 1.0]) or K[1, 0] != 0:
+            raise AutoalignError(f"{path}: image {key} cam_K must be [fx, s, cx, 0, fy, cy, 0, 0, 1] with "
+                                 f"fx, fy > 0 (got fx={K[0, 0]:g}, fy={K[1, 1]:g}); fix the calibration")
         if abs(np.linalg.det(R) - 1.0) > 1e-3 or np.abs(R @ R.T - np.eye(3)).max() > 1e-3:
             raise AutoalignError(f"{path}: image {key} cam_R_w2c is not a rotation matrix; write it row-major with det +1")
         out[im_id] = (K, R, t)
@@ -106,17 +134,72 @@ def mask_path(scene_dir: Path, im_id: int, instance: int) -> Path:
     return scene_dir / "mask_visib" / f"{im_id:06d}_{instance:06d}.png"
 
 
+def read_mask(path: Path) -> tuple[NDArray[np.bool_], str]:
+    """A mask file as a boolean image (non-zero = object) and its kind.
+
+    Kinds: ``"0/N"`` for a single-channel image holding 0 and one other value N (0/255, 0/1,
+    0/65535), ``"grey levels"`` for one with more values, ``"colour"`` for a colour image (any
+    non-zero colour channel is the object; an alpha channel is ignored), ``"empty"`` for all zero.
+    """
+    m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if m is None:
+        raise AutoalignError(f"{path}: cannot read the mask image; replace it with a PNG (white or 1 = object)")
+    if m.ndim == 3:
+        obj = np.any(m[..., :3] != 0, axis=2)
+        return obj, ("colour" if obj.any() else "empty")
+    obj = m != 0
+    top = int(m.max())
+    if top == 0:
+        return obj, "empty"
+    return obj, (f"0/{top}" if not np.any(obj & (m != top)) else "grey levels")
+
+
+_MASK_NAME = re.compile(r"^(\d+)_(\d+)\.png$")
+
+
+def mask_files(scene_dir: Path) -> dict[tuple[int, int], Path]:
+    """``{(im_id, instance): path}`` of the files in ``mask_visib/`` named ``{im_id:06d}_{inst:06d}.png``."""
+    folder = scene_dir / "mask_visib"
+    out = {}
+    if folder.is_dir():
+        for p in folder.iterdir():
+            m = _MASK_NAME.match(p.name)
+            if m:
+                out[(int(m.group(1)), int(m.group(2)))] = p
+    return dict(sorted(out.items()))
+
+
+def check_masks_have_cameras(scene_dir: Path, image_ids: set[int]) -> None:
+    """Raise if a mask file names an image that ``scene_camera.json`` has no camera for."""
+    orphans = [p for (im, _), p in mask_files(scene_dir).items() if im not in image_ids]
+    if orphans:
+        raise AutoalignError(f"{orphans[0]}: image {int(_MASK_NAME.match(orphans[0].name).group(1))} has no entry in "
+                             f"{scene_dir / 'scene_camera.json'} ({len(orphans)} mask file(s) like this); add its "
+                             "camera or remove the mask")
+
+
+def check_mask_kinds(kinds: dict[str, Path]) -> None:
+    """Raise if the masks of one scene come in more than one kind (see :func:`read_mask`)."""
+    if len(kinds) > 1:
+        listed = ", ".join(f"{p} is {k}" for k, p in sorted(kinds.items()))
+        raise AutoalignError(f"masks of mixed kinds in one scene ({listed}); write every mask the same way "
+                             "(e.g. 0/255 single-channel PNGs, white = object)")
+
+
 def read_scene(scene_dir: str | Path, instance: int = 0) -> Scene:
     """Read cameras and the masks of instance ``instance`` from a BOP scene folder.
 
-    Images without a mask file are skipped (listed in ``Scene.skipped``); all masks must share one
-    size, and at least one must be non-empty.
+    Images without a mask file are skipped (listed in ``Scene.skipped``), empty masks are treated
+    as missing (``Scene.empty``); all masks must share one size and one kind (:func:`read_mask`), and
+    every mask file must have a camera. At least one mask must be non-empty.
     """
     scene_dir = Path(scene_dir)
     if not scene_dir.is_dir():
         raise AutoalignError(f"{scene_dir}: scene folder not found; pass a BOP scene folder with scene_camera.json and mask_visib/")
     cams = read_cameras(scene_dir)
-    masks, ids, Ks, skipped = [], [], [], []
+    check_masks_have_cameras(scene_dir, set(cams))
+    masks, ids, Ks, skipped, empty = [], [], [], [], []
+    kinds: dict[str, Path] = {}
     size: tuple[int, int] | None = None
     first_path: Path | None = None
     for im_id, (K, R, t) in cams.items():
@@ -124,26 +207,29 @@ def read_scene(scene_dir: str | Path, instance: int = 0) -> Scene:
         if not p.is_file():
             skipped.append(im_id)
             continue
-        m = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
-        if m is None:
-            raise AutoalignError(f"{p}: cannot read the mask image; replace it with a single-channel PNG")
+        m, kind = read_mask(p)
         if size is None:
             size, first_path = m.shape, p
         elif m.shape != size:
             raise AutoalignError(f"{p}: mask is {m.shape[1]}x{m.shape[0]} but {first_path.name} is "
                                  f"{size[1]}x{size[0]}; all masks of a scene must have the image size")
-        masks.append((m > 127).astype(np.float32))
+        if kind == "empty":
+            empty.append(im_id)
+            continue
+        kinds.setdefault(kind, p)
+        masks.append(m.astype(np.float32))
         ids.append(im_id)
         Ks.append((K, R, t))
-    if not masks:
+    check_mask_kinds(kinds)
+    if not masks and not empty:
         raise AutoalignError(f"{scene_dir / 'mask_visib'}: no mask files named {{im_id:06d}}_{instance:06d}.png; "
                              "write the instance masks there or choose the instance with --instance")
-    if not any(m.any() for m in masks):
+    if not masks:
         raise AutoalignError(f"{scene_dir / 'mask_visib'}: the masks of instance {instance} are empty in every view; "
                              "check the segmentation or the --instance number")
     H, W = size
-    cameras = [Camera(K, R, t, W, H) for K, R, t in Ks]
-    return Scene(cameras, masks, ids, scene_dir, tuple(skipped))
+    cameras = [Camera.from_opencv(K, R, t, W, H) for K, R, t in Ks]
+    return Scene(cameras, masks, ids, scene_dir, tuple(skipped), tuple(empty))
 
 
 def read_init_pose(path: str | Path, scene: Scene, obj_id: int = 1, instance: int = 0) -> NDArray[np.float64]:
@@ -209,7 +295,7 @@ def write_scene(out_dir: str | Path, scene: Scene, T_wm: NDArray[np.float64], ob
     (out_dir / "mask_visib").mkdir(parents=True, exist_ok=True)
     cams = {}
     for im, cam in zip(scene.image_ids, scene.cameras):
-        cams[str(im)] = {"cam_K": [float(x) for x in cam.K.ravel()],
+        cams[str(im)] = {"cam_K": [float(x) for x in cam.K_opencv.ravel()],
                          "cam_R_w2c": [float(x) for x in cam.R_w2c.ravel()],
                          "cam_t_w2c": [float(x) for x in cam.t_w2c], "depth_scale": 1.0}
     if write_masks:

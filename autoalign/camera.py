@@ -2,8 +2,21 @@
 
 * Camera frame: x right, y down, z forward (optical axis). Millimetres.
 * ``x_cam = R_w2c @ x_world + t_w2c`` (BOP ``cam_R_w2c`` / ``cam_t_w2c``).
-* Continuous pixel coordinates: ``(u, v) = (fx x/z + cx, fy y/z + cy)``. Pixel ``(row i, col j)``
-  covers ``[j, j+1) x [i, i+1)`` and its centre is at ``(j + 0.5, i + 0.5)``.
+* Continuous pixel coordinates: ``(u, v) = (fx x/z + cx, fy y/z + cy)``.
+
+Two conventions for where a pixel sits in those coordinates are in use, and autoalign keeps them
+apart explicitly:
+
+* **Internal** (:class:`Camera`, the renderer, the overlay): pixel ``(row i, col j)`` covers
+  ``[j, j+1) x [i, i+1)``, its centre at ``(j + 0.5, i + 0.5)`` (COLMAP's convention). Pixel edges
+  on integers make resampling exact: ``K' = diag(f, f, 1) K`` at any scale.
+* **OpenCV / BOP** (every file and every pixel coordinate a user types): the centre of pixel
+  ``(row i, col j)`` is at ``(j, i)``. This is what ``cv2.projectPoints`` and OpenCV calibrations
+  give and what the bop_toolkit assumes (its renderers and ``misc.project_pts`` use ``cam_K`` with
+  integer pixel indices as centres), so BOP's ``cam_K`` means it too.
+
+The conversion happens once, on import and export (:func:`K_from_opencv`, :func:`K_to_opencv`,
+:func:`uv_from_opencv`): an OpenCV ``cx`` is an internal ``cx + 0.5``.
 """
 
 from __future__ import annotations
@@ -15,16 +28,64 @@ from numpy.typing import NDArray
 
 from autoalign.se3 import make_pose
 
+OPENCV_TO_INTERNAL_PX = 0.5
+"""Internal continuous pixel coordinate minus the OpenCV / BOP one, along u and v."""
+
+PIXEL_CONVENTION = {
+    "files": "OpenCV/BOP: cam_K and pixel coordinates put the centre of pixel (row i, col j) at (j, i)",
+    "internal": "pixel (row i, col j) covers [j, j+1) x [i, i+1), centre (j + 0.5, i + 0.5); "
+                "internal cx, cy = file cx, cy + 0.5",
+}
+"""The pixel conventions, as recorded in ``refine.json``."""
+
+
+def K_from_opencv(K: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Internal intrinsics from OpenCV / BOP ``cam_K`` (3x3): the principal point moves by +0.5 px."""
+    K = np.array(K, dtype=np.float64).reshape(3, 3)
+    K[:2, 2] += OPENCV_TO_INTERNAL_PX * K[2, 2]
+    return K
+
+
+def K_to_opencv(K: NDArray[np.float64]) -> NDArray[np.float64]:
+    """OpenCV / BOP ``cam_K`` (3x3) from internal intrinsics (inverse of :func:`K_from_opencv`)."""
+    K = np.array(K, dtype=np.float64).reshape(3, 3)
+    K[:2, 2] -= OPENCV_TO_INTERNAL_PX * K[2, 2]
+    return K
+
+
+def uv_from_opencv(uv: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Internal continuous pixel coordinates from OpenCV / BOP ones (``(..., 2)``, pixels)."""
+    return np.asarray(uv, dtype=np.float64) + OPENCV_TO_INTERNAL_PX
+
+
+def uv_to_opencv(uv: NDArray[np.float64]) -> NDArray[np.float64]:
+    """OpenCV / BOP pixel coordinates from internal ones (inverse of :func:`uv_from_opencv`)."""
+    return np.asarray(uv, dtype=np.float64) - OPENCV_TO_INTERNAL_PX
+
 
 @dataclass(frozen=True)
 class Camera:
-    """A calibrated pinhole view: intrinsics ``K`` (pixels), world-to-camera pose (mm), image size."""
+    """A calibrated pinhole view: intrinsics ``K`` (pixels, internal convention: pixel centres at
+    +0.5), world-to-camera pose (mm), image size. Build one from file intrinsics with
+    :meth:`from_opencv`."""
 
     K: NDArray[np.float64]
     R_w2c: NDArray[np.float64]
     t_w2c: NDArray[np.float64]
     width: int
     height: int
+
+    @staticmethod
+    def from_opencv(K: NDArray[np.float64], R_w2c: NDArray[np.float64], t_w2c: NDArray[np.float64],
+                    width: int, height: int) -> "Camera":
+        """A camera from OpenCV / BOP intrinsics ``K`` (centre of pixel (0, 0) at (0, 0))."""
+        return Camera(K_from_opencv(K), np.asarray(R_w2c, dtype=np.float64), np.asarray(t_w2c, dtype=np.float64),
+                      int(width), int(height))
+
+    @property
+    def K_opencv(self) -> NDArray[np.float64]:
+        """The intrinsics in the OpenCV / BOP convention, as written to ``cam_K``."""
+        return K_to_opencv(self.K)
 
     @property
     def T_cw(self) -> NDArray[np.float64]:
@@ -41,7 +102,7 @@ class Camera:
         return np.asarray(X_w, dtype=np.float64) @ self.R_w2c.T + self.t_w2c
 
     def project(self, X_w: NDArray[np.float64]) -> NDArray[np.float64]:
-        """World points (N, 3) to continuous pixel coordinates (N, 2); centres at +0.5."""
+        """World points (N, 3) to internal continuous pixel coordinates (N, 2); centres at +0.5."""
         Xc = self.to_camera(X_w)
         uvw = Xc @ self.K.T
         return uvw[:, :2] / uvw[:, 2:3]

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.bop import Scene
+from autoalign.errors import AutoalignError
 from autoalign.hypotheses import best_poses, flips, orbit, polish_poses, poses_at
 from autoalign.mesh import Mesh
 from autoalign.losses import targets_in_crops
@@ -297,7 +298,8 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
     """Find the world-from-model pose of ``mesh`` whose silhouettes match the masks of ``scene``.
 
     Args:
-        scene: calibrated views with target masks (mm, BOP world frame).
+        scene: calibrated views with target masks (mm, BOP world frame). Views whose mask is
+            empty are left out (:meth:`Scene.without_empty_masks`; ``RefineResult.image_ids`` lists the used ones).
         mesh: the object model (mm).
         seed: a coarse world-from-model pose (4x4), a :class:`Click`, or ``None`` (visual hull).
             Without a pose the orientation is searched with ``options.n_rotations`` hypotheses.
@@ -305,6 +307,9 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
         progress: called as ``progress(stage, done, total)`` while it works.
     """
     opts = options or RefineOptions()
+    scene = scene.without_empty_masks()
+    if len(scene) == 0:
+        raise AutoalignError("every mask of the scene is empty; there is nothing to align the object with")
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     rast = SoftSilhouetteRasterizer(mesh if opts.fine_faces is None else mesh.simplified(opts.fine_faces))

@@ -7,7 +7,6 @@ concatenated, non-watertight meshes are fine (open boundary edges count as conto
 from __future__ import annotations
 
 import functools
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -127,16 +126,41 @@ def _edge_faces(faces: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np
     return uniq.astype(np.int64), ef
 
 
-def load_mesh(path: str | Path, name: str | None = None) -> Mesh:
-    """Read a mesh file (mm) with trimesh; raise :class:`AutoalignError` naming the file on failure.
+UNITS_MM = {"mm": 1.0, "m": 1000.0}
+"""Millimetres per unit of a mesh file, for ``--units``."""
+METRES_SUSPECT = 2.0
+"""A mesh less than this many units across is taken for metres unless its units are given."""
 
-    Warns when the extents suggest the file is in metres (largest side under 2 units).
+
+def weld(tm: trimesh.Trimesh) -> trimesh.Trimesh:
+    """``tm`` with vertices at the same position merged (in place) and the faces that this makes
+    duplicate (the same three vertices, either winding) or degenerate dropped.
+
+    Positions only: texture seams and split normals must not keep a surface apart, or every seam
+    edge would be an open boundary, a contour candidate in every view.
+    """
+    tm.merge_vertices(merge_tex=True, merge_norm=True)
+    tm.update_faces(tm.unique_faces() & tm.nondegenerate_faces())
+    tm.remove_unreferenced_vertices()
+    return tm
+
+
+def load_mesh(path: str | Path, name: str | None = None, units: str | None = None) -> Mesh:
+    """Read a mesh file with trimesh and return it in millimetres; raise :class:`AutoalignError`
+    naming the file on failure.
+
+    ``units``: ``"mm"`` or ``"m"`` (scaled by 1000); ``None`` means millimetres, but a mesh under
+    :data:`METRES_SUSPECT` units across is then refused as probably metres (pass the units to
+    go on). Duplicate vertices are merged (an STL file stores each triangle's corners apart) and
+    the faces they make duplicate or degenerate are dropped, so every format gives the same mesh.
     """
     path = Path(path)
     if path.is_dir():
         raise AutoalignError(f"{path}: is a folder, not a mesh file; pass the mesh file itself to --model")
     if not path.is_file():
         raise AutoalignError(f"{path}: mesh file not found; pass an existing file to --model")
+    if units is not None and units not in UNITS_MM:
+        raise AutoalignError(f"{path}: unknown units {units!r}; use one of {', '.join(UNITS_MM)}")
     try:
         loaded = trimesh.load(str(path), force="mesh", process=False)
     except Exception as exc:  # trimesh raises many kinds for unreadable files
@@ -146,18 +170,20 @@ def load_mesh(path: str | Path, name: str | None = None) -> Mesh:
         loaded = loaded.dump(concatenate=True)
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0 or len(loaded.vertices) < 3:
         raise AutoalignError(f"{path}: the mesh has no triangles; pass a mesh with faces (not a point cloud)")
-    V = np.asarray(loaded.vertices, dtype=np.float64)
-    Fa = np.asarray(loaded.faces, dtype=np.int64)
-    if not np.all(np.isfinite(V)):
+    if not np.all(np.isfinite(np.asarray(loaded.vertices))):
         raise AutoalignError(f"{path}: the mesh has non-finite vertex coordinates; repair the file")
-    mesh = Mesh(V, Fa, name=name or path.stem)
+    tm = weld(trimesh.Trimesh(np.asarray(loaded.vertices, dtype=np.float64),
+                              np.asarray(loaded.faces, dtype=np.int64), process=False))
+    V = np.asarray(tm.vertices, dtype=np.float64)
     extent = float(np.linalg.norm(V.max(0) - V.min(0)))
-    if extent < 2.0:
-        warnings.warn(f"{path}: the model is only {extent:.3g} units across; autoalign expects "
-                      "millimetres, so it is probably in metres (scale it by 1000)", stacklevel=2)
-    return mesh
+    if units is None and extent < METRES_SUSPECT:
+        raise AutoalignError(f"{path}: the model is only {extent:.3g} units across, so it is probably in metres "
+                             "(autoalign works in millimetres); pass --units m to scale it by 1000, or --units mm "
+                             "if it really is that small")
+    V = V * UNITS_MM[units or "mm"]
+    return Mesh(V, np.asarray(tm.faces, dtype=np.int64), name=name or path.stem)
 
 
 def mesh_from_trimesh(tm: trimesh.Trimesh, name: str = "mesh") -> Mesh:
-    """Wrap an in-memory trimesh (mm)."""
+    """Wrap an in-memory trimesh (mm) as it is (:func:`load_mesh` also welds it, see :func:`weld`)."""
     return Mesh(np.asarray(tm.vertices), np.asarray(tm.faces), name=name)

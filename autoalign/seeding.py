@@ -12,12 +12,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.bop import Scene
+from autoalign.camera import uv_from_opencv, uv_to_opencv
 from autoalign.errors import AutoalignError
 
 
 @dataclass(frozen=True)
 class Click:
-    """One pixel on the object: image id and continuous pixel coordinates ``(u, v)`` (centres at +0.5)."""
+    """One pixel on the object: image id and internal continuous pixel coordinates ``(u, v)``
+    (centres at +0.5; :meth:`parse` converts from the OpenCV coordinates a user types)."""
 
     image_id: int
     u: float
@@ -25,10 +27,10 @@ class Click:
 
     @staticmethod
     def parse(text: str) -> "Click":
-        """Parse ``IM_ID:U,V``."""
+        """Parse ``IM_ID:U,V`` with ``U, V`` in OpenCV pixel coordinates (top-left pixel centre at 0,0)."""
         try:
             im, uv = text.split(":")
-            u, v = uv.split(",")
+            u, v = uv_from_opencv(np.array([float(x) for x in uv.split(",")]))
             return Click(int(im), float(u), float(v))
         except ValueError:
             raise AutoalignError(f"--click {text!r}: expected IM_ID:U,V, e.g. --click 0:320,240") from None
@@ -114,15 +116,16 @@ def check_click(scene: Scene, click: Click, tol_px: float = CLICK_TOLERANCE_PX) 
                              f"(views: {scene.image_ids[0]}..{scene.image_ids[-1]}); click in one of them")
     k = scene.image_ids.index(click.image_id)
     cam = scene.cameras[k]
+    typed = "{:g},{:g}".format(*uv_to_opencv(np.array([click.u, click.v])))  # as the user wrote it
     if not (0 <= click.u < cam.width and 0 <= click.v < cam.height):
-        raise AutoalignError(f"--click {click.image_id}:{click.u:g},{click.v:g}: outside the {cam.width}x{cam.height} "
+        raise AutoalignError(f"--click {click.image_id}:{typed}: outside the {cam.width}x{cam.height} "
                              "image; give pixel coordinates inside it")
     ys, xs = np.nonzero(np.asarray(scene.masks[k]) > 0.5)
     if len(xs) == 0:
         return
     d = float(np.sqrt(((xs + 0.5 - click.u) ** 2 + (ys + 0.5 - click.v) ** 2).min()))
     if d > tol_px:
-        raise AutoalignError(f"--click {click.image_id}:{click.u:g},{click.v:g}: not on the object's mask in image "
+        raise AutoalignError(f"--click {click.image_id}:{typed}: not on the object's mask in image "
                              f"{click.image_id} (the nearest mask pixel is {d:.0f} px away); click on the object")
 
 

@@ -61,7 +61,7 @@ def _terminal_width() -> int:
 _MAIN_DESCRIPTION = """\
 Label the 6-DoF pose of a known object from calibrated multi-view masks: the object mesh is
 moved until its silhouettes match the masks in every view (BOP format, millimetres, OpenCV
-pinhole cameras with pixel centres at +0.5)."""
+pinhole cameras: cam_K and pixel coordinates put the centre of the top-left pixel at 0,0)."""
 
 _REFINE_DESCRIPTION = """\
 Find the pose of the object whose silhouettes best match the masks of one instance in a BOP
@@ -74,7 +74,9 @@ input scene (SCENE_DIR):
                       cam_t_w2c (3, mm): x_cam = R_w2c x_world + t_w2c
   mask_visib/{im_id:06d}_{instance:06d}.png
                       the object's mask in each image (white = object); all the same size.
-                      Images without a mask file are skipped (listed in refine.json).
+                      Images without a mask file are skipped, and empty masks are treated as
+                      missing (both listed in refine.json). Any non-zero pixel is the object
+                      (0/255, 0/1 and colour masks all work; one kind per scene).
 
 outputs (written into OUT_DIR, replacing files of the same name; if the run fails none is written):
   scene_gt.json  BOP ground truth: for every image of scene_camera.json a list with one entry
@@ -84,14 +86,15 @@ outputs (written into OUT_DIR, replacing files of the same name; if the run fail
                  (mean 1; low = the view's mask disagrees with the others) with their image ids,
                  iterations, renders, timings (s), every hypothesis tried (stage, loss, mean IoU,
                  poses), "ambiguous" and "runner_up" (pose, loss, rotation_deg and translation_mm
-                 from the winner), the options, the version, skipped image ids and warnings
+                 from the winner), the options, the version, skipped image ids, empty masks,
+                 the pixel convention of cam_K and warnings
   overlay.png    up to 12 views (always the worst-fitting one), zoomed on the object: the target
                  mask in grey, the silhouette outline before (red) and after (green) refinement,
                  with image id and IoU before -> after
 
 examples:
   autoalign refine scenes/000001 --model models/obj_000001.ply --out labels/000001 --init coarse/scene_gt.json
-  autoalign refine scenes/000001 --model models/obj_000001.ply --out labels/000001 --click 0:412.5,233.5
+  autoalign refine scenes/000001 --model models/obj_000001.ply --out labels/000001 --click 0:412,233
   autoalign refine scenes/000001 --model models/obj_000001.ply --out labels/000001 --json --quiet
 
 exit status: 0 success, 2 a mistake in the command or the input files (one line on stderr)."""
@@ -129,7 +132,11 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
                           "it needs triangles, a point cloud will not do")
     req.add_argument("--out", metavar="OUT_DIR", required=True,
                      help="output folder, created if missing; scene_gt.json, refine.json and overlay.png are "
-                          "written there (see 'outputs' below)")
+                          "written there (see 'outputs' below); it may not be the scene folder, and no output "
+                          "may replace an input file")
+    req.add_argument("--units", choices=("mm", "m"), default=None,
+                     help="units of the mesh file; default mm, and a mesh under 2 units across is then refused "
+                          "as probably metres (pass --units m to scale it by 1000, --units mm to keep it)")
     sel = p.add_argument_group("object")
     sel.add_argument("--obj-id", metavar="K", type=_positive_int, default=1,
                      help="BOP object id written to scene_gt.json and looked for in the --init file (default: 1)")
@@ -145,7 +152,8 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
                          "roughly overlap the masks")
     ex.add_argument("--click", metavar="IM_ID:U,V",
                     help="one pixel on the object: image id, then pixel coordinates U (column, to the right) and "
-                         "V (row, down), pixel centres at +0.5, e.g. 3:412.5,233.5; the position is found along "
+                         "V (row, down) as in OpenCV (the top-left pixel's centre is 0,0), e.g. 3:412,233; "
+                         "the position is found along "
                          "that ray and the orientation is searched")
     alg = p.add_argument_group("algorithm")
     alg.add_argument("--loss", choices=("l2", "bce", "iou", "dice"), default="l2",
@@ -386,7 +394,18 @@ def _all_cameras(scene: Any) -> tuple[list[Any], list[int]]:
         return list(scene.cameras), list(scene.image_ids)
     W, H = scene.cameras[0].width, scene.cameras[0].height
     cams = read_cameras(Path(scene.path))
-    return [Camera(K, R, t, W, H) for K, R, t in cams.values()], list(cams)
+    return [Camera.from_opencv(K, R, t, W, H) for K, R, t in cams.values()], list(cams)
+
+
+def check_outputs_spare_inputs(out: Path, scene_dir: Path, inputs: list[Path]) -> None:
+    """Refuse an ``--out`` that is the scene folder, or where an output would replace an input file."""
+    fix = "choose another folder with --out"
+    if out.resolve() == scene_dir.resolve():
+        raise AutoalignError(f"--out {out}: is the scene folder itself, whose scene_gt.json would be replaced; {fix}")
+    taken = {p.resolve() for p in inputs}
+    for name in OUTPUT_FILES:
+        if (out / name).resolve() in taken:
+            raise AutoalignError(f"--out {out}: writing {name} there would replace the input file {out / name}; {fix}")
 
 
 def run_refine(args: argparse.Namespace) -> int:
@@ -398,6 +417,7 @@ def run_refine(args: argparse.Namespace) -> int:
 
         click = Click.parse(args.click)
     out = Path(args.out)
+    check_outputs_spare_inputs(out, Path(args.scene), [Path(x) for x in (args.model, args.init) if x is not None])
     created = prepare_out_dir(out)
     try:
         return _refine_into(args, out, click, t_start)
@@ -413,7 +433,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
     from autoalign.mesh import load_mesh
 
     scene = read_scene(args.scene, args.instance)
-    mesh = load_mesh(args.model)
+    mesh = load_mesh(args.model, units=args.units)
     seed: Any = None
     seed_info: dict[str, Any] = {"kind": "hull", "init_file": None, "click": None, "pose": None}
     if args.init is not None:
@@ -426,6 +446,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
         seed = click
         seed_info.update(kind="click", click={"image_id": click.image_id, "u": click.u, "v": click.v})
 
+    from autoalign.camera import PIXEL_CONVENTION
     from autoalign.engine import RefineOptions, refine
     from autoalign.overlay import encode_png, render_overlay
     from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
@@ -475,6 +496,10 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
     if iou_a.mean() < POOR_FIT_IOU:
         notes.append(f"poor fit: mean IoU after refinement is only {iou_a.mean():.2f}; check the model's units (mm), "
                      "the starting pose and the masks (see overlay.png)")
+    if scene.empty:
+        notes.append(f"{len(scene.empty)} image(s) with an empty mask were treated as missing (not as 'object "
+                     "absent') and not used: ids " + ", ".join(str(i) for i in scene.empty[:20])
+                     + (" ..." if len(scene.empty) > 20 else "") + "; check the segmentation there")
     if scene.skipped:
         notes.append(f"{len(scene.skipped)} image(s) without a mask were skipped: ids "
                      + ", ".join(str(i) for i in scene.skipped[:20]) + (" ..." if len(scene.skipped) > 20 else ""))
@@ -487,6 +512,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
         "obj_id": args.obj_id,
         "instance": args.instance,
         "units": "mm; poses are world-from-model, world = the frame of scene_camera.json",
+        "pixel_convention": PIXEL_CONVENTION,
         "pose": _pose(result.T_wm),
         "pose_first_camera": first,
         "pose_before": _pose(result.T_init),
@@ -499,6 +525,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
         "min_iou_before": float(iou_b.min()), "min_iou_after": float(iou_a.min()),
         "low_weight_ids": [i for i, _, _ in low],
         "skipped": [int(i) for i in scene.skipped],
+        "empty_masks": [int(i) for i in scene.empty],
         "iterations": result.iterations,
         "renders": result.renders,
         "timings": timings,

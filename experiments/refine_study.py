@@ -31,6 +31,7 @@ import numpy as np
 
 from autoalign.atomic_files import write_json_atomic, write_text_atomic
 from autoalign.bop import Scene, scene_gt_dict
+from autoalign.camera import uv_to_opencv
 from autoalign.mesh import Mesh, load_mesh, mesh_from_trimesh
 from autoalign.se3 import make_pose, rotation_angle_deg, transform_points
 from autoalign.experiments.procedural_models import procedural_models
@@ -81,7 +82,7 @@ def study_meshes(lm_dir: Path = LM_DIR) -> list[Mesh]:
 
 
 def click_pixel(mask: np.ndarray) -> tuple[float, float]:
-    """The pixel centre deepest inside a mask (what a person would click)."""
+    """The pixel centre deepest inside a mask (what a person would click), internal coordinates."""
     dist = cv2.distanceTransform((mask > 0.5).astype(np.uint8), cv2.DIST_L2, 5)
     i, j = np.unravel_index(int(np.argmax(dist)), dist.shape)
     return float(j) + 0.5, float(i) + 0.5
@@ -145,7 +146,8 @@ def run_cli(s: StudyScene, seed_kind: str, workdir: Path) -> dict:
         write_json_atomic(init, scene_gt_dict(s.T_init, s.scene.cameras[:1], s.scene.image_ids[:1]))
         cmd += ["--init", str(init)]
     elif seed_kind == "click":
-        cmd += ["--click", f"{s.click[0]}:{s.click[1]},{s.click[2]}"]
+        u, v = uv_to_opencv(np.array(s.click[1:]))  # the CLI takes OpenCV pixel coordinates
+        cmd += ["--click", f"{s.click[0]}:{u:g},{v:g}"]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t0

@@ -231,6 +231,47 @@ def _bad_missing_instance_masks(d, tmp):
     return {"seed": ["--instance", "3"]}, "--instance"
 
 
+def _set_fx(d, tmp, fx):
+    s = _copy_scene(d, tmp)
+    cams = json.loads((s / "scene_camera.json").read_text())
+    cams["4"]["cam_K"][0] = fx
+    (s / "scene_camera.json").write_text(json.dumps(cams))
+    return {"scene": s}, "cam_K"
+
+
+def _bad_focal_negative(d, tmp):
+    return _set_fx(d, tmp, -300.0)
+
+
+def _bad_focal_zero(d, tmp):
+    return _set_fx(d, tmp, 0.0)
+
+
+def _bad_mask_without_camera(d, tmp):
+    s = _copy_scene(d, tmp)
+    shutil.copy(_mask(s, 2), _mask(s, 99))
+    return {"scene": s}, "000099_000000.png"
+
+
+def _bad_masks_of_mixed_kinds(d, tmp):
+    s = _copy_scene(d, tmp)
+    m = cv2.imread(str(_mask(s, 3)), cv2.IMREAD_GRAYSCALE)
+    cv2.imwrite(str(_mask(s, 3)), (m > 0).astype(np.uint8))  # 0/1 among 0/255 masks
+    return {"scene": s}, "000003_000000.png"
+
+
+def _bad_mesh_in_metres(d, tmp):
+    p = tmp / "metres.ply"
+    tm = procedural_models()[0].mesh.copy()
+    tm.apply_scale(0.001)
+    tm.export(str(p))
+    return {"model": p}, "--units m"
+
+
+def _bad_units(d, tmp):
+    return {"seed": ["--init", str(d.init), "--units", "cm"]}, "--units"
+
+
 BAD_INPUTS = {name[5:]: fn for name, fn in dict(globals()).items() if name.startswith("_bad_")}
 
 
@@ -302,7 +343,7 @@ def test_internal_error_keeps_traceback_and_leaves_nothing(data, tmp_path, monke
 # --------------------------------------------------------------------------------------------
 
 REFINE_OPTIONS = ["SCENE_DIR", "--model", "--out", "--obj-id", "--instance", "--init", "--click", "--loss",
-                  "--optimizer", "--no-robust", "--quiet", "--json"]
+                  "--optimizer", "--no-robust", "--quiet", "--json", "--units"]
 
 
 def test_help_mentions_every_option(capsys):
@@ -310,9 +351,10 @@ def test_help_mentions_every_option(capsys):
     text = capsys.readouterr().out
     for opt in REFINE_OPTIONS:
         assert opt in text, opt
-    for word in ("mm", "scene_gt.json", "refine.json", "overlay.png", "cam_R_m2c", "cam_t_m2c", "+0.5",
-                 "default", "l2", "bce", "iou", "dice", "lm", "gn", "adam"):
-        assert word in text, word
+    flowing = " ".join(text.split())  # phrases may wrap across lines
+    for word in ("mm", "scene_gt.json", "refine.json", "overlay.png", "cam_R_m2c", "cam_t_m2c",
+                 "top-left pixel's centre is 0,0", "default", "l2", "bce", "iou", "dice", "lm", "gn", "adam"):
+        assert word in flowing, word
     assert main(["--help"]) == 0
     assert "refine" in capsys.readouterr().out
 
@@ -529,7 +571,7 @@ def test_click_and_no_seed_runs_find_the_pose(data, tmp_path, seed_args):
     mask = cv2.imread(str(_mask(data.scene, 0)), cv2.IMREAD_GRAYSCALE) > 127
     dist = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 5)
     i, j = np.unravel_index(int(np.argmax(dist)), dist.shape)
-    args = [a.replace("CLICK", f"0:{j + 0.5},{i + 0.5}") for a in seed_args]
+    args = [a.replace("CLICK", f"0:{j},{i}") for a in seed_args]  # OpenCV pixel coordinates
     out = tmp_path / "out"
     p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", str(data.scene), "--model",
                         str(data.model), "--out", str(out), "--quiet", *args],
@@ -542,3 +584,101 @@ def test_click_and_no_seed_runs_find_the_pose(data, tmp_path, seed_args):
     c = mesh.centre
     assert np.linalg.norm(T[:3, :3] @ c + T[:3, 3] - (data.T_true[:3, :3] @ c + data.T_true[:3, 3])) < 1.0
     assert rotation_angle_deg(T[:3, :3], data.T_true[:3, :3]) < 1.0
+
+
+# --------------------------------------------------------------------------------------------
+# Inputs that are read, refused or reported (issue 13, hardening)
+# --------------------------------------------------------------------------------------------
+
+def _one_error_line(capsys, token: str) -> None:
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith(ERROR_PREFIX) and token in err[0], err
+
+
+def test_out_equal_to_the_scene_folder_is_refused(data, tmp_path, capsys):
+    scene = _copy_scene(data, tmp_path)
+    before = {p.name: p.read_bytes() for p in scene.iterdir() if p.is_file()}
+    rc = main(["refine", str(scene), "--model", str(data.model), "--out", str(scene / "." / ""), "--init",
+               str(data.init), "--quiet"])
+    assert rc == 2
+    _one_error_line(capsys, "scene folder")
+    assert {p.name: p.read_bytes() for p in scene.iterdir() if p.is_file()} == before
+
+
+def test_output_that_would_replace_an_input_is_refused(data, tmp_path, capsys):
+    out = tmp_path / "labels"
+    out.mkdir()
+    init = out / "scene_gt.json"  # the coarse labels live where the refined ones would go
+    shutil.copy(data.init, init)
+    rc = main(["refine", str(data.scene), "--model", str(data.model), "--out", str(out), "--init", str(init),
+               "--quiet"])
+    assert rc == 2
+    _one_error_line(capsys, "scene_gt.json")
+    assert init.read_bytes() == data.init.read_bytes() and sorted(p.name for p in out.iterdir()) == ["scene_gt.json"]
+
+
+def test_empty_masks_are_missing_views_not_an_absent_object(data, tmp_path, capsys):
+    """A segmentation dropout (empty masks in 2 of 12 views): the views are left out and reported,
+    and the pose is still found (compared as targets, they pull the silhouette out of those views)."""
+    scene = _copy_scene(data, tmp_path)
+    for im in (2, 7):
+        cv2.imwrite(str(_mask(scene, im)), np.zeros((H, W), np.uint8))
+    out = tmp_path / "out"
+    assert main(["refine", str(scene), "--model", str(data.model), "--out", str(out), "--init", str(data.init),
+                 "--quiet"]) == 0
+    assert "2 image(s) with an empty mask" in capsys.readouterr().err
+    rec = json.loads((out / "refine.json").read_text())
+    assert rec["empty_masks"] == [2, 7] and rec["image_ids"] == [i for i in range(N_VIEWS) if i not in (2, 7)]
+    assert len(json.loads((out / "scene_gt.json").read_text())) == N_VIEWS  # labels for every image
+    T = np.asarray(rec["pose"]["T_wm"])
+    c = load_mesh(data.model).centre
+    assert np.linalg.norm(T[:3, :3] @ c + T[:3, 3] - data.T_true[:3, :3] @ c - data.T_true[:3, 3]) < 1.0
+    assert rotation_angle_deg(T[:3, :3], data.T_true[:3, :3]) < 1.0
+    assert rec["pixel_convention"]["files"].startswith("OpenCV/BOP")
+
+
+@pytest.mark.parametrize("kind", ["0/1", "colour"])
+def test_masks_stored_as_0_1_or_in_colour_read_like_0_255(data, tmp_path, kind):
+    from autoalign.bop import read_scene
+
+    scene = _copy_scene(data, tmp_path)
+    for im in range(N_VIEWS):
+        m = cv2.imread(str(_mask(scene, im)), cv2.IMREAD_GRAYSCALE) > 0
+        if kind == "0/1":
+            img = m.astype(np.uint8)
+        else:  # the instance painted in a colour with a zero red channel, on black
+            img = np.zeros((H, W, 3), np.uint8)
+            img[m] = (200, 40, 0)
+        cv2.imwrite(str(_mask(scene, im)), img)
+    ref, got = read_scene(data.scene), read_scene(scene)
+    assert got.image_ids == ref.image_ids
+    for a, b in zip(ref.masks, got.masks):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_stl_loads_as_the_same_mesh_as_ply(data, tmp_path):
+    """An STL stores each triangle's corners apart: loading merges them, so it renders like the PLY."""
+    from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+    from autoalign.experiments.synthetic import sphere_cameras as cams_on_sphere
+
+    ply = load_mesh(data.model)
+    stl_path = tmp_path / "model.stl"
+    ply.trimesh.export(str(stl_path))
+    stl = load_mesh(stl_path)
+    assert (len(stl.vertices), len(stl.faces)) == (len(ply.vertices), len(ply.faces))
+    # unmerged, every STL edge would be open (a contour candidate in every view)
+    assert np.sum(stl.edge_faces[:, 1] < 0) == np.sum(ply.edge_faces[:, 1] < 0)
+    cams = cams_on_sphere(4, np.random.default_rng(0), dist_range=(350.0, 500.0), K=default_K(W, H, F),
+                          width=W, height=H)
+    for a, b in zip(SoftSilhouetteRasterizer(ply).hard_masks(data.T_true, cams),
+                    SoftSilhouetteRasterizer(stl).hard_masks(data.T_true, cams)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_mesh_in_metres_loads_with_units_m(data, tmp_path):
+    tm = load_mesh(data.model).trimesh
+    tm.apply_scale(0.001)
+    p = tmp_path / "metres.ply"
+    tm.export(str(p))
+    np.testing.assert_allclose(load_mesh(p, units="m").vertices, load_mesh(data.model).vertices, atol=1e-6)
+    assert load_mesh(p, units="mm").diameter < 1.0  # --units mm keeps a really small object as it is
