@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
 import tempfile
 import time
@@ -215,8 +216,43 @@ def _show_warning(message: Warning | str, category: type[Warning], filename: str
     _warn(str(message))
 
 
+class Interrupts:
+    """Ctrl-C that cannot be lost: SIGINT raises ``KeyboardInterrupt`` as usual *and* is remembered.
+
+    Libraries may swallow the exception (trimesh wraps failed optional imports with ``except
+    BaseException``): a run interrupted there went on and wrote its outputs with exit status 0.
+    :meth:`check` raises again wherever the run may stop safely (progress updates, before writing).
+    """
+
+    seen = False
+
+    @classmethod
+    def handler(cls, signum: int, frame: Any) -> None:
+        cls.seen = True
+        raise KeyboardInterrupt
+
+    @classmethod
+    def check(cls) -> None:
+        """Raise ``KeyboardInterrupt`` if Ctrl-C was pressed during this run."""
+        if cls.seen:
+            raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run the command line; returns the exit status (0 ok, 2 usage/input error)."""
+    """Run the command line; returns the exit status (0 ok, 2 usage/input error, 130 interrupted)."""
+    import threading
+
+    Interrupts.seen = False
+    if threading.current_thread() is not threading.main_thread():  # only it may handle signals
+        return _main(argv)
+    previous = signal.signal(signal.SIGINT, Interrupts.handler)
+    try:
+        return _main(argv)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _main(argv: list[str] | None) -> int:
     _WARNINGS.clear()
     parser = build_parser()
     try:
@@ -236,11 +272,14 @@ def main(argv: list[str] | None = None) -> int:
         warnings.filterwarnings("ignore", category=RuntimeWarning, module=r"trimesh(\.|$)")
         try:
             return int(func(args) or 0)
-        except (AutoalignError, UsageError) as exc:
-            _error(str(exc))
-            return 2
-        except KeyboardInterrupt:
-            print(f"\n{PROG}: interrupted", file=sys.stderr)
+        except BaseException as exc:
+            if not (Interrupts.seen or isinstance(exc, KeyboardInterrupt)):
+                if isinstance(exc, (AutoalignError, UsageError)):
+                    _error(str(exc))
+                    return 2
+                raise
+            # also an error raised because a library turned the interrupt into another exception
+            print(f"\n{PROG}: interrupted", file=sys.stderr, flush=True)
             return 130
 
 
@@ -264,13 +303,9 @@ def prepare_out_dir(out: Path) -> list[Path]:
         p = p.parent
     if not p.is_dir():
         raise AutoalignError(f"--out {out}: cannot create it because {p} is a file, not a folder; {fix}")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        _remove_empty_dirs(list(reversed(missing)))
-        raise AutoalignError(f"--out {out}: cannot create the folder ({exc.strerror or exc}); {fix}") from None
     created = list(reversed(missing))
     try:
+        out.mkdir(parents=True, exist_ok=True)
         fd, probe = tempfile.mkstemp(prefix=".autoalign-probe-", suffix=".tmp", dir=out)
         try:
             os.write(fd, b"autoalign")
@@ -279,7 +314,10 @@ def prepare_out_dir(out: Path) -> list[Path]:
             os.unlink(probe)
     except OSError as exc:
         _remove_empty_dirs(created)
-        raise AutoalignError(f"--out {out}: cannot write there ({exc.strerror or exc}); {fix}") from None
+        raise AutoalignError(f"--out {out}: cannot create or write to the folder ({exc.strerror or exc}); {fix}") from None
+    except BaseException:  # Ctrl-C half-way: leave nothing behind
+        _remove_empty_dirs(created)
+        raise
     return created
 
 
@@ -295,8 +333,10 @@ def _remove_empty_dirs(created: list[Path]) -> None:
 def write_outputs(out: Path, files: dict[str, bytes]) -> dict[str, Path]:
     """Write every ``name -> bytes`` into ``out`` atomically (:mod:`autoalign.atomic_files`): all or none.
 
-    If any write fails no temporary file is left behind and no target file is touched.
+    If any write fails no temporary file is left behind and no target file is touched. Nothing is
+    written after Ctrl-C (see :class:`Interrupts`).
     """
+    Interrupts.check()
     try:
         write_files_atomic({out / name: data for name, data in files.items()})
     except OSError as exc:
@@ -323,6 +363,7 @@ class _Progress:
             self.stage = desc
 
     def __call__(self, stage: str, done: int, total: int) -> None:
+        Interrupts.check()
         if not self.enabled:
             return
         if self.bar is None:
