@@ -43,6 +43,8 @@ class Scene:
         path: the scene folder, if read from disk.
         skipped: image ids that had a camera but no mask file.
         empty: image ids whose mask file is empty (treated as missing, not used).
+        image_scale: the masks and cameras are this fraction of the files' resolution (large
+            images are downscaled on reading, see :data:`MAX_IMAGE_PIXELS`).
     """
 
     cameras: list[Camera]
@@ -51,6 +53,7 @@ class Scene:
     path: Path | None = None
     skipped: tuple[int, ...] = ()
     empty: tuple[int, ...] = ()
+    image_scale: float = 1.0
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -74,8 +77,8 @@ class Scene:
     def subset(self, idx: list[int] | NDArray[np.int64]) -> "Scene":
         """A scene with only the views at positions ``idx``."""
         idx = [int(i) for i in idx]
-        return Scene([self.cameras[i] for i in idx], [self.masks[i] for i in idx],
-                     [self.image_ids[i] for i in idx], self.path, self.skipped, self.empty)
+        return replace(self, cameras=[self.cameras[i] for i in idx], masks=[self.masks[i] for i in idx],
+                       image_ids=[self.image_ids[i] for i in idx])
 
 
 def _read_json(path: Path, what: str) -> Any:
@@ -186,12 +189,27 @@ def check_mask_kinds(kinds: dict[str, Path]) -> None:
                              "(e.g. 0/255 single-channel PNGs, white = object)")
 
 
-def read_scene(scene_dir: str | Path, instance: int = 0) -> Scene:
+MAX_IMAGE_PIXELS = 3_200_000
+"""Masks larger than this (pixels) are read downscaled by a whole factor, cameras with them: at
+this size a silhouette is still over a thousand pixels across, and 24 views of 12-megapixel
+photos (read at 4000 x 3000 / 2) keep the whole command under 2 GB (README, "Large images")."""
+
+
+def downscale_factor(width: int, height: int, max_pixels: int | None = MAX_IMAGE_PIXELS) -> int:
+    """The smallest whole factor that brings a ``width x height`` image to at most ``max_pixels``."""
+    if max_pixels is None or width * height <= max_pixels:
+        return 1
+    return int(np.ceil(np.sqrt(width * height / max_pixels)))
+
+
+def read_scene(scene_dir: str | Path, instance: int = 0, max_pixels: int | None = MAX_IMAGE_PIXELS) -> Scene:
     """Read cameras and the masks of instance ``instance`` from a BOP scene folder.
 
     Images without a mask file are skipped (listed in ``Scene.skipped``), empty masks are treated
     as missing (``Scene.empty``); all masks must share one size and one kind (:func:`read_mask`), and
-    every mask file must have a camera. At least one mask must be non-empty.
+    every mask file must have a camera. At least one mask must be non-empty. Images of more than
+    ``max_pixels`` are read downscaled (area-averaged, then thresholded at half), with their cameras
+    (``Scene.image_scale``); ``None`` keeps them as they are.
     """
     scene_dir = Path(scene_dir)
     if not scene_dir.is_dir():
@@ -217,6 +235,12 @@ def read_scene(scene_dir: str | Path, instance: int = 0) -> Scene:
             empty.append(im_id)
             continue
         kinds.setdefault(kind, p)
+        factor = downscale_factor(m.shape[1], m.shape[0], max_pixels)
+        if factor > 1:  # padded to whole blocks, so that the scale is exactly 1 / factor
+            h, w = -(-m.shape[0] // factor), -(-m.shape[1] // factor)
+            padded = np.zeros((h * factor, w * factor), np.float32)
+            padded[:m.shape[0], :m.shape[1]] = m
+            m = cv2.resize(padded, (w, h), interpolation=cv2.INTER_AREA) > 0.5
         masks.append(m.astype(np.float32))
         ids.append(im_id)
         Ks.append((K, R, t))
@@ -228,8 +252,9 @@ def read_scene(scene_dir: str | Path, instance: int = 0) -> Scene:
         raise AutoalignError(f"{scene_dir / 'mask_visib'}: the masks of instance {instance} are empty in every view; "
                              "check the segmentation or the --instance number")
     H, W = size
-    cameras = [Camera.from_opencv(K, R, t, W, H) for K, R, t in Ks]
-    return Scene(cameras, masks, ids, scene_dir, tuple(skipped), tuple(empty))
+    factor = downscale_factor(W, H, max_pixels)
+    cameras = [Camera.from_opencv(K, R, t, W, H).scaled(1.0 / factor) for K, R, t in Ks]
+    return Scene(cameras, masks, ids, scene_dir, tuple(skipped), tuple(empty), 1.0 / factor)
 
 
 def read_init_pose(path: str | Path, scene: Scene, obj_id: int = 1, instance: int = 0) -> NDArray[np.float64]:

@@ -84,7 +84,7 @@ class SilhouetteObjective:
         if key not in self._levels:
             scene = self.scene if max_views is None else self.scene.subset(self.scene.spread(max_views))
             cams = [c.scaled(scale) for c in scene.cameras]
-            tg = [m.astype(np.float32) if scale == 1.0 else
+            tg = [np.asarray(m, dtype=np.float32) if scale == 1.0 else  # no copy: targets are only read
                   cv2.resize(m.astype(np.float32), (c.width, c.height), interpolation=cv2.INTER_AREA)
                   for m, c in zip(scene.masks, cams)]
             totals = np.array([float(t.sum()) for t in tg])

@@ -25,6 +25,10 @@ class Click:
     u: float
     v: float
 
+    def scaled(self, factor: float) -> "Click":
+        """The same point in the image scaled by ``factor`` (see :meth:`Camera.scaled`)."""
+        return Click(self.image_id, self.u * factor, self.v * factor)
+
     @staticmethod
     def parse(text: str) -> "Click":
         """Parse ``IM_ID:U,V`` with ``U, V`` in OpenCV pixel coordinates (top-left pixel centre at 0,0)."""

@@ -481,11 +481,14 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
         seed = read_init_pose(args.init, scene, args.obj_id, args.instance)
         seed_info.update(kind="init", init_file=str(Path(args.init).absolute()), pose=_pose(seed))
     elif click is not None:
+        from autoalign.camera import uv_to_opencv
         from autoalign.seeding import check_click
 
+        u, v = uv_to_opencv(np.array([click.u, click.v]))  # as typed: OpenCV pixels of the image files
+        seed_info.update(kind="click", click={"image_id": click.image_id, "u": float(u), "v": float(v)})
+        click = click.scaled(scene.image_scale)
         check_click(scene, click)  # fail now, before the slow start-up of the renderer
         seed = click
-        seed_info.update(kind="click", click={"image_id": click.image_id, "u": click.u, "v": click.v})
 
     from autoalign.camera import PIXEL_CONVENTION
     from autoalign.engine import RefineOptions, refine
@@ -567,6 +570,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
         "low_weight_ids": [i for i, _, _ in low],
         "skipped": [int(i) for i in scene.skipped],
         "empty_masks": [int(i) for i in scene.empty],
+        "image_scale": scene.image_scale,
         "iterations": result.iterations,
         "renders": result.renders,
         "timings": timings,

@@ -708,3 +708,32 @@ def test_ctrl_c_at_any_moment_exits_130_and_writes_nothing(tmp_path):
         assert p.returncode == 130, (delay, p.returncode, stderr)
         assert stderr.strip().splitlines() == ["autoalign: interrupted"], (delay, stderr)
         assert not out.exists() and stdout == "", delay
+
+
+def test_large_images_are_read_downscaled_with_their_cameras(data, tmp_path):
+    """Images above the pixel budget are read at a whole-factor reduction, cameras scaled with them
+    (here a budget of a quarter of the image: factor 2), and the pose is still found; a click is
+    typed in the files' pixels. The 12-megapixel case is measured in experiments/bench_memory.py."""
+    from autoalign.bop import read_scene
+    from autoalign.engine import refine
+    from autoalign.seeding import Click, check_click
+
+    full = read_scene(data.scene)
+    half = read_scene(data.scene, max_pixels=W * H // 4)
+    assert (full.image_scale, half.image_scale) == (1.0, 0.5)
+    for a, b in zip(full.cameras, half.cameras):
+        assert (b.width, b.height) == (W // 2, H // 2)
+        np.testing.assert_allclose(b.K_opencv[:2, 2], (a.K_opencv[:2, 2] + 0.5) / 2 - 0.5)
+    for a, b in zip(full.masks, half.masks):  # each small pixel is the majority of its 2x2 block
+        block = a.reshape(H // 2, 2, W // 2, 2).mean(axis=(1, 3))
+        np.testing.assert_array_equal(b[block != 0.5], block[block != 0.5] > 0.5)
+    mesh = load_mesh(data.model)
+    result = refine(half, mesh, data.T_init)
+    c = mesh.centre
+    T = result.T_wm
+    assert np.linalg.norm(T[:3, :3] @ c + T[:3, 3] - data.T_true[:3, :3] @ c - data.T_true[:3, 3]) < 1.0
+    assert rotation_angle_deg(T[:3, :3], data.T_true[:3, :3]) < 1.0
+    # the deepest mask pixel of image 0, typed in full-resolution OpenCV pixels, lands on the small mask
+    dist = cv2.distanceTransform((full.masks[0] > 0.5).astype(np.uint8), cv2.DIST_L2, 5)
+    i, j = np.unravel_index(int(np.argmax(dist)), dist.shape)
+    check_click(half, Click.parse(f"0:{j},{i}").scaled(half.image_scale))
