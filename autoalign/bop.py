@@ -45,6 +45,9 @@ class Scene:
         empty: image ids whose mask file is empty (treated as missing, not used).
         image_scale: the masks and cameras are this fraction of the files' resolution (large
             images are downscaled on reading, see :data:`MAX_IMAGE_PIXELS`).
+        ignore: per view, the pixels where the silhouette is not compared with the mask (``None``:
+            none): those that another instance's mask claims, where this object may be hidden
+            behind that one, or that mask may have strayed onto this object.
     """
 
     cameras: list[Camera]
@@ -54,6 +57,7 @@ class Scene:
     skipped: tuple[int, ...] = ()
     empty: tuple[int, ...] = ()
     image_scale: float = 1.0
+    ignore: list[NDArray[np.bool_]] | None = None
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -78,10 +82,15 @@ class Scene:
         """A scene with only the views at positions ``idx``."""
         idx = [int(i) for i in idx]
         return replace(self, cameras=[self.cameras[i] for i in idx], masks=[self.masks[i] for i in idx],
-                       image_ids=[self.image_ids[i] for i in idx])
+                       image_ids=[self.image_ids[i] for i in idx],
+                       ignore=None if self.ignore is None else [self.ignore[i] for i in idx])
+
+    def compared(self, k: int) -> NDArray[np.bool_] | None:
+        """View ``k``'s pixels where the silhouette is compared with the mask (``None``: all)."""
+        return None if self.ignore is None else ~self.ignore[k]
 
 
-def _read_json(path: Path, what: str) -> Any:
+def read_json_file(path: Path, what: str) -> Any:
     if not path.is_file():
         raise AutoalignError(f"{path}: not found; {what}")
     try:
@@ -91,7 +100,7 @@ def _read_json(path: Path, what: str) -> Any:
         raise AutoalignError(f"{path}: not valid JSON ({exc.msg if hasattr(exc, 'msg') else exc}); fix or regenerate the file") from None
 
 
-def _floats(entry: dict[str, Any], key: str, n: int, path: Path, where: str, fix: str) -> NDArray[np.float64]:
+def json_floats(entry: dict[str, Any], key: str, n: int, path: Path, where: str, fix: str) -> NDArray[np.float64]:
     if key not in entry:
         raise AutoalignError(f"{path}: {where} has no '{key}'; {fix}")
     try:
@@ -108,7 +117,7 @@ def read_cameras(scene_dir: Path) -> dict[int, tuple[NDArray[np.float64], NDArra
     (OpenCV / BOP convention: build cameras with :meth:`Camera.from_opencv`)."""
     path = scene_dir / "scene_camera.json"
     fix = "every image needs cam_K (9 numbers), cam_R_w2c (9, row-major) and cam_t_w2c (3, mm)"
-    data = _read_json(path, f"a BOP scene folder needs scene_camera.json ({fix})")
+    data = read_json_file(path, f"a BOP scene folder needs scene_camera.json ({fix})")
     if not isinstance(data, dict) or not data:
         raise AutoalignError(f"{path}: expected an object mapping image ids to cameras; {fix}")
     out = {}
@@ -120,9 +129,9 @@ def read_cameras(scene_dir: Path) -> dict[int, tuple[NDArray[np.float64], NDArra
         if not isinstance(entry, dict):
             raise AutoalignError(f"{path}: image {key} is not an object; {fix}")
         where = f"image {key}"
-        K = _floats(entry, "cam_K", 9, path, where, fix).reshape(3, 3)
-        R = _floats(entry, "cam_R_w2c", 9, path, where, fix).reshape(3, 3)
-        t = _floats(entry, "cam_t_w2c", 3, path, where, fix)
+        K = json_floats(entry, "cam_K", 9, path, where, fix).reshape(3, 3)
+        R = json_floats(entry, "cam_R_w2c", 9, path, where, fix).reshape(3, 3)
+        t = json_floats(entry, "cam_t_w2c", 3, path, where, fix)
         if not (K[0, 0] > 0 and K[1, 1] > 0) or np.any(K[2] != [0.0, 0.0, 1.0]) or K[1, 0] != 0:
             raise AutoalignError(f"{path}: image {key} cam_K must be [fx, s, cx, 0, fy, cy, 0, 0, 1] with "
                                  f"fx, fy > 0 (got fx={K[0, 0]:g}, fy={K[1, 1]:g}); fix the calibration")
@@ -202,6 +211,47 @@ def downscale_factor(width: int, height: int, max_pixels: int | None = MAX_IMAGE
     return int(np.ceil(np.sqrt(width * height / max_pixels)))
 
 
+@dataclass
+class MaskSet:
+    """Mask files read together (one size, one kind): the non-empty ones as boolean images at
+    ``1 / factor`` of the files' resolution, keyed by ``(im_id, instance)``, and the empty ones."""
+
+    masks: dict[tuple[int, int], NDArray[np.bool_]]
+    empty: list[tuple[int, int]]
+    size: tuple[int, int] | None  # (H, W) of the files
+    factor: int = 1
+
+
+def read_masks(paths: dict[tuple[int, int], Path], max_pixels: int | None = MAX_IMAGE_PIXELS) -> MaskSet:
+    """Read mask files (:func:`read_mask`); images of more than ``max_pixels`` are downscaled by
+    :func:`downscale_factor` (area-averaged, then thresholded at half). Raises unless all share one
+    size and one kind."""
+    out = MaskSet({}, [], None)
+    kinds: dict[str, Path] = {}
+    first: Path | None = None
+    for key, p in paths.items():
+        m, kind = read_mask(p)
+        if out.size is None:
+            out.size, first = m.shape, p
+            out.factor = downscale_factor(m.shape[1], m.shape[0], max_pixels)
+        elif m.shape != out.size:
+            raise AutoalignError(f"{p}: mask is {m.shape[1]}x{m.shape[0]} but {first.name} is "
+                                 f"{out.size[1]}x{out.size[0]}; all masks of a scene must have the image size")
+        if kind == "empty":
+            out.empty.append(key)
+            continue
+        kinds.setdefault(kind, p)
+        f = out.factor
+        if f > 1:  # padded to whole blocks, so that the scale is exactly 1 / factor
+            h, w = -(-m.shape[0] // f), -(-m.shape[1] // f)
+            padded = np.zeros((h * f, w * f), np.float32)
+            padded[:m.shape[0], :m.shape[1]] = m
+            m = cv2.resize(padded, (w, h), interpolation=cv2.INTER_AREA) > 0.5
+        out.masks[key] = m
+    check_mask_kinds(kinds)
+    return out
+
+
 def read_scene(scene_dir: str | Path, instance: int = 0, max_pixels: int | None = MAX_IMAGE_PIXELS) -> Scene:
     """Read cameras and the masks of instance ``instance`` from a BOP scene folder.
 
@@ -211,50 +261,36 @@ def read_scene(scene_dir: str | Path, instance: int = 0, max_pixels: int | None 
     ``max_pixels`` are read downscaled (area-averaged, then thresholded at half), with their cameras
     (``Scene.image_scale``); ``None`` keeps them as they are.
     """
+    scene_dir = check_scene_dir(scene_dir)
+    cams = read_cameras(scene_dir)
+    check_masks_have_cameras(scene_dir, set(cams))
+    paths = {(im, instance): mask_path(scene_dir, im, instance) for im in cams}
+    skipped = [im for (im, _), p in paths.items() if not p.is_file()]
+    read = read_masks({k: p for k, p in paths.items() if p.is_file()}, max_pixels)
+    if not read.masks and not read.empty:
+        raise AutoalignError(f"{scene_dir / 'mask_visib'}: no mask files named {{im_id:06d}}_{instance:06d}.png; "
+                             "write the instance masks there or choose the instance with --instance")
+    if not read.masks:
+        raise AutoalignError(f"{scene_dir / 'mask_visib'}: the masks of instance {instance} are empty in every view; "
+                             "check the segmentation or the --instance number")
+    ids = [im for im, _ in read.masks]
+    return Scene(scene_cameras(cams, ids, read), [m.astype(np.float32) for m in read.masks.values()], ids, scene_dir,
+                 tuple(skipped), tuple(im for im, _ in read.empty), 1.0 / read.factor)
+
+
+def check_scene_dir(scene_dir: str | Path) -> Path:
+    """``scene_dir`` as a path, or an error if it is not a folder."""
     scene_dir = Path(scene_dir)
     if not scene_dir.is_dir():
         raise AutoalignError(f"{scene_dir}: scene folder not found; pass a BOP scene folder with scene_camera.json and mask_visib/")
-    cams = read_cameras(scene_dir)
-    check_masks_have_cameras(scene_dir, set(cams))
-    masks, ids, Ks, skipped, empty = [], [], [], [], []
-    kinds: dict[str, Path] = {}
-    size: tuple[int, int] | None = None
-    first_path: Path | None = None
-    for im_id, (K, R, t) in cams.items():
-        p = mask_path(scene_dir, im_id, instance)
-        if not p.is_file():
-            skipped.append(im_id)
-            continue
-        m, kind = read_mask(p)
-        if size is None:
-            size, first_path = m.shape, p
-        elif m.shape != size:
-            raise AutoalignError(f"{p}: mask is {m.shape[1]}x{m.shape[0]} but {first_path.name} is "
-                                 f"{size[1]}x{size[0]}; all masks of a scene must have the image size")
-        if kind == "empty":
-            empty.append(im_id)
-            continue
-        kinds.setdefault(kind, p)
-        factor = downscale_factor(m.shape[1], m.shape[0], max_pixels)
-        if factor > 1:  # padded to whole blocks, so that the scale is exactly 1 / factor
-            h, w = -(-m.shape[0] // factor), -(-m.shape[1] // factor)
-            padded = np.zeros((h * factor, w * factor), np.float32)
-            padded[:m.shape[0], :m.shape[1]] = m
-            m = cv2.resize(padded, (w, h), interpolation=cv2.INTER_AREA) > 0.5
-        masks.append(m.astype(np.float32))
-        ids.append(im_id)
-        Ks.append((K, R, t))
-    check_mask_kinds(kinds)
-    if not masks and not empty:
-        raise AutoalignError(f"{scene_dir / 'mask_visib'}: no mask files named {{im_id:06d}}_{instance:06d}.png; "
-                             "write the instance masks there or choose the instance with --instance")
-    if not masks:
-        raise AutoalignError(f"{scene_dir / 'mask_visib'}: the masks of instance {instance} are empty in every view; "
-                             "check the segmentation or the --instance number")
-    H, W = size
-    factor = downscale_factor(W, H, max_pixels)
-    cameras = [Camera.from_opencv(K, R, t, W, H).scaled(1.0 / factor) for K, R, t in Ks]
-    return Scene(cameras, masks, ids, scene_dir, tuple(skipped), tuple(empty), 1.0 / factor)
+    return scene_dir
+
+
+def scene_cameras(cams: dict[int, tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]],
+                  ids: list[int], read: MaskSet) -> list[Camera]:
+    """The cameras of images ``ids`` (file intrinsics from :func:`read_cameras`) at the masks' scale."""
+    H, W = read.size
+    return [Camera.from_opencv(*cams[im], W, H).scaled(1.0 / read.factor) for im in ids]
 
 
 def read_init_pose(path: str | Path, scene: Scene, obj_id: int = 1, instance: int = 0) -> NDArray[np.float64]:
@@ -265,7 +301,7 @@ def read_init_pose(path: str | Path, scene: Scene, obj_id: int = 1, instance: in
     """
     path = Path(path)
     fix = 'an --init file must map image ids to lists of {"obj_id", "cam_R_m2c": 9 numbers, "cam_t_m2c": 3 numbers (mm)}'
-    data = _read_json(path, "pass an existing BOP scene_gt.json to --init")
+    data = read_json_file(path, "pass an existing BOP scene_gt.json to --init")
     if not isinstance(data, dict) or not data:
         raise AutoalignError(f"{path}: wrong shape for --init; {fix}")
     by_id = {im: cam for im, cam in zip(scene.image_ids, scene.cameras)}
@@ -287,14 +323,19 @@ def read_init_pose(path: str | Path, scene: Scene, obj_id: int = 1, instance: in
     if instance >= len(pool):
         raise AutoalignError(f"{path}: image {im} has {len(pool)} entries, no instance {instance}; use --instance")
     e = pool[instance]
-    where = f"image {im}"
-    R = _floats(e, "cam_R_m2c", 9, path, where, fix).reshape(3, 3)
-    t = _floats(e, "cam_t_m2c", 3, path, where, fix)
+    T_cm = pose_of_entry(e, path, f"image {im}", fix)
+    return invert(by_id[im].T_cw) @ T_cm
+
+
+def pose_of_entry(e: dict[str, Any], path: Path, where: str, fix: str) -> NDArray[np.float64]:
+    """Camera-from-model pose (4x4, mm) of a ``scene_gt.json`` entry, its rotation re-orthonormalised
+    (BOP files store few decimals); an error naming ``path`` and ``where`` if it is malformed."""
+    R = json_floats(e, "cam_R_m2c", 9, path, where, fix).reshape(3, 3)
+    t = json_floats(e, "cam_t_m2c", 3, path, where, fix)
     if abs(np.linalg.det(R) - 1.0) > 1e-2:
         raise AutoalignError(f"{path}: {where} cam_R_m2c is not a rotation matrix; write it row-major with det +1")
-    U, _, Vt = np.linalg.svd(R)  # re-orthonormalise rounded input
-    R = U @ Vt
-    return invert(by_id[im].T_cw) @ make_pose(R, t)
+    U, _, Vt = np.linalg.svd(R)
+    return make_pose(U @ Vt, t)
 
 
 def pose_in_camera(T_wm: NDArray[np.float64], cam: Camera) -> tuple[list[float], list[float]]:

@@ -194,10 +194,14 @@ def _hard_ious_of(ev: Evaluation, scene: Scene) -> NDArray[np.float64]:
 
 
 def hard_ious(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Per-view IoU of the ray-cast silhouette at ``T_wm`` with the scene's masks, full resolution."""
+    """Per-view IoU of the ray-cast silhouette at ``T_wm`` with the scene's masks, full resolution
+    (pixels the scene ignores left out)."""
     out = []
-    for m, t in zip(rast.hard_masks(T_wm, scene.cameras), scene.masks):
+    for k, (m, t) in enumerate(zip(rast.hard_masks(T_wm, scene.cameras), scene.masks)):
         tt = t > 0.5
+        care = scene.compared(k)
+        if care is not None:
+            m = m & care
         u = np.logical_or(m, tt).sum()
         out.append(float(np.logical_and(m, tt).sum() / u) if u else 1.0)
     return np.array(out)

@@ -71,7 +71,7 @@ class _LowResViews:
     def __init__(self, scene: Scene, centre_w: NDArray[np.float64],
                  reach: float, scale: float, max_views: int) -> None:
         idx = scene.spread(max_views)
-        centres, dirs, pix, tgt, view, J, g_cent, t_tot = [], [], [], [], [], [], [], []
+        centres, dirs, pix, tgt, view, J, g_cent, t_tot, care = [], [], [], [], [], [], [], [], []
         for k in idx:
             cam = scene.cameras[k].scaled(scale)
             mask = cv2.resize(scene.masks[k].astype(np.float32), (cam.width, cam.height),
@@ -92,6 +92,12 @@ class _LowResViews:
             dirs.append(cam.ray_directions(uv))
             pix.append(uv)
             tgt.append(mask[y0:y1, x0:x1].ravel())
+            if scene.ignore is not None:  # rays there count neither as silhouette nor as overlap
+                ign = cv2.resize(scene.ignore[k].astype(np.float32), (cam.width, cam.height),
+                                 interpolation=cv2.INTER_AREA) > 0.5
+                care.append(~ign[y0:y1, x0:x1].ravel())
+            else:
+                care.append(np.ones(len(uv), bool))
             view.append(np.full(len(uv), n))
             t_tot.append(float(mask.sum()))
             ys, xs = np.nonzero(mask)
@@ -111,6 +117,8 @@ class _LowResViews:
         self.J = np.array(J)
         # per ray: what a hit adds to its view's area, overlap, sum of x and sum of y
         self._weights = np.column_stack([np.ones(len(self.view)), self.tgt, self.pix])
+        if care:
+            self._weights *= np.concatenate(care)[:, None]
 
     def overlap_stats(self, rast: SoftSilhouetteRasterizer, poses: NDArray[np.float64]) -> NDArray[np.float64]:
         """(K, 4, V) per pose and view: silhouette area, overlap with the mask, and the sums of

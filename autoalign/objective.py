@@ -35,6 +35,17 @@ class Level:
     ftol: float | None = None
 
 
+@dataclass(frozen=True)
+class LevelViews:
+    """The views of one resolution level: cameras, area-resampled targets in [0, 1], per-view
+    target sums, and the pixels not compared (``None``: all are), all at that resolution."""
+
+    cameras: list[Camera]
+    targets: list[NDArray[np.float32]]
+    totals: NDArray[np.float64]
+    ignore: list[NDArray[np.bool_]] | None
+
+
 @dataclass
 class Evaluation:
     """Objective value and derivatives at one pose. ``value = sum_i w_i loss_i``; ``grad``/``gn`` alike."""
@@ -72,34 +83,38 @@ class SilhouetteObjective:
         self.loss_name = loss
         self.loss_fn = LOSSES[loss]
         self.robust = robust
-        self._levels: dict[tuple[float, int | None],
-                           tuple[list[Camera], list[NDArray[np.float32]], NDArray[np.float64]]] = {}
+        self._levels: dict[tuple[float, int | None], LevelViews] = {}
         self.renders = 0
 
-    def at_scale(self, scale: float, max_views: int | None = None
-                 ) -> tuple[list[Camera], list[NDArray[np.float32]], NDArray[np.float64]]:
-        """Cameras, area-resampled targets and per-view target sums at ``scale`` (cached),
-        of at most ``max_views`` views spread through the scene (see :meth:`Scene.spread`)."""
+    def at_scale(self, scale: float, max_views: int | None = None) -> LevelViews:
+        """The views at ``scale`` (cached), at most ``max_views`` of them spread through the scene
+        (see :meth:`Scene.spread`); a resampled pixel is ignored when most of it was."""
         key = (scale, max_views)
         if key not in self._levels:
             scene = self.scene if max_views is None else self.scene.subset(self.scene.spread(max_views))
             cams = [c.scaled(scale) for c in scene.cameras]
-            tg = [np.asarray(m, dtype=np.float32) if scale == 1.0 else  # no copy: targets are only read
-                  cv2.resize(m.astype(np.float32), (c.width, c.height), interpolation=cv2.INTER_AREA)
-                  for m, c in zip(scene.masks, cams)]
-            totals = np.array([float(t.sum()) for t in tg])
-            self._levels[key] = (cams, tg, totals)
+
+            def resampled(m: NDArray, c: Camera) -> NDArray[np.float32]:
+                if scale == 1.0:
+                    return np.asarray(m, dtype=np.float32)  # no copy: targets are only read
+                return cv2.resize(np.asarray(m, dtype=np.float32), (c.width, c.height), interpolation=cv2.INTER_AREA)
+
+            tg = [resampled(m, c) for m, c in zip(scene.masks, cams)]
+            ignore = None if scene.ignore is None else [resampled(g, c) > 0.5 for g, c in zip(scene.ignore, cams)]
+            self._levels[key] = LevelViews(cams, tg, np.array([float(t.sum()) for t in tg]), ignore)
         return self._levels[key]
 
     def evaluate(self, T_wm: NDArray[np.float64], level: Level, weights: NDArray[np.float64] | None = None,
                  with_derivatives: bool = True) -> Evaluation:
         """Render at ``level`` and compare. Without ``weights`` they are computed here (robust or 1)."""
-        cams, tg, totals = self.at_scale(level.scale, level.max_views)
+        views = self.at_scale(level.scale, level.max_views)
         rast = (self.rasterizer if level.scale >= 1.0 else
                 self.coarse_rasterizer if level.scale > 0.125 else self.search_rasterizer)
-        sil = rast.render(T_wm, cams, level.sigma, with_jacobian=with_derivatives)
+        sil = rast.render(T_wm, views.cameras, level.sigma, with_jacobian=with_derivatives)
         self.renders += 1
-        terms = self.loss_fn(sil, targets_in_crops(tg, sil), totals)
+        if views.ignore is not None:
+            sil = sil.without(targets_in_crops(views.ignore, sil) > 0.5)
+        terms = self.loss_fn(sil, targets_in_crops(views.targets, sil), views.totals)
         return self.combine(terms, sil, weights)
 
     def combine(self, terms: ViewTerms, sil: Silhouettes, weights: NDArray[np.float64] | None = None) -> Evaluation:

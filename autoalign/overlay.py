@@ -14,14 +14,13 @@ All poses are world-from-model 4x4 matrices in millimetres (BOP world frame of t
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from autoalign.atomic_files import write_bytes_atomic
 from autoalign.bop import Scene
 from autoalign.mesh import Mesh
 
@@ -204,15 +203,87 @@ def draw_overlay(scene: Scene, mesh: Mesh, T_before: ArrayLike, T_after: ArrayLi
     """
     img = render_overlay(scene, mesh, T_before, T_after, ious_after, rasterizer)
     if path is not None:
-        path = Path(path)
-        data = encode_png(img)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        write_bytes_atomic(path, encode_png(img))
     return img
+
+
+# ------------------------------------------------------------------------------------------
+# Several instances
+# ------------------------------------------------------------------------------------------
+
+INSTANCE_COLOURS = ((60, 180, 255), (255, 120, 60), (80, 220, 80), (220, 80, 220), (60, 230, 230),
+                    (255, 200, 80), (120, 120, 255), (200, 255, 120), (160, 80, 255), (80, 160, 160))
+"""BGR colour of instance ``k`` (cycled)."""
+_STATUS_MARK = {"ok": "ok", "check": "CHECK", "failed": "FAILED"}
+MULTI_TILE_W, MULTI_TILE_H = 480, 360
+
+
+def read_photo(scene_dir: Path | None, image_id: int, width: int, height: int) -> NDArray[np.uint8] | None:
+    """The scene's photo ``rgb/{image_id:06d}.{png,jpg}`` at ``width x height`` (BGR), if there is one."""
+    if scene_dir is None:
+        return None
+    for ext in ("png", "jpg", "jpeg"):
+        p = Path(scene_dir) / "rgb" / f"{image_id:06d}.{ext}"
+        if p.is_file():
+            img = cv2.imread(str(p), cv2.IMREAD_COLOR)
+            if img is not None:
+                return img if img.shape[:2] == (height, width) else cv2.resize(img, (width, height),
+                                                                               interpolation=cv2.INTER_AREA)
+    return None
+
+
+def render_instances_overlay(cameras: list, image_ids: list[int], scene_dir: Path | None,
+                             instances: list[tuple[str, dict[int, NDArray[np.bool_]], NDArray[np.bool_] | None]],
+                             views: list[int]) -> NDArray[np.uint8]:
+    """A grid of whole views with every instance in its own colour (BGR uint8); nothing is written.
+
+    Args:
+        cameras / image_ids: the views (at the masks' scale).
+        scene_dir: where the photos are (``rgb/``), drawn dimmed underneath; dark grey without.
+        instances: per instance ``(label, masks, silhouettes)``: its label (object id and verdict),
+            its target masks by image id (tinted), and its ray-cast silhouettes after refinement,
+            (V, H, W) for the views ``views`` (outlined); colours follow :data:`INSTANCE_COLOURS`.
+        views: positions in ``cameras`` of the views to draw (at most 12 read well).
+    """
+    tiles = []
+    for j, i in enumerate(views):
+        cam, im = cameras[i], image_ids[i]
+        photo = read_photo(scene_dir, im, cam.width, cam.height)
+        base = (photo.astype(np.float32) * 0.55 if photo is not None
+                else np.full((cam.height, cam.width, 3), 40.0, np.float32))
+        for k, (_, masks, _) in enumerate(instances):
+            m = masks.get(im)
+            if m is not None:
+                base[m] = 0.55 * base[m] + 0.45 * np.array(INSTANCE_COLOURS[k % len(INSTANCE_COLOURS)], np.float32)
+        x0, y0, w, h = _crop_box([m for _, ms, _ in instances if (m := ms.get(im)) is not None]
+                                 + [sil[j] for _, _, sil in instances if sil is not None], cam.width, cam.height,
+                                 MULTI_TILE_W / MULTI_TILE_H)
+        s = MULTI_TILE_W / w
+        A = np.array([[s, 0.0, (0.5 - x0) * s - 0.5], [0.0, s, (0.5 - y0) * s - 0.5]])
+        tile = cv2.warpAffine(np.clip(base, 0, 255).astype(np.uint8), A, (MULTI_TILE_W, MULTI_TILE_H),
+                              flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=_OUTSIDE)
+        for k, (label, _, sil) in enumerate(instances):
+            if sil is None or not sil[j].any():
+                continue
+            colour = INSTANCE_COLOURS[k % len(INSTANCE_COLOURS)]
+            cv2.polylines(tile, _contour_polys(sil[j], x0, y0, s), True, colour, 2, cv2.LINE_AA, _SHIFT)
+            ys, xs = np.nonzero(sil[j])
+            _put_label(tile, label, (int((xs.mean() - x0) * s) - 20, max(int((ys.min() - y0) * s) - 4, 30)), colour, 0.4)
+        _put_label(tile, f"im {im}", (6, 18), _TEXT)
+        tiles.append(tile)
+    cols = min(3, max(len(tiles), 1))
+    rows = max(-(-len(tiles) // cols), 1)
+    grid = np.full((LEGEND_H + rows * MULTI_TILE_H + (rows + 1) * GAP, cols * MULTI_TILE_W + (cols + 1) * GAP, 3),
+                   24, np.uint8)
+    for k, t in enumerate(tiles):
+        r, c = divmod(k, cols)
+        y, x = LEGEND_H + GAP + r * (MULTI_TILE_H + GAP), GAP + c * (MULTI_TILE_W + GAP)
+        grid[y:y + MULTI_TILE_H, x:x + MULTI_TILE_W] = t
+    cv2.putText(grid, "tint: the instance's mask; outline: its silhouette after refinement; label: obj id and verdict",
+                (GAP + 4, 19), cv2.FONT_HERSHEY_SIMPLEX, 0.5, _TEXT, 1, cv2.LINE_AA)
+    return grid
+
+
+def instance_label(obj_id: int, status: str) -> str:
+    """The overlay label of an instance: its object id and verdict (``obj 5 CHECK``)."""
+    return f"obj {obj_id} {_STATUS_MARK.get(status, status)}"

@@ -41,7 +41,7 @@ class Click:
 
 
 def _mask_support(scene: Scene, X: NDArray[np.float64], dilate_px: int = 0) -> NDArray[np.int64]:
-    """How many views see each world point ``X`` (N, 3, mm) inside their mask; (N,) counts.
+    """How many views see each world point ``X`` (N, 3, mm) inside their mask or an ignored region; (N,) counts.
 
     Projected in single precision: for points within metres of the cameras the error is far
     below a pixel, and the points are voxel centres of a carving grid.
@@ -49,7 +49,9 @@ def _mask_support(scene: Scene, X: NDArray[np.float64], dilate_px: int = 0) -> N
     count = np.zeros(len(X), dtype=np.int64)
     kernel = np.ones((2 * dilate_px + 1,) * 2, np.uint8) if dilate_px else None
     Xh = np.column_stack([X, np.ones(len(X))]).astype(np.float32)
-    for cam, m in zip(scene.cameras, scene.masks):
+    for k, (cam, m) in enumerate(zip(scene.cameras, scene.masks)):
+        if scene.ignore is not None:  # the object may be hidden behind another instance there
+            m = np.logical_or(m > 0.5, scene.ignore[k])
         P = cam.K @ np.column_stack([cam.R_w2c, cam.t_w2c])  # world to homogeneous pixels, (3, 4)
         uvw = Xh @ P.T.astype(np.float32)
         z = uvw[:, 2]

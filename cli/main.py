@@ -5,7 +5,8 @@ numpy, OpenCV, trimesh and the rendering backend (mitsuba/drjit) load inside the
 the arguments are parsed. Nothing on this path imports torch or jax.
 
 Exit status: 0 success; 2 a usage or input mistake (one line ``autoalign: error: ...`` on stderr,
-no output files); 130 interrupted; anything else is a bug (Python prints a traceback).
+no output files); 3 outputs written but a pose is in doubt (``refine --models``: an instance's
+verdict is check or failed); 130 interrupted; anything else is a bug (Python prints a traceback).
 """
 
 from __future__ import annotations
@@ -93,12 +94,23 @@ outputs (written into OUT_DIR, replacing files of the same name; if the run fail
                  mask in grey, the silhouette outline before (red) and after (green) refinement,
                  with image id and IoU before -> after
 
+several objects (--models MODELS_DIR):
+  every instance is refined; instance N is mask_visib/{im_id:06d}_{N:06d}.png, and its object comes
+  from --instances {"instances": {"N": obj_id, ...}} or else the scene's scene_gt.json (entry N of
+  every image). In each view the pixels that other instances' masks claim (and its own does not)
+  are ignored for it: it may be hidden there. --init gives entry N of a coarse scene_gt.json.
+  Outputs: scene_gt.json with every instance in every image (in instance order), refine.json with
+  a record per instance (pose, per-view IoU and weights, verdict ok/check/failed and its reasons),
+  overlay.png with every instance in its own colour over the photos (rgb/) and its verdict.
+
 examples:
+  autoalign refine scenes/000002 --models models/ --out labels/000002 --init coarse/scene_gt.json
   autoalign refine scenes/000001 --model models/obj_000001.ply --out labels/000001 --init coarse/scene_gt.json
   autoalign refine scenes/000001 --model models/obj_000001.ply --out labels/000001 --click 0:412,233
   autoalign refine scenes/000001 --model models/obj_000001.ply --out labels/000001 --json --quiet
 
-exit status: 0 success, 2 a mistake in the command or the input files (one line on stderr)."""
+exit status: 0 success, 2 a mistake in the command or the input files (one line on stderr),
+3 outputs written but some instance's verdict is check or failed (listed on stderr), 130 interrupted."""
 
 
 def _int_at_least(minimum: int) -> Callable[[str], int]:
@@ -128,9 +140,14 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("scene", metavar="SCENE_DIR",
                    help="BOP scene folder with scene_camera.json and mask_visib/ (see 'input scene' below)")
     req = p.add_argument_group("required")
-    req.add_argument("--model", metavar="MESH", required=True,
-                     help="the object's mesh in millimetres, in its BOP model frame (PLY, OBJ, STL, GLB, OFF, ...); "
-                          "it needs triangles, a point cloud will not do")
+    what = req.add_mutually_exclusive_group(required=True)
+    what.add_argument("--model", metavar="MESH",
+                      help="one object: its mesh in millimetres, in its BOP model frame (PLY, OBJ, STL, GLB, OFF, "
+                           "...); it needs triangles, a point cloud will not do")
+    what.add_argument("--models", metavar="MODELS_DIR",
+                      help="every object of the scene: a BOP models folder (obj_XXXXXX.ply, models_info.json); "
+                           "which object each instance mask shows comes from --instances or the scene's "
+                           "scene_gt.json (see 'several objects' below)")
     req.add_argument("--out", metavar="OUT_DIR", required=True,
                      help="output folder, created if missing; scene_gt.json, refine.json and overlay.png are "
                           "written there (see 'outputs' below); it may not be the scene folder, and no output "
@@ -139,6 +156,10 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
                      help="units of the mesh file; default mm, and a mesh under 2 units across is then refused "
                           "as probably metres (pass --units m to scale it by 1000, --units mm to keep it)")
     sel = p.add_argument_group("object")
+    sel.add_argument("--instances", metavar="INSTANCES_JSON",
+                     help='with --models: {"instances": {"0": 5, "3": 8}} maps instance numbers (the N of '
+                          "mask_visib/{im_id:06d}_{N:06d}.png) to BOP obj_ids; instances not listed are objects "
+                          "without a model, whose masks still count (default: the scene's scene_gt.json)")
     sel.add_argument("--obj-id", metavar="K", type=_positive_int, default=1,
                      help="BOP object id written to scene_gt.json and looked for in the --init file (default: 1)")
     sel.add_argument("--instance", metavar="N", type=_nonnegative_int, default=0,
@@ -195,25 +216,25 @@ def build_parser() -> argparse.ArgumentParser:
 # Entry point
 # ------------------------------------------------------------------------------------------
 
-def _one_line(text: str) -> str:
+def one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
 def _error(message: str) -> None:
-    print(f"{PROG}: error: {_one_line(message)}", file=sys.stderr, flush=True)
+    print(f"{PROG}: error: {one_line(message)}", file=sys.stderr, flush=True)
 
 
-_WARNINGS: list[str] = []  # the warnings of the current run (also written to refine.json)
+WARNINGS: list[str] = []  # the warnings of the current run (also written to refine.json)
 
 
-def _warn(message: str) -> None:
-    _WARNINGS.append(_one_line(message))
-    print(f"{PROG}: warning: {_one_line(message)}", file=sys.stderr, flush=True)
+def warn(message: str) -> None:
+    WARNINGS.append(one_line(message))
+    print(f"{PROG}: warning: {one_line(message)}", file=sys.stderr, flush=True)
 
 
 def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
                   file: Any = None, line: str | None = None) -> None:
-    _warn(str(message))
+    warn(str(message))
 
 
 class Interrupts:
@@ -253,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None) -> int:
-    _WARNINGS.clear()
+    WARNINGS.clear()
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -345,7 +366,7 @@ def write_outputs(out: Path, files: dict[str, bytes]) -> dict[str, Path]:
     return {name: out / name for name in files}
 
 
-class _Progress:
+class ProgressBar:
     """``progress(stage, done, total)`` callback drawing one tqdm bar on stderr."""
 
     def __init__(self, enabled: bool) -> None:
@@ -393,7 +414,7 @@ def _floats(a: Any) -> Any:
     return [_floats(x) for x in arr]
 
 
-def _jsonable(obj: Any) -> Any:
+def jsonable(obj: Any) -> Any:
     """Plain JSON types from numpy scalars/arrays, dataclasses, tuples and paths (NaN as None)."""
     import dataclasses
     import math
@@ -401,11 +422,11 @@ def _jsonable(obj: Any) -> Any:
     import numpy as np
 
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        return {f.name: jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
     if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
         return _floats(obj) if obj.dtype.kind == "f" else obj.tolist()
     if isinstance(obj, (bool, np.bool_)):
@@ -419,7 +440,7 @@ def _jsonable(obj: Any) -> Any:
     return obj
 
 
-def _pose(T: Any) -> dict[str, Any]:
+def pose_record(T: Any) -> dict[str, Any]:
     import numpy as np
 
     T = np.asarray(T, dtype=np.float64)
@@ -458,9 +479,18 @@ def run_refine(args: argparse.Namespace) -> int:
 
         click = Click.parse(args.click)
     out = Path(args.out)
-    check_outputs_spare_inputs(out, Path(args.scene), [Path(x) for x in (args.model, args.init) if x is not None])
+    if args.models is not None and click is not None:
+        raise UsageError("--click seeds one object; with --models give a coarse --init for the scene, or no seed")
+    if args.instances is not None and args.models is None:
+        raise UsageError("--instances needs --models (a models folder for the objects it names)")
+    inputs = [Path(x) for x in (args.model, args.init, args.instances) if x is not None]
+    check_outputs_spare_inputs(out, Path(args.scene), inputs)
     created = prepare_out_dir(out)
     try:
+        if args.models is not None:
+            from autoalign.cli.refine_scene import refine_scene_into
+
+            return refine_scene_into(args, out, t_start)
         return _refine_into(args, out, click, t_start)
     except BaseException:
         _remove_empty_dirs(created)
@@ -479,7 +509,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
     seed_info: dict[str, Any] = {"kind": "hull", "init_file": None, "click": None, "pose": None}
     if args.init is not None:
         seed = read_init_pose(args.init, scene, args.obj_id, args.instance)
-        seed_info.update(kind="init", init_file=str(Path(args.init).absolute()), pose=_pose(seed))
+        seed_info.update(kind="init", init_file=str(Path(args.init).absolute()), pose=pose_record(seed))
     elif click is not None:
         from autoalign.camera import uv_to_opencv
         from autoalign.seeding import check_click
@@ -497,7 +527,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
     from autoalign.se3 import rotation_angle_deg, transform_points
 
     options = RefineOptions(loss=args.loss, optimizer=args.optimizer, robust=not args.no_robust)
-    progress = _Progress(enabled=not args.quiet)
+    progress = ProgressBar(enabled=not args.quiet)
     progress.start("loading the renderer" if seed_info["kind"] == "init" else "seeding")
     try:
         result = refine(scene, mesh, seed, options, progress=progress)
@@ -520,7 +550,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
     if result.runner_up is not None:
         Ru = np.asarray(result.runner_up.T_final, float)
         c = mesh.centre[None]
-        runner = {"pose": _pose(Ru), "loss": result.runner_up.loss, "mean_iou": result.runner_up.mean_iou,
+        runner = {"pose": pose_record(Ru), "loss": result.runner_up.loss, "mean_iou": result.runner_up.mean_iou,
                   "stage": result.runner_up.stage,
                   "rotation_deg": rotation_angle_deg(result.T_wm[:3, :3], Ru[:3, :3]),
                   "translation_mm": float(np.linalg.norm(transform_points(result.T_wm, c) - transform_points(Ru, c)))}
@@ -557,9 +587,9 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
         "instance": args.instance,
         "units": "mm; poses are world-from-model, world = the frame of scene_camera.json",
         "pixel_convention": PIXEL_CONVENTION,
-        "pose": _pose(result.T_wm),
+        "pose": pose_record(result.T_wm),
         "pose_first_camera": first,
-        "pose_before": _pose(result.T_init),
+        "pose_before": pose_record(result.T_init),
         "seed": seed_info,
         "image_ids": ids,
         "iou_before": iou_b,
@@ -575,18 +605,18 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
         "renders": result.renders,
         "timings": timings,
         "hypotheses": [{"rank": k, "stage": h.stage, "loss": h.loss, "mean_iou": h.mean_iou,
-                        "pose_init": _pose(h.T_init), "pose": _pose(h.T_final)}
+                        "pose_init": pose_record(h.T_init), "pose": pose_record(h.T_final)}
                        for k, h in enumerate(result.hypotheses)],
         "ambiguous": bool(result.ambiguous),
         "runner_up": runner,
         "options": options,
         "history": result.history,
         "outputs": {"scene_gt": "scene_gt.json", "refine": "refine.json", "overlay": "overlay.png"},
-        "warnings": list(_WARNINGS) + [_one_line(n) for n in notes],
+        "warnings": list(WARNINGS) + [one_line(n) for n in notes],
     }
     files = {
-        "scene_gt.json": json.dumps(_jsonable(scene_gt), indent=1).encode(),
-        "refine.json": json.dumps(_jsonable(report), indent=1, allow_nan=False).encode(),
+        "scene_gt.json": json.dumps(jsonable(scene_gt), indent=1).encode(),
+        "refine.json": json.dumps(jsonable(report), indent=1, allow_nan=False).encode(),
         "overlay.png": encode_png(overlay),
     }
     paths = write_outputs(out, files)
@@ -604,7 +634,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
                         "refine": str(paths["refine.json"].absolute()),
                         "overlay": str(paths["overlay.png"].absolute())},
         }
-        print(json.dumps(_jsonable(summary), allow_nan=False), flush=True)
+        print(json.dumps(jsonable(summary), allow_nan=False), flush=True)
     elif not args.quiet:
         R = T_cm[:3, :3]
         rows = "\n".join("    [" + ", ".join(f"{x:+.6f}" for x in r) + "]" for r in R)
@@ -616,7 +646,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
               f"time {elapsed:.1f} s ({result.iterations} iterations, {result.renders} renders)\n"
               f"wrote {', '.join(OUTPUT_FILES)} to {out}", flush=True)
     for note in notes:
-        _warn(note)
+        warn(note)
     return 0
 
 

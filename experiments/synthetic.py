@@ -17,7 +17,8 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import ArrayLike, NDArray
 
-from autoalign.bop import Scene, write_scene
+from autoalign.atomic_files import write_json_atomic
+from autoalign.bop import Scene, pose_in_camera, write_scene
 from autoalign.camera import Camera, look_at
 from autoalign.mesh import Mesh
 from autoalign.se3 import make_pose, transform_points
@@ -306,3 +307,50 @@ def perturb_pose(T_wm: ArrayLike, trans_mm: float, rot_deg: float, rng: np.rando
     R = axis_angle_matrix(r_axis, np.radians(rot_deg))
     delta = make_pose(R, c_w + trans_mm * t_dir - R @ c_w)
     return delta @ T_wm
+
+
+# --------------------------------------------------------------------------------------------
+# Multi-object scenes
+# --------------------------------------------------------------------------------------------
+
+def raycast_visible_masks(meshes: Sequence[Mesh], poses: Sequence[ArrayLike],
+                          cameras: Sequence[Camera]) -> list[list[NDArray[np.bool_]]]:
+    """Visible masks ``[view][instance]`` of several meshes placed by ``poses``: open3d casts one
+    ray per pixel centre against all of them, and a pixel belongs to the nearest surface hit."""
+    scene = o3d.t.geometry.RaycastingScene()
+    ids = [scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(transform_points(T, m.vertices), np.float32)),
+                               o3d.core.Tensor(np.ascontiguousarray(m.faces, np.uint32)))
+           for m, T in zip(meshes, poses)]
+    out = []
+    for cam in cameras:
+        o, d = pixel_rays(cam)
+        rays = np.empty((len(d), 6), dtype=np.float32)
+        rays[:, :3] = o
+        rays[:, 3:] = d
+        hit = scene.cast_rays(o3d.core.Tensor(rays))
+        geom = hit["geometry_ids"].numpy().reshape(cam.height, cam.width)
+        hit_any = np.isfinite(hit["t_hit"].numpy()).reshape(cam.height, cam.width)
+        out.append([hit_any & (geom == g) for g in ids])
+    return out
+
+
+def write_multi_scene(out_dir: str | Path, meshes: Sequence[Mesh], obj_ids: Sequence[int],
+                      poses: Sequence[ArrayLike], cameras: Sequence[Camera]) -> list[list[NDArray[np.bool_]]]:
+    """A BOP scene folder of several objects: ``scene_camera.json``, ``scene_gt.json`` (every
+    instance in every image, entry k = instance k) and ``mask_visib/{im:06d}_{k:06d}.png`` visible
+    masks (written only where non-empty); returns the masks ``[view][instance]``."""
+    out_dir = Path(out_dir)
+    (out_dir / "mask_visib").mkdir(parents=True, exist_ok=True)
+    masks = raycast_visible_masks(meshes, poses, cameras)
+    ids = list(range(len(cameras)))
+    write_scene(out_dir, Scene(list(cameras), [np.zeros((c.height, c.width), np.float32) for c in cameras], ids),
+                np.eye(4), write_masks=False)
+    gt = {}
+    for im, cam, per_view in zip(ids, cameras, masks):
+        gt[str(im)] = [dict(zip(("obj_id", "cam_R_m2c", "cam_t_m2c"), (int(o), *pose_in_camera(np.asarray(T), cam))))
+                       for o, T in zip(obj_ids, poses)]
+        for k, m in enumerate(per_view):
+            if m.any():
+                cv2.imwrite(str(out_dir / "mask_visib" / f"{im:06d}_{k:06d}.png"), m.astype(np.uint8) * 255)
+    write_json_atomic(out_dir / "scene_gt.json", gt)
+    return masks

@@ -24,7 +24,7 @@ paper's left-multiplied exponential ``exp(hat(xi')) T`` with ``xi' = (v - w x c,
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -67,6 +67,18 @@ class Silhouettes:
     @property
     def n_views(self) -> int:
         return len(self.crops)
+
+    def without(self, ignored: NDArray[np.bool_]) -> "Silhouettes":
+        """These silhouettes with the flat pixels ``ignored`` (P,) set to 0 and fixed (out of the band):
+        where a pixel is not compared with its target, it must not weigh in the loss either way."""
+        if not ignored.any():
+            return self
+        keep = ~ignored[self.band]
+        soft, hard = self.soft.copy(), self.hard.copy()
+        soft[ignored] = 0.0
+        hard[ignored] = False
+        return replace(self, soft=soft, hard=hard, band=self.band[keep], jac=self.jac[keep],
+                       view_of_band=self.view_of_band[keep])
 
     def view_of_pixel(self) -> NDArray[np.int64]:
         """(P,) view index of every flat pixel."""

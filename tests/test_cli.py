@@ -272,6 +272,31 @@ def _bad_units(d, tmp):
     return {"seed": ["--init", str(d.init), "--units", "cm"]}, "--units"
 
 
+def _bad_models_folder_missing(d, tmp):
+    return {"model": None, "seed": ["--models", str(tmp / "no_models"), "--init", str(d.init)]}, "no_models"
+
+
+def _bad_models_folder_lacks_the_object(d, tmp):
+    (tmp / "models").mkdir()
+    return {"model": None, "seed": ["--models", str(tmp / "models"), "--init", str(d.init)]}, "obj_000001.ply"
+
+
+def _bad_instances_without_models(d, tmp):
+    f = tmp / "instances.json"
+    f.write_text('{"instances": {"0": 1}}')
+    return {"seed": ["--init", str(d.init), "--instances", str(f)]}, "--instances"
+
+
+def _bad_click_with_models(d, tmp):
+    return {"model": None, "seed": ["--models", str(d.root), "--click", "0:160,120"]}, "--click"
+
+
+def _bad_instances_file_malformed(d, tmp):
+    f = tmp / "instances.json"
+    f.write_text('{"instances": ["obj 1"]}')
+    return {"model": None, "seed": ["--models", str(d.root), "--instances", str(f)]}, "instances.json"
+
+
 BAD_INPUTS = {name[5:]: fn for name, fn in dict(globals()).items() if name.startswith("_bad_")}
 
 

@@ -1,0 +1,86 @@
+"""The verdict on one refined pose: ``ok``, ``check`` or ``failed``, with the reasons, so that a
+person only needs to look at the flagged ones.
+
+The rules read the fit itself, never a ground truth: the IoU of the silhouette with the masks
+(median over the views, since real segmenter masks fail in some views), how many views the
+robust weights set aside, whether another pose fits as well, and how many views had no mask.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+FAILED_IOU = 0.5
+"""Median IoU below this: the silhouette does not match the masks; the pose is taken as wrong."""
+CHECK_IOU = 0.75
+"""Median IoU below this: a loose fit, to be looked at."""
+LOW_WEIGHT = 0.3
+"""A view whose robust weight (mean 1) ends below this, with an IoU under ``LOW_WEIGHT_MAX_IOU``,
+is counted as set aside: its mask disagrees with the others."""
+LOW_WEIGHT_MAX_IOU = 0.95
+SET_ASIDE_FRACTION = 0.3
+"""More than this fraction of views set aside (or without a mask): too little agrees to trust it."""
+MIN_VIEWS = 3
+"""Fewer views with a mask than this cannot fix a 6-DoF pose from silhouettes."""
+
+
+@dataclass
+class Verdict:
+    """``status`` is ``ok``, ``check`` or ``failed``; ``reasons`` say why (for ``ok``, what was
+    noticed without putting the pose in doubt);
+    ``set_aside`` lists the image ids whose masks disagreed (low weight) or were empty."""
+
+    status: str
+    reasons: list[str] = field(default_factory=list)
+    set_aside: list[int] = field(default_factory=list)
+
+
+def judge(iou_after: NDArray[np.float64], weights: NDArray[np.float64], image_ids: list[int],
+          empty_ids: tuple[int, ...] = (), ambiguous: bool = False, symmetric: bool = False) -> Verdict:
+    """The verdict on one pose from its per-view IoU and robust weights (see the module doc).
+
+    Args:
+        iou_after: (N,) hard IoU per used view.
+        weights: (N,) final robust weights (mean 1).
+        image_ids: the N views' image ids.
+        empty_ids: image ids whose mask was empty (treated as missing).
+        ambiguous: another, clearly different pose fits almost as well.
+        symmetric: the model's symmetries explain such a runner-up (not a reason to check).
+    """
+    iou = np.asarray(iou_after, dtype=np.float64)
+    w = np.asarray(weights, dtype=np.float64)
+    reasons: list[str] = []
+    low = [int(i) for i, wi, a in zip(image_ids, w, iou) if wi < LOW_WEIGHT and a < LOW_WEIGHT_MAX_IOU]
+    n_all = len(iou) + len(empty_ids)
+    failed = False
+    if len(iou) < MIN_VIEWS:
+        reasons.append(f"only {len(iou)} view(s) with a mask (at least {MIN_VIEWS} needed)")
+        failed = True
+    med = float(np.median(iou)) if len(iou) else 0.0
+    if med < FAILED_IOU:
+        reasons.append(f"silhouettes do not match the masks: median IoU {med:.2f} < {FAILED_IOU}")
+        failed = True
+    elif med < CHECK_IOU:
+        reasons.append(f"loose fit: median IoU {med:.2f} < {CHECK_IOU}")
+    if low:
+        reasons.append(f"{len(low)} view(s) down-weighted, their masks disagree with the others: image ids "
+                       + ", ".join(map(str, low[:12])) + (" ..." if len(low) > 12 else ""))
+    if empty_ids:
+        reasons.append(f"{len(empty_ids)} view(s) with an empty mask treated as missing: image ids "
+                       + ", ".join(map(str, list(empty_ids)[:12])) + (" ..." if len(empty_ids) > 12 else ""))
+    set_aside = sorted(set(low) | set(int(i) for i in empty_ids))
+    too_many = n_all > 0 and len(set_aside) > SET_ASIDE_FRACTION * n_all
+    if ambiguous and not symmetric:
+        reasons.append("ambiguous: a clearly different pose fits almost as well")
+    if failed:
+        status = "failed"
+    elif med < CHECK_IOU or too_many or (ambiguous and not symmetric):
+        status = "check"
+        if too_many:
+            reasons.append(f"{len(set_aside)} of {n_all} views set aside (more than {SET_ASIDE_FRACTION:.0%})")
+    else:
+        status = "ok"
+    return Verdict(status, reasons, set_aside)

@@ -1,0 +1,136 @@
+"""``autoalign refine SCENE --models DIR``: every instance of a multi-object scene, with verdicts.
+
+Reads the instances (:mod:`autoalign.instances`), refines each (:mod:`autoalign.scene_refine`),
+and writes ``scene_gt.json`` (every instance in every image), ``refine.json`` (per instance: pose,
+per-view IoU and weights, verdict and reasons, timings) and ``overlay.png`` (every instance in its
+own colour, labelled with its verdict) atomically. A ``check`` or ``failed`` verdict is printed
+and exits 3, so that no script takes a doubtful label for a good one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+from autoalign import __version__
+from autoalign.cli.main import WARNINGS, ProgressBar, jsonable, one_line, pose_record, warn, write_outputs
+
+EXIT_FLAGGED = 3
+"""Exit status when every output was written but some instance is ``check`` or ``failed``."""
+
+
+def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> int:
+    """Run the multi-object refinement of ``args`` and write its outputs into ``out``."""
+    import numpy as np
+
+    from autoalign.camera import PIXEL_CONVENTION
+    from autoalign.engine import RefineOptions
+    from autoalign.instances import read_init_poses, read_instance_scenes, read_instances
+    from autoalign.models import ModelSet
+
+    scene_dir = Path(args.scene)
+    instances = read_instances(scene_dir, Path(args.instances) if args.instances else None)
+    found = read_instance_scenes(scene_dir, instances)
+    models = ModelSet.read(args.models, args.units)
+    for inst in found.instances:
+        models.mesh(inst.obj_id)  # every model present and readable before the slow part
+    seeds = read_init_poses(args.init, found) if args.init is not None else {}
+    missing = [i.index for i in found.instances if i.index not in seeds]
+    if args.init is not None and missing:
+        warn(f"{args.init} gives no pose for instance(s) {', '.join(map(str, missing))}; they are searched "
+             "from their masks instead")
+
+    from autoalign.overlay import encode_png, instance_label, render_instances_overlay
+    from autoalign.scene_refine import refine_instances
+
+    options = RefineOptions(loss=args.loss, optimizer=args.optimizer, robust=not args.no_robust)
+    progress = ProgressBar(enabled=not args.quiet)
+    progress.start("loading the renderer")
+    try:
+        results = refine_instances(found, models, seeds, options, progress)
+        progress("overlay", 0, 1)
+        t0 = time.perf_counter()
+        overlay = _overlay(found, models, results, scene_dir, render_instances_overlay, instance_label)
+        progress("overlay", 1, 1)
+    finally:
+        progress.close()
+    t_overlay = time.perf_counter() - t0
+
+    from autoalign.bop import pose_in_camera
+
+    scene_gt = {str(im): [dict(zip(("obj_id", "cam_R_m2c", "cam_t_m2c"), (r.instance.obj_id, *pose_in_camera(r.result.T_wm, cam))))
+                          for r in results]
+                for im, cam in zip(found.image_ids, found.cameras)}
+    records = []
+    for pos, r in enumerate(results):
+        res = r.result
+        records.append({
+            "instance": r.instance.index, "obj_id": r.instance.obj_id, "scene_gt_position": pos,
+            "model": str(models.path(r.instance.obj_id).absolute()),
+            "verdict": r.verdict.status, "reasons": r.verdict.reasons, "set_aside_ids": r.verdict.set_aside,
+            "pose": pose_record(res.T_wm), "pose_before": pose_record(res.T_init),
+            "seed": "init" if r.instance.index in seeds else "hull",
+            "image_ids": [int(i) for i in res.image_ids], "iou_before": res.iou_before, "iou_after": res.iou_after,
+            "weights": res.weights, "median_iou_after": float(np.median(res.iou_after)),
+            "empty_masks": [int(i) for i in found.scenes[pos].empty],
+            "ambiguous": bool(res.ambiguous), "symmetric": models.symmetric(r.instance.obj_id),
+            "iterations": res.iterations, "renders": res.renders, "timings": {**res.timings, "instance": r.seconds},
+        })
+    flagged = [r for r in results if r.verdict.status != "ok"]
+    report = {
+        "autoalign_version": __version__,
+        "scene_dir": str(scene_dir.absolute()), "models": str(Path(args.models).absolute()),
+        "units": "mm; poses are world-from-model, world = the frame of scene_camera.json",
+        "pixel_convention": PIXEL_CONVENTION,
+        "image_scale": found.scenes[0].image_scale if found.scenes else 1.0,
+        "instances_from": str(Path(args.instances).absolute()) if args.instances else "scene_gt.json of the scene",
+        "unmodelled_instances": found.unmodelled,
+        "instances": records,
+        "options": options,
+        "timings": {"total": time.perf_counter() - t_start, "overlay": t_overlay},
+        "outputs": {"scene_gt": "scene_gt.json", "refine": "refine.json", "overlay": "overlay.png"},
+        "warnings": list(WARNINGS),
+    }
+    write_outputs(out, {"scene_gt.json": json.dumps(jsonable(scene_gt), indent=1).encode(),
+                        "refine.json": json.dumps(jsonable(report), indent=1, allow_nan=False).encode(),
+                        "overlay.png": encode_png(overlay)})
+    elapsed = time.perf_counter() - t_start
+    if args.json:
+        print(json.dumps(jsonable({"instances": [{k: rec[k] for k in ("instance", "obj_id", "verdict", "reasons",
+                                                                      "median_iou_after", "pose")}
+                                                 for rec in records],
+                                   "time_s": elapsed, "out_dir": str(out.absolute()),
+                                   "warnings": list(WARNINGS)}), allow_nan=False), flush=True)
+    elif not args.quiet:
+        rows = [f"  obj {rec['obj_id']:>3} (instance {rec['instance']}): {rec['verdict']:<6} median IoU "
+                f"{rec['median_iou_after']:.3f} over {len(rec['image_ids'])} views"
+                + (f"; {'; '.join(rec['reasons'])}" if rec["reasons"] else "") for rec in records]
+        print(f"{len(records)} instance(s) in {len(found.image_ids)} images, {elapsed:.1f} s:\n" + "\n".join(rows)
+              + f"\nwrote scene_gt.json, refine.json, overlay.png to {out}", flush=True)
+    if flagged:
+        warn(f"{len(flagged)} of {len(results)} instance(s) flagged: "
+             + "; ".join(f"obj {r.instance.obj_id} (instance {r.instance.index}) {r.verdict.status}: "
+                         + one_line(", ".join(r.verdict.reasons)) for r in flagged)
+             + "; look at them in overlay.png")
+        return EXIT_FLAGGED
+    return 0
+
+
+def _overlay(found: Any, models: Any, results: list, scene_dir: Path, render: Any, label: Any) -> Any:
+    """The overlay of every instance in up to 9 views spread over the scene."""
+    import numpy as np
+
+    from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+
+    n = len(found.image_ids)
+    views = sorted(set(np.linspace(0, n - 1, min(9, n)).round().astype(int).tolist()))
+    cams = [found.cameras[i] for i in views]
+    layers = []
+    for r, scene in zip(results, found.scenes):
+        rast = SoftSilhouetteRasterizer(models.mesh(r.instance.obj_id))
+        masks = {im: np.asarray(m) > 0.5 for im, m in zip(scene.image_ids, scene.masks)}
+        layers.append((label(r.instance.obj_id, r.verdict.status), masks, np.stack(rast.hard_masks(r.result.T_wm, cams))))
+    return render(found.cameras, found.image_ids, scene_dir, layers, views)

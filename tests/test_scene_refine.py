@@ -1,0 +1,208 @@
+"""Several objects in one scene (issue 13): instances read from scene_gt.json or an instances file,
+other instances' masks ignored, every instance refined with a verdict, ``refine --models``.
+
+The scene: five procedural objects close together on a table so that they hide each other, 24 views
+of 480x360 around them, visible masks from open3d ray casting of all five (a pixel belongs to the
+nearest surface), written as a BOP folder with a models folder beside it.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from autoalign.bop import pose_in_camera
+from autoalign.engine import refine
+from autoalign.errors import AutoalignError
+from autoalign.experiments.metrics import Symmetries, pose_errors
+from autoalign.experiments.procedural_models import load_bop_models_info, procedural_models, write_models
+from autoalign.experiments.synthetic import (default_K, perturb_pose, random_rotation, ring_cameras,
+                                             write_multi_scene)
+from autoalign.instances import Instance, read_init_poses, read_instance_scenes, read_instances
+from autoalign.mesh import load_mesh
+from autoalign.se3 import make_pose
+from autoalign.verdict import judge
+
+N_OBJ, N_VIEWS, W, H = 5, 24, 480, 360
+
+
+class Multi:
+    root: Path
+    scene: Path
+    models: Path
+    init: Path
+    truth: list[np.ndarray]
+    obj_ids: list[int]
+
+
+@pytest.fixture(scope="module")
+def multi(tmp_path_factory) -> Multi:
+    d = Multi()
+    d.root = tmp_path_factory.mktemp("multi")
+    d.models = d.root / "models"
+    pms = procedural_models()[:N_OBJ]  # box_knob, box_plain, mug, l_bracket, can_plain
+    write_models(d.models, pms)
+    meshes = [load_mesh(d.models / f"obj_{i:06d}.ply") for i in range(1, N_OBJ + 1)]
+    rng = np.random.default_rng(11)
+    d.truth = []
+    for k, m in enumerate(meshes):  # on a circle of 70 mm: neighbours overlap in most views
+        a = 2 * np.pi * k / N_OBJ
+        R = random_rotation(rng)
+        d.truth.append(make_pose(R, np.array([70 * np.cos(a), 70 * np.sin(a), 30.0]) - R @ m.centre))
+    cams = ring_cameras(N_VIEWS, rng, target=(0.0, 0.0, 30.0), K=default_K(W, H, 450.0), width=W, height=H)
+    d.scene = d.root / "scene"
+    d.obj_ids = list(range(1, N_OBJ + 1))
+    write_multi_scene(d.scene, meshes, d.obj_ids, d.truth, cams)
+    coarse = [perturb_pose(T, 10.0, 15.0, rng, m.centre) for T, m in zip(d.truth, meshes)]
+    d.init = d.root / "init_gt.json"
+    d.init.write_text(json.dumps({"0": [dict(zip(("obj_id", "cam_R_m2c", "cam_t_m2c"), (o, *pose_in_camera(T, cams[0]))))
+                                        for o, T in zip(d.obj_ids, coarse)]}))
+    return d
+
+
+def _errors(d: Multi, refine_json: Path) -> list[tuple[float, float]]:
+    info = load_bop_models_info(d.models)
+    rec = json.loads(refine_json.read_text())
+    out = []
+    for r in rec["instances"]:
+        k = r["instance"]
+        mesh = load_mesh(d.models / f"obj_{r['obj_id']:06d}.ply")
+        e = pose_errors(np.asarray(r["pose"]["T_wm"]), d.truth[k], mesh.centre, None,
+                        Symmetries.from_info(info[r["obj_id"]]))
+        out.append((e.pos_err_mm, e.rot_err_deg))
+    return out
+
+
+# ----------------------------------------------------------------------------------- reading
+
+def test_instances_from_scene_gt_and_from_a_file(multi, tmp_path):
+    assert read_instances(multi.scene) == [Instance(k, k + 1) for k in range(N_OBJ)]
+    f = tmp_path / "instances.json"
+    f.write_text(json.dumps({"instances": {"3": 4, "1": 2}}))
+    assert read_instances(multi.scene, f) == [Instance(1, 2), Instance(3, 4)]
+    f.write_text(json.dumps({"objects": [1]}))
+    with pytest.raises(AutoalignError, match="instances.json"):
+        read_instances(multi.scene, f)
+
+
+def test_scene_gt_whose_entry_changes_object_is_an_error(multi, tmp_path):
+    scene = tmp_path / "scene"
+    shutil.copytree(multi.scene, scene)
+    gt = json.loads((scene / "scene_gt.json").read_text())
+    gt["5"][2]["obj_id"] = 9
+    (scene / "scene_gt.json").write_text(json.dumps(gt))
+    with pytest.raises(AutoalignError, match="entry 2 is obj_id 3 in image 0 but 9 in image 5"):
+        read_instances(scene)
+
+
+def test_other_masks_are_ignored_and_missing_views_left_out(multi, tmp_path):
+    """Instance k's ignored pixels are exactly the other masks' pixels its own mask does not cover;
+    an instance without a mask in a view is not in that view; an unmodelled instance still counts."""
+    scene = tmp_path / "scene"
+    shutil.copytree(multi.scene, scene)
+    (scene / "mask_visib" / "000004_000001.png").unlink()
+    cv2.imwrite(str(scene / "mask_visib" / "000006_000001.png"), np.zeros((H, W), np.uint8))
+    found = read_instance_scenes(scene, [Instance(0, 1), Instance(1, 2)])  # instances 2-4 unmodelled
+    assert found.unmodelled == [2, 3, 4]
+    s1 = found.scenes[1]
+    assert 4 not in s1.image_ids and 6 not in s1.image_ids and s1.skipped == (4,) and s1.empty == (6,)
+    for k, im in enumerate(s1.image_ids):
+        own = cv2.imread(str(scene / "mask_visib" / f"{im:06d}_000001.png"), cv2.IMREAD_GRAYSCALE) > 0
+        others = np.zeros_like(own)
+        for j in (0, 2, 3, 4):
+            p = scene / "mask_visib" / f"{im:06d}_{j:06d}.png"
+            if p.is_file():
+                others |= cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 0
+        np.testing.assert_array_equal(s1.masks[k] > 0.5, own)
+        np.testing.assert_array_equal(s1.ignore[k], others & ~own)
+    assert sum(m.any() for m in s1.ignore) > N_VIEWS // 2  # the objects do hide each other
+
+
+def test_init_poses_per_instance(multi):
+    found = read_instance_scenes(multi.scene, read_instances(multi.scene))
+    seeds = read_init_poses(multi.init, found)
+    assert sorted(seeds) == list(range(N_OBJ))
+    for k, T in seeds.items():  # 10 mm / 15 deg off the truth, as written
+        assert 5.0 < np.linalg.norm(T[:3, 3] - multi.truth[k][:3, 3]) < 60.0
+
+
+# ------------------------------------------------------------------------------- refinement
+
+def test_ignoring_other_masks_is_what_makes_occluded_instances_right(multi):
+    """The same start with and without the ignored pixels: with them every instance lands within
+    0.2 mm / 0.2 deg; compared with the whole visible mask, the hidden parts pull some off."""
+    found = read_instance_scenes(multi.scene, read_instances(multi.scene))
+    seeds = read_init_poses(multi.init, found)
+    info = load_bop_models_info(multi.models)
+    worst = {}
+    for ignore in (True, False):
+        errs = []
+        for inst, scene in zip(found.instances, found.scenes):
+            mesh = load_mesh(multi.models / f"obj_{inst.obj_id:06d}.ply")
+            r = refine(scene if ignore else replace(scene, ignore=None), mesh, seeds[inst.index])
+            e = pose_errors(r.T_wm, multi.truth[inst.index], mesh.centre, None, Symmetries.from_info(info[inst.obj_id]))
+            errs.append((e.pos_err_mm, e.rot_err_deg))
+        worst[ignore] = np.max(errs, axis=0)
+    assert worst[True][0] < 0.2 and worst[True][1] < 0.2, worst
+    assert worst[False][0] > 3 * worst[True][0], worst
+
+
+def test_refine_models_from_init_labels_every_instance(multi, tmp_path):
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", str(multi.scene), "--models",
+                        str(multi.models), "--init", str(multi.init), "--out", str(out), "--quiet"],
+                       capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr
+    for e_mm, e_deg in _errors(multi, out / "refine.json"):
+        assert e_mm < 1.0 and e_deg < 1.0
+    rec = json.loads((out / "refine.json").read_text())
+    assert [r["verdict"] for r in rec["instances"]] == ["ok"] * N_OBJ
+    gt = json.loads((out / "scene_gt.json").read_text())
+    assert len(gt) == N_VIEWS and all([e["obj_id"] for e in v] == multi.obj_ids for v in gt.values())
+    overlay = cv2.imread(str(out / "overlay.png"))
+    assert overlay is not None and overlay.shape[0] > 300
+
+
+def test_instance_with_wrong_masks_is_flagged_and_exit_is_3(multi, tmp_path):
+    """Instance 3's masks replaced by instance 1's in 60% of the views (a segmenter that labelled
+    the wrong object): whatever pose it ends at, it is not 'ok', and the command exits 3."""
+    scene = tmp_path / "scene"
+    shutil.copytree(multi.scene, scene)
+    for im in range(0, N_VIEWS):
+        if im % 5 < 3:
+            src = scene / "mask_visib" / f"{im:06d}_000001.png"
+            if src.is_file():
+                shutil.copy(src, scene / "mask_visib" / f"{im:06d}_000003.png")
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", str(scene), "--models", str(multi.models),
+                        "--init", str(multi.init), "--out", str(out), "--quiet"], capture_output=True, text=True,
+                       timeout=600)
+    assert p.returncode == 3, p.stderr
+    rec = json.loads((out / "refine.json").read_text())
+    r3 = next(r for r in rec["instances"] if r["instance"] == 3)
+    assert r3["verdict"] in ("check", "failed") and r3["reasons"]
+    assert "obj 4 (instance 3)" in p.stderr
+
+
+def test_verdict_rules():
+    ids = list(range(10))
+    good = judge(np.full(10, 0.95), np.ones(10), ids)
+    assert good.status == "ok" and good.reasons == []
+    loose = judge(np.full(10, 0.7), np.ones(10), ids)
+    assert loose.status == "check"
+    w = np.ones(10)
+    w[:4] = 0.05
+    aside = judge(np.r_[np.full(4, 0.3), np.full(6, 0.95)], w, ids)
+    assert aside.status == "check" and aside.set_aside == [0, 1, 2, 3]
+    assert judge(np.full(10, 0.3), np.ones(10), ids).status == "failed"
+    assert judge(np.full(2, 0.99), np.ones(2), ids[:2]).status == "failed"
+    assert judge(np.full(10, 0.95), np.ones(10), ids, ambiguous=True).status == "check"
+    assert judge(np.full(10, 0.95), np.ones(10), ids, ambiguous=True, symmetric=True).status == "ok"
