@@ -21,6 +21,7 @@ from autoalign.objective import Evaluation, Level, SilhouetteObjective
 from autoalign.optim import FTOL, OPTIMIZERS, Trace
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 from autoalign.se3 import rotation_angle_deg, transform_points
+from autoalign.uncertainty import Uncertainty, pose_uncertainty
 from autoalign.seeding import Click, click_centre, hull_centre, rotation_grid
 
 DEFAULT_SCHEDULE: tuple[Level, ...] = (Level(0.25, 1.0, 40), Level(1.0, 0.5, 30))
@@ -132,6 +133,7 @@ class RefineResult:
         runner_up: the best hypothesis at a different pose, if any.
         weights: final per-view robust weights (low = the mask disagrees with the rest).
         history: objective and pose per accepted iteration of the winner, per level it went through.
+        uncertainty: covariance and sigmas of the pose (:mod:`autoalign.uncertainty`).
     """
 
     T_wm: NDArray[np.float64]
@@ -147,6 +149,7 @@ class RefineResult:
     weights: NDArray[np.float64]
     history: list[dict[str, Any]] = field(default_factory=list)
     image_ids: list[int] = field(default_factory=list)
+    uncertainty: Uncertainty | None = None
 
 
 def _run_schedule(obj: SilhouetteObjective, T: NDArray[np.float64], levels: tuple[Level, ...], optimizer: str,
@@ -381,10 +384,14 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
     t0 = time.perf_counter()
     iou_before = hard_ious(rast, scene, best.T_init)
     last_level, last_trace = best.path[-1] if best.path else (None, None)
+    full = Level(1.0, levels[-1].sigma, 0)
     if last_trace is not None and last_trace.final is not None and last_level.scale == 1.0 and last_level.max_views is None:
-        iou_after = _hard_ious_of(last_trace.final, scene)
+        final_ev = last_trace.final
     else:
-        iou_after = hard_ious(rast, scene, best.T_final)
+        final_ev = obj.evaluate(best.T_final, full, weights=weights)
+    iou_after = _hard_ious_of(final_ev, scene)
+    uncertainty = pose_uncertainty(final_ev.gn, final_ev.terms.grad, final_ev.weights, final_ev.value,
+                                   len(final_ev.silhouettes.band), best.T_final[:3, :3])
     timings["report"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     history = [{"scale": lv.scale, "sigma": lv.sigma, "values": tr.values, "poses": tr.poses, "iterations": tr.iterations,
@@ -393,4 +400,4 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
         T_wm=best.T_final, T_init=best.T_init, iou_before=iou_before, iou_after=iou_after,
         iterations=sum(tr.iterations for _, tr in best.path), renders=obj.renders, timings=timings,
         hypotheses=hyps, ambiguous=ambiguous, runner_up=runner, weights=weights, history=history,
-        image_ids=list(scene.image_ids))
+        image_ids=list(scene.image_ids), uncertainty=uncertainty)

@@ -12,6 +12,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 from autoalign.errors import AutoalignError
 from autoalign.mesh import Mesh, load_mesh
 
@@ -60,6 +63,14 @@ class ModelSet:
                                      "or leave that instance out of the instances file")
             self._meshes[obj_id] = load_mesh(p, units=self.units)
         return self._meshes[obj_id]
+
+    def continuous_axes(self, obj_id: int) -> tuple[NDArray[np.float64], ...]:
+        """The unit model-frame axes of ``obj_id``'s continuous symmetries (``models_info.json``)."""
+        out = []
+        for c in self.info.get(obj_id, {}).get("symmetries_continuous", []):
+            a = np.asarray(c["axis"], dtype=np.float64)
+            out.append(a / np.linalg.norm(a))
+        return tuple(out)
 
     def symmetric(self, obj_id: int) -> bool:
         """Whether ``models_info.json`` lists symmetries for ``obj_id``."""

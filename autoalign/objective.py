@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 
 from autoalign.bop import Scene
 from autoalign.camera import Camera
-from autoalign.losses import LOSSES, ViewTerms, cauchy_weights, targets_in_crops
+from autoalign.losses import LOSSES, ViewTerms, cauchy_weights, implausible_views, targets_in_crops
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer, Silhouettes
 
 
@@ -131,6 +131,9 @@ class SilhouetteObjective:
         return self.combine(ev.terms, ev.silhouettes) if self.robust else ev
 
     def view_weights(self, terms: ViewTerms) -> NDArray[np.float64]:
-        """Per-view weights (normalised to mean 1) for the current fit."""
-        w = cauchy_weights(1.0 - terms.iou) if self.robust else np.ones(len(terms.iou))
+        """Per-view weights (normalised to mean 1) for the current fit: Cauchy weights on the misfit,
+        and none for a view whose mask is implausible (:func:`~autoalign.losses.implausible_views`)."""
+        if not self.robust:
+            return np.ones(len(terms.iou))
+        w = cauchy_weights(1.0 - terms.iou) * ~implausible_views(terms.iou)
         return w * (len(w) / max(w.sum(), 1e-12))

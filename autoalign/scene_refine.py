@@ -50,6 +50,6 @@ def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, N
 
         result = refine(scene, models.mesh(inst.obj_id), seeds.get(inst.index), options, progress=step)
         verdict = judge(result.iou_after, result.weights, result.image_ids, scene.empty, result.ambiguous,
-                        models.symmetric(inst.obj_id))
+                        models.symmetric(inst.obj_id), result.uncertainty, models.continuous_axes(inst.obj_id))
         out.append(InstanceResult(inst, result, verdict, time.perf_counter() - t0))
     return out

@@ -3,7 +3,8 @@ person only needs to look at the flagged ones.
 
 The rules read the fit itself, never a ground truth: the IoU of the silhouette with the masks
 (median over the views, since real segmenter masks fail in some views), how many views the
-robust weights set aside, whether another pose fits as well, and how many views had no mask.
+robust weights set aside, whether another pose fits as well, how many views had no mask, and how
+large the pose's sigmas are.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+
+from autoalign.uncertainty import Uncertainty
 
 FAILED_IOU = 0.5
 """Median IoU below this: the silhouette does not match the masks; the pose is taken as wrong."""
@@ -25,6 +28,11 @@ SET_ASIDE_FRACTION = 0.3
 """More than this fraction of views set aside (or without a mask): too little agrees to trust it."""
 MIN_VIEWS = 3
 """Fewer views with a mask than this cannot fix a 6-DoF pose from silhouettes."""
+LARGE_SIGMA_MM = 2.0
+"""A position sigma above this (mm, along any direction) leaves the label in doubt ..."""
+LARGE_SIGMA_DEG = 2.0
+"""... and so does an orientation sigma above this (degrees, about any direction that is not an
+axis of continuous symmetry of the model)."""
 
 
 @dataclass
@@ -38,8 +46,22 @@ class Verdict:
     set_aside: list[int] = field(default_factory=list)
 
 
+def largest_sigmas(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.float64], ...] = ()) -> tuple[float, float]:
+    """The largest position sigma (mm) and orientation sigma (degrees) over all directions, the
+    turns about ``free_axes_m`` (unit, model frame: axes of continuous symmetry) left out."""
+    C = uncertainty.covariance
+    P = np.eye(3)
+    for a in free_axes_m:
+        a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
+        P = P @ (np.eye(3) - np.outer(a, a))
+    s_mm = float(np.sqrt(max(np.linalg.eigvalsh(C[:3, :3]).max(), 0.0)))
+    s_rad = float(np.sqrt(max(np.linalg.eigvalsh(P @ C[3:, 3:] @ P.T).max(), 0.0)))
+    return s_mm, float(np.degrees(s_rad))
+
+
 def judge(iou_after: NDArray[np.float64], weights: NDArray[np.float64], image_ids: list[int],
-          empty_ids: tuple[int, ...] = (), ambiguous: bool = False, symmetric: bool = False) -> Verdict:
+          empty_ids: tuple[int, ...] = (), ambiguous: bool = False, symmetric: bool = False,
+          uncertainty: Uncertainty | None = None, free_axes_m: tuple[NDArray[np.float64], ...] = ()) -> Verdict:
     """The verdict on one pose from its per-view IoU and robust weights (see the module doc).
 
     Args:
@@ -49,6 +71,8 @@ def judge(iou_after: NDArray[np.float64], weights: NDArray[np.float64], image_id
         empty_ids: image ids whose mask was empty (treated as missing).
         ambiguous: another, clearly different pose fits almost as well.
         symmetric: the model's symmetries explain such a runner-up (not a reason to check).
+        uncertainty: the pose's covariance (:mod:`autoalign.uncertainty`); large sigmas are a reason.
+        free_axes_m: the model's axes of continuous symmetry, about which any turn is as good.
     """
     iou = np.asarray(iou_after, dtype=np.float64)
     w = np.asarray(weights, dtype=np.float64)
@@ -75,9 +99,16 @@ def judge(iou_after: NDArray[np.float64], weights: NDArray[np.float64], image_id
     too_many = n_all > 0 and len(set_aside) > SET_ASIDE_FRACTION * n_all
     if ambiguous and not symmetric:
         reasons.append("ambiguous: a clearly different pose fits almost as well")
+    uncertain = False
+    if uncertainty is not None:
+        s_mm, s_deg = largest_sigmas(uncertainty, free_axes_m)
+        if s_mm > LARGE_SIGMA_MM or s_deg > LARGE_SIGMA_DEG:
+            uncertain = True
+            reasons.append(f"weakly observed: sigma up to {s_mm:.2g} mm / {s_deg:.2g} deg"
+                           + (f" ({'; '.join(uncertainty.weak)})" if uncertainty.weak else ""))
     if failed:
         status = "failed"
-    elif med < CHECK_IOU or too_many or (ambiguous and not symmetric):
+    elif med < CHECK_IOU or too_many or (ambiguous and not symmetric) or uncertain:
         status = "check"
         if too_many:
             reasons.append(f"{len(set_aside)} of {n_all} views set aside (more than {SET_ASIDE_FRACTION:.0%})")

@@ -440,6 +440,17 @@ def jsonable(obj: Any) -> Any:
     return obj
 
 
+def uncertainty_record(u: Any) -> dict[str, Any] | None:
+    """The ``uncertainty`` entry of ``refine.json`` (see :mod:`autoalign.uncertainty`)."""
+    if u is None:
+        return None
+    return {"sigma_mm": u.sigma_mm, "sigma_deg": u.sigma_deg, "axes": "along / about the model's x, y, z",
+            "weakly_observed": list(u.weak), "covariance": u.covariance,
+            "covariance_of": "twist (v mm, w rad) in the model's axes, about the model centre; cluster-robust "
+                             "(one cluster per view) Gauss-Newton sandwich",
+            "naive_sigma_mm": u.naive_sigma_mm, "naive_sigma_deg": u.naive_sigma_deg}
+
+
 def pose_record(T: Any) -> dict[str, Any]:
     import numpy as np
 
@@ -590,6 +601,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
         "pose": pose_record(result.T_wm),
         "pose_first_camera": first,
         "pose_before": pose_record(result.T_init),
+        "uncertainty": uncertainty_record(result.uncertainty),
         "seed": seed_info,
         "image_ids": ids,
         "iou_before": iou_b,
@@ -643,6 +655,10 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
               f"  cam_t_m2c = [{', '.join(f'{x:.2f}' for x in T_cm[:3, 3])}] mm\n"
               f"IoU over {len(ids)} views: mean {iou_b.mean():.3f} -> {iou_a.mean():.3f}, "
               f"min {iou_b.min():.3f} -> {iou_a.min():.3f} (image {ids[int(np.argmin(iou_a))]})\n"
+              + (f"sigma (model x, y, z): {', '.join(f'{x:.3f}' for x in result.uncertainty.sigma_mm)} mm, "
+                 f"{', '.join(f'{x:.3f}' for x in result.uncertainty.sigma_deg)} deg"
+                 + (f"; weakly observed: {'; '.join(result.uncertainty.weak)}" if result.uncertainty.weak else "")
+                 + "\n" if result.uncertainty is not None else "") +
               f"time {elapsed:.1f} s ({result.iterations} iterations, {result.renders} renders)\n"
               f"wrote {', '.join(OUTPUT_FILES)} to {out}", flush=True)
     for note in notes:

@@ -16,7 +16,8 @@ from pathlib import Path
 from typing import Any
 
 from autoalign import __version__
-from autoalign.cli.main import WARNINGS, ProgressBar, jsonable, one_line, pose_record, warn, write_outputs
+from autoalign.cli.main import (WARNINGS, ProgressBar, jsonable, one_line, pose_record, uncertainty_record, warn,
+                                write_outputs)
 
 EXIT_FLAGGED = 3
 """Exit status when every output was written but some instance is ``check`` or ``failed``."""
@@ -72,6 +73,7 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
             "model": str(models.path(r.instance.obj_id).absolute()),
             "verdict": r.verdict.status, "reasons": r.verdict.reasons, "set_aside_ids": r.verdict.set_aside,
             "pose": pose_record(res.T_wm), "pose_before": pose_record(res.T_init),
+            "uncertainty": uncertainty_record(res.uncertainty),
             "seed": "init" if r.instance.index in seeds else "hull",
             "image_ids": [int(i) for i in res.image_ids], "iou_before": res.iou_before, "iou_after": res.iou_after,
             "weights": res.weights, "median_iou_after": float(np.median(res.iou_after)),
@@ -106,7 +108,8 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
                                    "warnings": list(WARNINGS)}), allow_nan=False), flush=True)
     elif not args.quiet:
         rows = [f"  obj {rec['obj_id']:>3} (instance {rec['instance']}): {rec['verdict']:<6} median IoU "
-                f"{rec['median_iou_after']:.3f} over {len(rec['image_ids'])} views"
+                f"{rec['median_iou_after']:.3f} over {len(rec['image_ids'])} views, sigma up to "
+                f"{max(rec['uncertainty']['sigma_mm']):.2g} mm / {max(rec['uncertainty']['sigma_deg']):.2g} deg"
                 + (f"; {'; '.join(rec['reasons'])}" if rec["reasons"] else "") for rec in records]
         print(f"{len(records)} instance(s) in {len(found.image_ids)} images, {elapsed:.1f} s:\n" + "\n".join(rows)
               + f"\nwrote scene_gt.json, refine.json, overlay.png to {out}", flush=True)

@@ -241,6 +241,18 @@ CORRUPTIONS: dict[str, MaskCorruption] = {
 }
 
 
+def wiggle_mask(mask: NDArray[np.bool_], rng: np.random.Generator, amplitude_px: float = 1.0,
+                correlation_px: float = 6.0) -> NDArray[np.bool_]:
+    """``mask`` with a noisy outline, like a segmenter's: its signed distance (px, positive inside)
+    plus a smooth random field of standard deviation ``amplitude_px`` whose bumps are about
+    ``correlation_px`` wide, thresholded at zero. The outline moves in and out along its length."""
+    m = mask.astype(np.uint8)
+    sdf = cv2.distanceTransform(m, cv2.DIST_L2, 5) - cv2.distanceTransform(1 - m, cv2.DIST_L2, 5)
+    field = cv2.GaussianBlur(rng.standard_normal(mask.shape).astype(np.float32), (0, 0), correlation_px)
+    field *= amplitude_px / max(float(field.std()), 1e-9)
+    return (sdf + field) > 0
+
+
 def corrupt_views(masks: Sequence[NDArray], fraction: float, rng: np.random.Generator,
                   kinds: Sequence[str | MaskCorruption] = ("shift", "erode", "dilate", "occluder"),
                   ) -> tuple[list[NDArray], list[int]]:

@@ -16,3 +16,26 @@ def cauchy_weights(residual: NDArray[np.float64], c: float = 2.0, floor: float =
     r = np.asarray(residual, dtype=np.float64)
     scale = max(float(np.median(r)), floor)
     return 1.0 / (1.0 + (r / (c * scale)) ** 2)
+
+
+IMPLAUSIBLE_IOU = 0.2
+"""A view whose IoU is below this while the pose fits most views is taken for a wrong mask."""
+FITTING_IOU = 0.5
+"""A view fits when its IoU is at least this ..."""
+FITTING_FRACTION = 1.0 / 3.0
+"""... and the pose fits the scene when at least this fraction of the views fit."""
+
+
+def implausible_views(iou: NDArray[np.float64], gate: float = IMPLAUSIBLE_IOU, fitting: float = FITTING_IOU,
+                      fraction: float = FITTING_FRACTION) -> NDArray[np.bool_]:
+    """Views whose mask cannot be this object's: IoU below ``gate`` while the pose fits the scene
+    (at least ``fraction`` of the views have IoU ``fitting`` or more). A segmenter that masked
+    another object, or nothing of this one, gives such views, in real scenes up to half or more
+    of them: Cauchy weights, whose scale is the median misfit, then keep a third of their pull,
+    so they get none. While the pose fits too few views (a far start, a wrong hypothesis), no view
+    is judged this way.
+    """
+    iou = np.asarray(iou, dtype=np.float64)
+    if len(iou) == 0 or np.mean(iou >= fitting) < fraction:
+        return np.zeros(len(iou), dtype=bool)
+    return iou < gate

@@ -1,0 +1,81 @@
+"""The pose covariance means something (issue 13, "Uncertainty"): on scenes whose masks have noisy
+outlines, the true errors fall within 3 sigma as often as a Gaussian's would, and a nearly
+symmetric object names its roll as weakly observed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from autoalign.bop import Scene
+from autoalign.engine import refine
+from autoalign.experiments.procedural_models import procedural_models
+from autoalign.experiments.refine_study import study_meshes
+from autoalign.experiments.synthetic import (make_scene, perturb_pose, random_rotation, ring_cameras, sphere_cameras,
+                                             wiggle_mask)
+from autoalign.mesh import mesh_from_trimesh
+from autoalign.se3 import make_pose, so3_log
+from autoalign.uncertainty import weak_directions
+
+
+def _noisy_scene(mesh, k: int, views: int = 24):
+    rng = np.random.default_rng([7, k])
+    R = random_rotation(rng)
+    T = make_pose(R, -R @ mesh.centre)
+    cams = sphere_cameras(views, rng) if k % 2 == 0 else ring_cameras(views, rng)
+    scene = make_scene(mesh, T, cams)
+    noisy = [wiggle_mask(m > 0.5, rng, amplitude_px=1.0, correlation_px=6.0).astype(np.float32) for m in scene.masks]
+    return Scene(scene.cameras, noisy, scene.image_ids), T, rng
+
+
+def _model_frame_errors(T_est, T_gt, centre):
+    """Position error along and rotation error (degrees) about the model's axes."""
+    e_t = T_gt[:3, :3].T @ ((T_est[:3, :3] @ centre + T_est[:3, 3]) - (T_gt[:3, :3] @ centre + T_gt[:3, 3]))
+    return e_t, np.degrees(so3_log(T_gt[:3, :3].T @ T_est[:3, :3]))
+
+
+def test_errors_fall_within_3_sigma_on_noisy_outlines():
+    """8 scenes (procedural and LINEMOD models), outlines moved in and out by about 1 px: at least
+    85% of the 48 per-axis errors lie within 3 sigma; the naive residual-variance sigma, which
+    takes pixels as independent, covers far fewer (why the cluster-robust estimate is reported)."""
+    meshes = study_meshes()
+    z, z_naive = [], []
+    for k in range(8):
+        mesh = meshes[k % len(meshes)]
+        scene, T, rng = _noisy_scene(mesh, k)
+        r = refine(scene, mesh, perturb_pose(T, 10.0, 15.0, rng, mesh.centre))
+        e_t, e_r = _model_frame_errors(r.T_wm, T, mesh.centre)
+        u = r.uncertainty
+        z.append(np.abs(np.r_[e_t / u.sigma_mm, e_r / u.sigma_deg]))
+        z_naive.append(np.abs(np.r_[e_t / u.naive_sigma_mm, e_r / u.naive_sigma_deg]))
+    within = float(np.mean(np.array(z) < 3.0))
+    assert within >= 0.85, within
+    assert float(np.mean(np.array(z_naive) < 3.0)) < within - 0.3
+    assert float(np.median(z)) > 0.2  # not covering by being huge: a Gaussian's median |z| is 0.67
+
+
+@pytest.mark.parametrize("k", range(3))
+def test_flashlight_roll_converges_or_is_named_weak(k):
+    """A flashlight (a cylinder with a small button) started 25 degrees off: either within 1 degree,
+    or its roll about the model axis is named as weakly observed with a sigma covering the error."""
+    pm = next(m for m in procedural_models() if m.name == "flashlight")
+    mesh = mesh_from_trimesh(pm.mesh, pm.name)
+    rng = np.random.default_rng([3, k])
+    R = random_rotation(rng)
+    T = make_pose(R, -R @ mesh.centre)
+    scene = make_scene(mesh, T, ring_cameras(24, rng))
+    scene = Scene(scene.cameras, [wiggle_mask(m > 0.5, rng).astype(np.float32) for m in scene.masks], scene.image_ids)
+    r = refine(scene, mesh, perturb_pose(T, 10.0, 25.0, rng, mesh.centre))
+    _, e_r = _model_frame_errors(r.T_wm, T, mesh.centre)
+    u = r.uncertainty
+    assert any(w.startswith("turn about model z") for w in u.weak), u.weak  # its axis is model z
+    if np.linalg.norm(e_r) >= 1.0:
+        assert abs(e_r[2]) < 3.0 * u.sigma_deg[2], (e_r, u.sigma_deg)
+
+
+def test_weak_directions_named_by_model_axis():
+    c = np.diag([0.02, 0.02, 0.03, np.radians(0.03), np.radians(0.03), np.radians(0.4)]) ** 2
+    assert weak_directions(c) == ["turn about model z: 0.4 deg"]
+    c[0, 0] = 3.0 ** 2
+    assert weak_directions(c) == ["turn about model z: 0.4 deg", "shift along model x: 3 mm"]
+    assert weak_directions(np.diag([0.02, 0.02, 0.03, 0.0005, 0.0005, 0.0006]) ** 2) == []
