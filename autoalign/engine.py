@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 from autoalign.bop import Scene
 from autoalign.errors import AutoalignError
-from autoalign.hypotheses import best_poses, flips, orbit, polish_poses, poses_at
+from autoalign.hypotheses import best_poses, flips, orbit, polish_poses, poses_at, score_poses, turns
 from autoalign.mesh import Mesh
 from autoalign.losses import targets_in_crops
 from autoalign.objective import Evaluation, Level, SilhouetteObjective
@@ -57,6 +57,10 @@ class RefineOptions:
         flips: after the search level, also refine the best hypothesis turned half a turn about
             each principal axis of the mesh (the search otherwise settled on such a flip of thin
             or flat objects in 2 of 44 simulated trials).
+        weak_turns: from a given pose, the result turned by these angles (degrees) about each weakly
+            observed axis (:mod:`autoalign.uncertainty`) is scored by hard IoU at 1/4 resolution, and
+            the best turn, if it beats the result by ``orbit_margin``, is refined too: a nearly
+            symmetric object can settle where its distinguishing detail is out of sight. ``()``: off.
         orbits: when the runner-up reached the last level within ``competitive`` of the best (a
             loss estimated from one render there can be off by 10%) and is a 1/n turn (n = 3..12) away,
             try the other poses of that turn's orbit (see :func:`~autoalign.hypotheses.orbit`)
@@ -88,6 +92,7 @@ class RefineOptions:
     flips: bool = True
     orbits: bool = True
     orbit_margin: float = 0.001
+    weak_turns: tuple[float, ...] = (30.0, 60.0, 90.0, 120.0, 150.0, 180.0, -150.0, -120.0, -90.0, -60.0, -30.0)
     coarse_faces: int = 5000
     search_faces: int = 1500
     fine_faces: int | None = 20000
@@ -300,6 +305,18 @@ def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple
     return scored, dropped
 
 
+def _final_state(obj: SilhouetteObjective, best: Hypothesis, weights: NDArray[np.float64], levels: tuple[Level, ...],
+                 scene: Scene) -> tuple[Evaluation, Uncertainty]:
+    """The full-resolution evaluation at the best pose (the optimiser's last one when it has it)
+    and the pose's uncertainty from it."""
+    last_level, last_trace = best.path[-1] if best.path else (None, None)
+    if last_trace is not None and last_trace.final is not None and last_level.scale == 1.0 and last_level.max_views is None:
+        ev = last_trace.final
+    else:
+        ev = obj.evaluate(best.T_final, Level(1.0, levels[-1].sigma, 0), weights=weights)
+    return ev, pose_uncertainty(ev.gn, ev.terms.grad, ev.weights, ev.value, len(ev.silhouettes.band), best.T_final[:3, :3])
+
+
 def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions | None = None,
            progress: Progress | None = None) -> RefineResult:
     """Find the world-from-model pose of ``mesh`` whose silhouettes match the masks of ``scene``.
@@ -377,21 +394,27 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
                 final.extend(polished)
                 final.sort(key=lambda x: x[0].rank())
                 ranked, runner, ambiguous = judge()
-    timings["refine"] = time.perf_counter() - t0
     best, weights = final[0]
+    final_ev, uncertainty = _final_state(obj, best, weights, levels, scene)
+    if len(starts) == 1 and opts.weak_turns and uncertainty.weak_turn_axes:
+        cands = np.concatenate([turns(best.T_final, a, mesh.centre, opts.weak_turns) for a in uncertainty.weak_turn_axes])
+        scores, _ = score_poses(coarse, scene, np.concatenate([best.T_final[None], cands]), scale=0.25, recentre=False)
+        k = int(np.argmax(scores[1:]))
+        if scores[1 + k] > scores[0] + opts.orbit_margin:
+            polished, _ = _polish(obj, [Hypothesis(best.T_init, cands[k], float("nan"), float("nan"), "weak turn",
+                                                   best.path)], levels[-1:], opts, progress, "refine weak turn")
+            final.extend(polished)
+            final.sort(key=lambda x: x[0].rank())
+            ranked, runner, ambiguous = judge()
+            if final[0][0] is not best:
+                best, weights = final[0]
+                final_ev, uncertainty = _final_state(obj, best, weights, levels, scene)
+    timings["refine"] = time.perf_counter() - t0
     hyps = ranked
 
     t0 = time.perf_counter()
     iou_before = hard_ious(rast, scene, best.T_init)
-    last_level, last_trace = best.path[-1] if best.path else (None, None)
-    full = Level(1.0, levels[-1].sigma, 0)
-    if last_trace is not None and last_trace.final is not None and last_level.scale == 1.0 and last_level.max_views is None:
-        final_ev = last_trace.final
-    else:
-        final_ev = obj.evaluate(best.T_final, full, weights=weights)
     iou_after = _hard_ious_of(final_ev, scene)
-    uncertainty = pose_uncertainty(final_ev.gn, final_ev.terms.grad, final_ev.weights, final_ev.value,
-                                   len(final_ev.silhouettes.band), best.T_final[:3, :3])
     timings["report"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     history = [{"scale": lv.scale, "sigma": lv.sigma, "values": tr.values, "poses": tr.poses, "iterations": tr.iterations,

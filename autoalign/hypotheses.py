@@ -37,6 +37,14 @@ def flips(T_wm: NDArray[np.float64], axes_m: NDArray[np.float64], centre_m: NDAr
     return np.stack(out)
 
 
+def turns(T_wm: NDArray[np.float64], axis_m: NDArray[np.float64], centre_m: NDArray[np.float64],
+          angles_deg: tuple[float, ...]) -> NDArray[np.float64]:
+    """``T_wm`` turned by each of ``angles_deg`` about the model axis ``axis_m`` through the model
+    point ``centre_m``, (K, 4, 4)."""
+    a = np.asarray(axis_m, dtype=np.float64) / np.linalg.norm(axis_m)
+    return np.stack([T_wm @ _turn_about(so3_exp(a * np.radians(t)), centre_m) for t in angles_deg])
+
+
 def orbit(T_a: NDArray[np.float64], T_b: NDArray[np.float64], max_order: int = 12,
           tol_deg: float = 3.0) -> NDArray[np.float64]:
     """The other poses of the cyclic group that two near-equal fits suggest, (K, 4, 4).

@@ -43,6 +43,7 @@ class Uncertainty:
         sigma_mm: (3,) standard deviation of the position along the model's x, y, z (mm).
         sigma_deg: (3,) standard deviation of the orientation about the model's x, y, z (degrees).
         weak: the weakly observed directions, e.g. ``"turn about model z: 12.3 deg"``.
+        weak_turn_axes: the unit model-frame axes of the weakly observed turns, in that order.
         naive_sigma_mm / naive_sigma_deg: the same from the residual-variance estimate (for comparison).
     """
 
@@ -50,6 +51,7 @@ class Uncertainty:
     sigma_mm: NDArray[np.float64]
     sigma_deg: NDArray[np.float64]
     weak: list[str] = field(default_factory=list)
+    weak_turn_axes: list[NDArray[np.float64]] = field(default_factory=list)
     naive_sigma_mm: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
     naive_sigma_deg: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
 
@@ -78,6 +80,12 @@ def weak_directions(cov_m: NDArray[np.float64], weak_mm: float = WEAK_MM, weak_d
                     ratio: float = WEAK_RATIO) -> list[str]:
     """The principal directions of the position and orientation blocks whose sigma is large, in
     absolute terms or against the best observed direction of the block; largest first."""
+    return [text for text, _ in _weak(cov_m, weak_mm, weak_deg, ratio)]
+
+
+def _weak(cov_m: NDArray[np.float64], weak_mm: float = WEAK_MM, weak_deg: float = WEAK_DEG,
+          ratio: float = WEAK_RATIO) -> list[tuple[str, NDArray[np.float64]]]:
+    """:func:`weak_directions` with each direction's unit model-frame vector (turns first)."""
     out = []
     for block, unit, limit, what in ((slice(3, 6), np.degrees(1.0), weak_deg, "turn about"),
                                      (slice(0, 3), 1.0, weak_mm, "shift along")):
@@ -86,7 +94,7 @@ def weak_directions(cov_m: NDArray[np.float64], weak_mm: float = WEAK_MM, weak_d
         for lam, u in sorted(zip(vals, vecs.T), key=lambda x: -x[0]):
             s = float(np.sqrt(max(lam, 0.0))) * unit
             if s > limit or s > ratio * best:
-                out.append(f"{what} {_direction_name(u)}: {s:.2g} {'deg' if what == 'turn about' else 'mm'}")
+                out.append((f"{what} {_direction_name(u)}: {s:.2g} {'deg' if what == 'turn about' else 'mm'}", u))
     return out
 
 
@@ -110,4 +118,5 @@ def pose_uncertainty(H: NDArray[np.float64], view_grads: NDArray[np.float64], we
     naive = _to_model(H_inv * (2.0 * value / max(n_band - 6, 1)), R_wm)
     s_mm, s_deg = _sigmas(cov)
     n_mm, n_deg = _sigmas(naive)
-    return Uncertainty(cov, s_mm, s_deg, weak_directions(cov), n_mm, n_deg)
+    weak = _weak(cov)
+    return Uncertainty(cov, s_mm, s_deg, [t for t, _ in weak], [u for t, u in weak if t.startswith("turn")], n_mm, n_deg)
