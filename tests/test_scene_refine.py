@@ -206,3 +206,18 @@ def test_verdict_rules():
     assert judge(np.full(2, 0.99), np.ones(2), ids[:2]).status == "failed"
     assert judge(np.full(10, 0.95), np.ones(10), ids, ambiguous=True).status == "check"
     assert judge(np.full(10, 0.95), np.ones(10), ids, ambiguous=True, symmetric=True).status == "ok"
+
+
+def test_masks_failing_like_sam_leave_poses_right_or_flagged(tmp_path):
+    """A five-object scene whose masks fail at the rates measured on the real scenes (42% of the
+    masks: empty, another object's, a part missed, leaking, shifted): every instance is within
+    2 mm / 2 deg or its verdict is not ok (here a flashlight 11 deg off in roll is 'check')."""
+    from autoalign.experiments.sam_failures import MEASURED_RATES, measure_rates, run_scene, within
+
+    real = Path(__file__).resolve().parents[2] / "shared" / "real" / "lmo_dev"
+    if real.is_dir():  # the rates replayed are those of the real scenes
+        assert measure_rates(real)[0] == MEASURED_RATES
+    rows = run_scene(tmp_path, 3)
+    assert sum(r["failures"].get("good", 0) for r in rows[:1]) < 0.7 * 5 * 40  # the masks did fail
+    assert sum(within(r) for r in rows) >= 4, rows
+    assert all(within(r) or r["verdict"] != "ok" for r in rows), rows
