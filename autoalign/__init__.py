@@ -14,7 +14,14 @@ Heavy modules (mitsuba/drjit) load on first use, so ``import autoalign`` stays f
 from __future__ import annotations
 
 import os
+import signal
+import threading
 from typing import TYPE_CHECKING, Any
+
+from autoalign.interrupts import Interrupts, is_command_process
+
+if is_command_process() and threading.current_thread() is threading.main_thread():
+    signal.signal(signal.SIGINT, Interrupts.remember)  # until the command's main() takes over
 
 __version__ = "0.1.0"
 

@@ -5,8 +5,8 @@ numpy, OpenCV, trimesh and the rendering backend (mitsuba/drjit) load inside the
 the arguments are parsed. Nothing on this path imports torch or jax.
 
 Exit status: 0 success; 2 a usage or input mistake (one line ``autoalign: error: ...`` on stderr,
-no output files); 3 outputs written but a pose is in doubt (``refine --models``: an instance's
-verdict is check or failed); 130 interrupted; anything else is a bug (Python prints a traceback).
+no output files); 3 outputs written but a pose is in doubt (its verdict, or an instance's, is
+check or failed); 130 interrupted; anything else is a bug (Python prints a traceback).
 """
 
 from __future__ import annotations
@@ -25,12 +25,15 @@ from typing import Any, Callable
 from autoalign import __version__
 from autoalign.atomic_files import write_files_atomic
 from autoalign.errors import AutoalignError
+from autoalign.interrupts import Interrupts, is_command_process
 
 PROG = "autoalign"
 OUTPUT_FILES = ("scene_gt.json", "refine.json", "overlay.png")
 LOW_WEIGHT = 0.3  # a view whose robust weight (mean 1) ends below this ...
 LOW_WEIGHT_MAX_IOU = 0.95  # ... and whose IoU after stays below this is reported as disagreeing
 POOR_FIT_IOU = 0.7  # a mean IoU after refinement below this is reported as a poor fit
+EXIT_FLAGGED = 3
+"""Exit status when every output was written but a pose's verdict is ``check`` or ``failed``."""
 
 
 class UsageError(Exception):
@@ -88,7 +91,9 @@ outputs (written into OUT_DIR, replacing files of the same name; if the run fail
                  (mean 1; low = the view's mask disagrees with the others) with their image ids,
                  iterations, renders, timings (s), every hypothesis tried (stage, loss, mean IoU,
                  poses), "ambiguous" and "runner_up" (pose, loss, rotation_deg and translation_mm
-                 from the winner), the options, the version, skipped image ids, empty masks,
+                 from the winner), the verdict (ok, check or failed) and its reasons, the
+                 uncertainty (sigma along/about the model axes, weakly observed directions,
+                 covariance), the options, the version, skipped image ids, empty masks,
                  the pixel convention of cam_K and warnings
   overlay.png    up to 12 views (always the worst-fitting one), zoomed on the object: the target
                  mask in grey, the silhouette outline before (red) and after (green) refinement,
@@ -110,7 +115,7 @@ examples:
   autoalign refine scenes/000001 --model models/obj_000001.ply --out labels/000001 --json --quiet
 
 exit status: 0 success, 2 a mistake in the command or the input files (one line on stderr),
-3 outputs written but some instance's verdict is check or failed (listed on stderr), 130 interrupted."""
+3 outputs written but the verdict on a pose is check or failed (reasons on stderr), 130 interrupted."""
 
 
 def _int_at_least(minimum: int) -> Callable[[str], int]:
@@ -237,36 +242,18 @@ def _show_warning(message: Warning | str, category: type[Warning], filename: str
     warn(str(message))
 
 
-class Interrupts:
-    """Ctrl-C that cannot be lost: SIGINT raises ``KeyboardInterrupt`` as usual *and* is remembered.
-
-    Libraries may swallow the exception (trimesh wraps failed optional imports with ``except
-    BaseException``): a run interrupted there went on and wrote its outputs with exit status 0.
-    :meth:`check` raises again wherever the run may stop safely (progress updates, before writing).
-    """
-
-    seen = False
-
-    @classmethod
-    def handler(cls, signum: int, frame: Any) -> None:
-        cls.seen = True
-        raise KeyboardInterrupt
-
-    @classmethod
-    def check(cls) -> None:
-        """Raise ``KeyboardInterrupt`` if Ctrl-C was pressed during this run."""
-        if cls.seen:
-            raise KeyboardInterrupt
-
-
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 ok, 2 usage/input error, 130 interrupted)."""
     import threading
 
-    Interrupts.seen = False
     if threading.current_thread() is not threading.main_thread():  # only it may handle signals
         return _main(argv)
     previous = signal.signal(signal.SIGINT, Interrupts.handler)
+    if Interrupts.seen and is_command_process():  # pressed while the command's modules loaded
+        signal.signal(signal.SIGINT, previous)
+        print(f"\n{PROG}: interrupted", file=sys.stderr, flush=True)
+        return 130
+    Interrupts.seen = False
     try:
         return _main(argv)
     finally:
@@ -588,6 +575,9 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
     if scene.skipped:
         notes.append(f"{len(scene.skipped)} image(s) without a mask were skipped: ids "
                      + ", ".join(str(i) for i in scene.skipped[:20]) + (" ..." if len(scene.skipped) > 20 else ""))
+    from autoalign.verdict import judge
+
+    verdict = judge(iou_a, weights, ids, scene.empty, bool(result.ambiguous), uncertainty=result.uncertainty)
     timings = dict(result.timings)
     timings["overlay"] = t_overlay
     report = {
@@ -601,6 +591,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
         "pose": pose_record(result.T_wm),
         "pose_first_camera": first,
         "pose_before": pose_record(result.T_init),
+        "verdict": verdict.status, "reasons": verdict.reasons,
         "uncertainty": uncertainty_record(result.uncertainty),
         "seed": seed_info,
         "image_ids": ids,
@@ -640,6 +631,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
             "pose": report["pose"], "pose_first_camera": first,
             "mean_iou_before": report["mean_iou_before"], "mean_iou_after": report["mean_iou_after"],
             "min_iou_after": report["min_iou_after"], "time_s": elapsed, "ambiguous": report["ambiguous"],
+            "verdict": verdict.status, "reasons": verdict.reasons,
             "low_weight_ids": report["low_weight_ids"], "warnings": report["warnings"],
             "out_dir": str(out.absolute()),
             "outputs": {"scene_gt": str(paths["scene_gt.json"].absolute()),
@@ -663,6 +655,9 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
               f"wrote {', '.join(OUTPUT_FILES)} to {out}", flush=True)
     for note in notes:
         warn(note)
+    if verdict.status != "ok":
+        warn(f"verdict {verdict.status}: {'; '.join(verdict.reasons)}; look at overlay.png before using this pose")
+        return EXIT_FLAGGED
     return 0
 
 

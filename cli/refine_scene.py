@@ -16,11 +16,8 @@ from pathlib import Path
 from typing import Any
 
 from autoalign import __version__
-from autoalign.cli.main import (WARNINGS, ProgressBar, jsonable, one_line, pose_record, uncertainty_record, warn,
-                                write_outputs)
-
-EXIT_FLAGGED = 3
-"""Exit status when every output was written but some instance is ``check`` or ``failed``."""
+from autoalign.cli.main import (EXIT_FLAGGED, WARNINGS, ProgressBar, jsonable, one_line, pose_record, uncertainty_record,
+                                warn, write_outputs)
 
 
 def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> int:

@@ -1,0 +1,50 @@
+"""Ctrl-C that cannot be lost, for the ``autoalign`` command (standard library only).
+
+SIGINT raises ``KeyboardInterrupt`` as usual *and* is remembered: libraries may swallow the
+exception (trimesh wraps failed optional imports with ``except BaseException``), and a run
+interrupted there went on and wrote its outputs with exit status 0. :meth:`Interrupts.check`
+raises again wherever the run may stop safely (progress updates, before writing).
+
+While the command's own modules are still being imported, a SIGINT is only remembered
+(:meth:`Interrupts.remember`, installed by ``autoalign/__init__.py`` in the command's process):
+raised there it would end in a traceback from the import machinery. ``main`` then exits 130
+before doing anything. Only the interpreter's own start-up, before any autoalign code runs (some
+tens of milliseconds), is out of reach.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from typing import Any
+
+
+class Interrupts:
+    """Whether Ctrl-C was pressed during this run, and the handlers that record it."""
+
+    seen = False
+
+    @classmethod
+    def remember(cls, signum: int, frame: Any) -> None:
+        """SIGINT handler while modules load: only remember it."""
+        cls.seen = True
+
+    @classmethod
+    def handler(cls, signum: int, frame: Any) -> None:
+        """SIGINT handler while the command runs: remember it and raise ``KeyboardInterrupt``."""
+        cls.seen = True
+        raise KeyboardInterrupt
+
+    @classmethod
+    def check(cls) -> None:
+        """Raise ``KeyboardInterrupt`` if Ctrl-C was pressed during this run."""
+        if cls.seen:
+            raise KeyboardInterrupt
+
+
+def is_command_process() -> bool:
+    """Whether this process was started as the ``autoalign`` command (console script or
+    ``python -m autoalign.cli.main``), not as a library user's program."""
+    argv = list(getattr(sys, "orig_argv", sys.argv))
+    by_module = "-m" in argv[1:] and argv[argv.index("-m", 1) + 1:][:1] == ["autoalign.cli.main"]
+    return by_module or os.path.basename(sys.argv[0]) == "autoalign"
