@@ -27,18 +27,35 @@ COARSE_MM = 0.1
 COARSE_DEG = 0.05
 
 
+class Stop:
+    """Why an optimiser stopped (``Trace.stop``)."""
+
+    SMALL_STEP = "small step"  # the last step moved the object by less than the tolerances
+    FTOL = "predicted gain below ftol"  # LM: the next step would gain less than ftol of the objective
+    DAMPING_LIMIT = "damping limit"  # LM: no damping up to 1e8 gave a decrease
+    NO_DECREASE = "no decrease"  # GN: twelve halvings of the step gave no decrease
+    BUDGET = "iteration budget"  # the level's max_iters ran out
+    CALLER = "stopped by caller"  # the callback returned True
+    CONVERGED = (SMALL_STEP, FTOL, DAMPING_LIMIT, NO_DECREASE)
+
+
 @dataclass
 class Trace:
-    """What an optimiser did: objective per accepted iteration, step sizes, renders."""
+    """What an optimiser did: objective per accepted iteration, step sizes, renders, why it stopped."""
 
     values: list[float] = field(default_factory=list)
     step_mm: list[float] = field(default_factory=list)
     step_deg: list[float] = field(default_factory=list)
     poses: list[NDArray[np.float64]] = field(default_factory=list)
     iterations: int = 0
-    converged: bool = False
+    stop: str = Stop.BUDGET
     final: Evaluation | None = None  # the objective at the returned pose (LM and GN)
     start: Evaluation | None = None  # the objective at the starting pose (LM and GN)
+
+    @property
+    def converged(self) -> bool:
+        """Stopped because nothing worth a step was left at this level (not by budget or caller)."""
+        return self.stop in Stop.CONVERGED
 
 
 Callback = Callable[[int, Evaluation], "bool | None"]
@@ -74,7 +91,7 @@ def _record(trace: Trace, ev: Evaluation, T: NDArray[np.float64], step: NDArray[
 
 
 Search = Callable[[NDArray[np.float64], Evaluation, float, float],
-                  "tuple[NDArray[np.float64], Evaluation, NDArray[np.float64]] | None"]
+                  "tuple[NDArray[np.float64], Evaluation, NDArray[np.float64]] | str"]
 
 
 def _descend(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level, search: Search,
@@ -82,8 +99,8 @@ def _descend(objective: SilhouetteObjective, T: NDArray[np.float64], level: Leve
     """The outer loop shared by the second-order methods.
 
     ``search(T, ev, tol_mm, tol_deg)`` returns ``(T_new, ev_new, step)`` for a step that does
-    not increase the objective (with the view weights of ``ev``), or ``None`` when there is none
-    worth trying. Robust weights are then re-computed from the new fit (IRLS) without a new render.
+    not increase the objective (with the view weights of ``ev``), or the :class:`Stop` reason
+    when there is none worth trying. Robust weights are then re-computed from the new fit (IRLS) without a new render.
     An iteration is one call that tried at least one step (rendered).
     """
     trace = Trace()
@@ -94,16 +111,17 @@ def _descend(objective: SilhouetteObjective, T: NDArray[np.float64], level: Leve
         found = search(T, ev, tol_mm, tol_deg)
         if objective.renders > renders:  # an iteration tries at least one step
             trace.iterations = it + 1
-        if found is None:
-            trace.converged = True  # no descent direction left at this resolution
+        if isinstance(found, str):  # no descent worth a step left at this resolution
+            trace.stop = found
             break
         T, ev_new, step = found
         ev = objective.reweighted(ev_new)
         _record(trace, ev, T, step)
         if callback and callback(it, ev):
+            trace.stop = Stop.CALLER
             break
         if _small(step, tol_mm, tol_deg):
-            trace.converged = True
+            trace.stop = Stop.SMALL_STEP
             break
     trace.final = ev
     return T, trace
@@ -142,15 +160,17 @@ def levenberg_marquardt(objective: SilhouetteObjective, T: NDArray[np.float64], 
                 step = np.zeros(6)
             step = _clip_step(step, max_step_mm, max_step_deg)
             predicted = -(g @ step + 0.5 * step @ H @ step)
-            if predicted < f_tol * ev.value or _small(step, tol_mm, tol_deg):
-                return None
+            if predicted < f_tol * ev.value:
+                return Stop.FTOL
+            if _small(step, tol_mm, tol_deg):
+                return Stop.SMALL_STEP
             T_new = apply_twist(T, step, _centre(objective, T))
             ev_new = objective.evaluate(T_new, level, weights=ev.weights)
             if ev_new.value <= ev.value:
                 state["lam"] = max(state["lam"] / 3.0, 1e-7)
                 return T_new, ev_new, step
             state["lam"] *= damping_growth
-        return None
+        return Stop.DAMPING_LIMIT
 
     return _descend(objective, T, level, search, tol_mm, tol_deg, callback)
 
@@ -168,7 +188,7 @@ def gauss_newton(objective: SilhouetteObjective, T: NDArray[np.float64], level: 
             if ev_new.value <= ev.value:
                 return T_new, ev_new, step
             step = step / 2.0
-        return None
+        return Stop.NO_DECREASE
 
     return _descend(objective, T, level, search, tol_mm, tol_deg, callback)
 
@@ -197,9 +217,10 @@ def adam(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level,
         trace.iterations = it + 1
         _record(trace, ev, T, step)
         if callback and callback(it, ev):
+            trace.stop = Stop.CALLER
             break
         if _small(step, tol_mm, tol_deg):
-            trace.converged = True
+            trace.stop = Stop.SMALL_STEP
             break
     return T, trace
 

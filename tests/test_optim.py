@@ -8,7 +8,7 @@ from autoalign.experiments.protocol import ImageSetup, make_trial
 from autoalign.experiments.runner import get_model
 from autoalign.experiments.synthetic import make_scene
 from autoalign.objective import Level, SilhouetteObjective
-from autoalign.optim import levenberg_marquardt
+from autoalign.optim import Stop, levenberg_marquardt
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 from autoalign.se3 import apply_twist, rotation_angle_deg, transform_points
 
@@ -30,15 +30,17 @@ def test_lm_stops_at_the_noise_floor_without_extra_renders() -> None:
     geo = make_trial(entry.mesh.centre, entry.mesh.diameter, 0, 3, 0, 40, 100.0, ImageSetup())
     scene = make_scene(entry.mesh, geo.T_gt, geo.cameras)
     level = Level(1.0, 0.5, 15)
-    renders, poses = [], []
+    renders, poses, stops = [], [], []
     for ftol in (1e-3, 0.0):
         obj = SilhouetteObjective(SoftSilhouetteRasterizer(entry.mesh), scene)
         T, trace = levenberg_marquardt(obj, geo.T_gt, level, ftol=ftol)
         assert trace.converged
+        stops.append(trace.stop)
         renders.append((obj.renders, trace.iterations))
         poses.append(T)
     assert renders[0] == (1, 0), renders
     assert renders[1][0] >= 4, renders
+    assert stops == [Stop.FTOL, Stop.SMALL_STEP], stops
     for T in poses:
         assert np.linalg.norm(T[:3, 3] - geo.T_gt[:3, 3]) < 0.01
         assert rotation_angle_deg(T[:3, :3], geo.T_gt[:3, :3]) < 0.01
@@ -68,3 +70,18 @@ def test_lm_stops_after_an_accepted_step_that_gains_too_little() -> None:
     assert n_on < n_off and r_on < r_off, runs
     for T in (T_on, T_off):
         assert _max_reprojection_px(T, geo.T_gt, entry.mesh.vertices, scene) < 0.05
+
+
+def test_stops_are_named_budget_and_caller() -> None:
+    """A far start with a one-iteration budget stops on the budget; a callback that says stop is
+    named as the reason; neither counts as converged."""
+    entry = get_model("procedural44", 3)
+    geo = make_trial(entry.mesh.centre, entry.mesh.diameter, 0, 3, 0, 12, 100.0, ImageSetup())
+    scene = make_scene(entry.mesh, geo.T_gt, geo.cameras)
+    start = apply_twist(geo.T_gt, np.array([6.0, -4.0, 3.0, *np.radians([4.0, -3.0, 5.0])]),
+                        transform_points(geo.T_gt, entry.mesh.centre[None])[0])
+    obj = SilhouetteObjective(SoftSilhouetteRasterizer(entry.mesh), scene)
+    _, budget = levenberg_marquardt(obj, start, Level(0.25, 1.0, 1))
+    _, caller = levenberg_marquardt(obj, start, Level(0.25, 1.0, 10), callback=lambda it, ev: True)
+    assert (budget.stop, caller.stop) == (Stop.BUDGET, Stop.CALLER)
+    assert not budget.converged and not caller.converged
