@@ -141,6 +141,27 @@ def read_cameras(scene_dir: Path) -> dict[int, tuple[NDArray[np.float64], NDArra
     return dict(sorted(out.items()))
 
 
+PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+
+
+def photo_path(scene_dir: Path, image_id: int) -> Path:
+    """The photo of an image: ``rgb/{image_id:06d}`` with suffix .png, .jpg, .jpeg, .tif or .tiff."""
+    base = Path(scene_dir) / "rgb" / f"{image_id:06d}"
+    for s in PHOTO_SUFFIXES:
+        if base.with_suffix(s).is_file():
+            return base.with_suffix(s)
+    raise AutoalignError(f"{base}.png (or .jpg): not found; the check compares renderings with the photos, "
+                         f"put image {image_id}'s photo in {base.parent}")
+
+
+def read_photo(path: Path) -> NDArray[np.uint8]:
+    """A photo as (H, W, 3) uint8 BGR (OpenCV order)."""
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise AutoalignError(f"{path}: cannot read the photo; replace it with a PNG or JPEG")
+    return img
+
+
 def mask_path(scene_dir: Path, im_id: int, instance: int) -> Path:
     """BOP visible-mask path of one instance in one image."""
     return scene_dir / "mask_visib" / f"{im_id:06d}_{instance:06d}.png"

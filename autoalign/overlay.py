@@ -21,7 +21,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from autoalign.atomic_files import write_bytes_atomic
-from autoalign.bop import Scene
+from autoalign.bop import Scene, photo_path, read_photo
+from autoalign.errors import AutoalignError
 from autoalign.mesh import Mesh
 
 MAX_TILES = 12
@@ -218,18 +219,16 @@ _STATUS_MARK = {"ok": "ok", "check": "CHECK", "failed": "FAILED"}
 MULTI_TILE_W, MULTI_TILE_H = 480, 360
 
 
-def read_photo(scene_dir: Path | None, image_id: int, width: int, height: int) -> NDArray[np.uint8] | None:
-    """The scene's photo ``rgb/{image_id:06d}.{png,jpg}`` at ``width x height`` (BGR), if there is one."""
+def photo_at(scene_dir: Path | None, image_id: int, width: int, height: int) -> NDArray[np.uint8] | None:
+    """The scene's photo of ``image_id`` (:func:`autoalign.bop.photo_path`) at ``width x height``
+    (BGR), or ``None`` if there is none to read."""
     if scene_dir is None:
         return None
-    for ext in ("png", "jpg", "jpeg"):
-        p = Path(scene_dir) / "rgb" / f"{image_id:06d}.{ext}"
-        if p.is_file():
-            img = cv2.imread(str(p), cv2.IMREAD_COLOR)
-            if img is not None:
-                return img if img.shape[:2] == (height, width) else cv2.resize(img, (width, height),
-                                                                               interpolation=cv2.INTER_AREA)
-    return None
+    try:
+        img = read_photo(photo_path(Path(scene_dir), image_id))
+    except AutoalignError:
+        return None
+    return img if img.shape[:2] == (height, width) else cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
 
 
 def render_instances_overlay(cameras: list, image_ids: list[int], scene_dir: Path | None,
@@ -248,7 +247,7 @@ def render_instances_overlay(cameras: list, image_ids: list[int], scene_dir: Pat
     tiles = []
     for j, i in enumerate(views):
         cam, im = cameras[i], image_ids[i]
-        photo = read_photo(scene_dir, im, cam.width, cam.height)
+        photo = photo_at(scene_dir, im, cam.width, cam.height)
         base = (photo.astype(np.float32) * 0.55 if photo is not None
                 else np.full((cam.height, cam.width, 3), 40.0, np.float32))
         for k, (_, masks, _) in enumerate(instances):

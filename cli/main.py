@@ -47,7 +47,7 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(f"{message} (see '{self.prog} --help')")
 
 
-class _Formatter(argparse.RawDescriptionHelpFormatter):
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
     def __init__(self, prog: str) -> None:
         super().__init__(prog, max_help_position=30, width=min(100, max(60, _terminal_width())))
 
@@ -133,15 +133,15 @@ def _int_at_least(minimum: int) -> Callable[[str], int]:
     return parse
 
 
-_positive_int = _int_at_least(1)
-_nonnegative_int = _int_at_least(0)
+positive_int = _int_at_least(1)
+nonnegative_int = _int_at_least(0)
 
 
 def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``autoalign refine`` on an argparse subparsers object."""
     p = subparsers.add_parser(
         "refine", help="refine the pose of an object from multi-view masks (writes scene_gt.json, refine.json, overlay.png)",
-        description=_REFINE_DESCRIPTION, epilog=_REFINE_EPILOG, formatter_class=_Formatter)
+        description=_REFINE_DESCRIPTION, epilog=_REFINE_EPILOG, formatter_class=HelpFormatter)
     p.add_argument("scene", metavar="SCENE_DIR",
                    help="BOP scene folder with scene_camera.json and mask_visib/ (see 'input scene' below)")
     req = p.add_argument_group("required")
@@ -165,9 +165,9 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
                      help='with --models: {"instances": {"0": 5, "3": 8}} maps instance numbers (the N of '
                           "mask_visib/{im_id:06d}_{N:06d}.png) to BOP obj_ids; instances not listed are objects "
                           "without a model, whose masks still count (default: the scene's scene_gt.json)")
-    sel.add_argument("--obj-id", metavar="K", type=_positive_int, default=1,
+    sel.add_argument("--obj-id", metavar="K", type=positive_int, default=1,
                      help="BOP object id written to scene_gt.json and looked for in the --init file (default: 1)")
-    sel.add_argument("--instance", metavar="N", type=_nonnegative_int, default=0,
+    sel.add_argument("--instance", metavar="N", type=nonnegative_int, default=0,
                      help="which instance's masks to use, mask_visib/{im_id:06d}_{N:06d}.png; also picks the N-th "
                           "entry with obj_id K in the --init file (default: 0)")
     seed = p.add_argument_group("starting pose (at most one; default: visual hull of the masks + orientation search)")
@@ -203,11 +203,14 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``autoalign`` parser with its subcommands (``simulate`` only if its module imports)."""
-    parser = _Parser(prog=PROG, description=_MAIN_DESCRIPTION, formatter_class=_Formatter,
+    parser = _Parser(prog=PROG, description=_MAIN_DESCRIPTION, formatter_class=HelpFormatter,
                      epilog="Run 'autoalign COMMAND --help' for the options of a command.")
     parser.add_argument("--version", action="version", version=f"{PROG} {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands", parser_class=_Parser)
     add_refine_parser(sub)
+    from autoalign.cli.check import add_check_parser
+
+    add_check_parser(sub)
     try:
         from autoalign.experiments import simulate
     except ImportError:
@@ -321,15 +324,15 @@ def prepare_out_dir(out: Path) -> list[Path]:
             os.close(fd)
             os.unlink(probe)
     except OSError as exc:
-        _remove_empty_dirs(created)
+        remove_empty_dirs(created)
         raise AutoalignError(f"--out {out}: cannot create or write to the folder ({exc.strerror or exc}); {fix}") from None
     except BaseException:  # Ctrl-C half-way: leave nothing behind
-        _remove_empty_dirs(created)
+        remove_empty_dirs(created)
         raise
     return created
 
 
-def _remove_empty_dirs(created: list[Path]) -> None:
+def remove_empty_dirs(created: list[Path]) -> None:
     """Remove the folders this run created (innermost first), if they are still empty."""
     for d in reversed(created):
         try:
@@ -491,7 +494,7 @@ def run_refine(args: argparse.Namespace) -> int:
             return refine_scene_into(args, out, t_start)
         return _refine_into(args, out, click, t_start)
     except BaseException:
-        _remove_empty_dirs(created)
+        remove_empty_dirs(created)
         raise
 
 

@@ -1,0 +1,164 @@
+"""``autoalign check``: a ground-truth-free quality check of 6-DoF pose labels (feature distance).
+
+Start-up imports only the standard library and :mod:`autoalign.errors`; numpy, OpenCV, open3d and
+trimesh load inside :func:`run_check` (nothing here imports torch or jax). Helpers of
+:mod:`autoalign.cli.main` are imported inside the functions, since that module registers this one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from autoalign.errors import AutoalignError
+
+REPORT_FILES = ("check.json", "check.png")
+
+_CHECK_DESCRIPTION = """\
+Check 6-DoF pose labels against the photos without any ground truth (the "feature distance" of
+ProgressLabeller): every labelled object is rendered with its vertex colours at its label's pose,
+SIFT keypoints of the rendering and of the photo inside the object's box are matched (Lowe's
+ratio test 0.8) and the matches closer than 10 px are kept; their mean distance is small (1-4 px)
+when the label puts the object where the photo shows it. Untextured objects give too few matches
+to judge and are flagged so. With visible masks in mask_visib/, the IoU of the label's rendered
+visible silhouette with them is reported too."""
+
+_CHECK_EPILOG = """\
+inputs:
+  SCENE_DIR/scene_camera.json  per image id: cam_K (9 numbers, px; OpenCV/BOP convention: the
+                               centre of the top-left pixel is at 0,0); cam_R_w2c, cam_t_w2c unused
+  SCENE_DIR/rgb/{im_id:06d}.png or .jpg
+                               the photos
+  SCENE_DIR/mask_visib/{im_id:06d}_{k:06d}.png
+                               optional: visible mask of entry k of the image's labels (for IoU)
+  --labels SCENE_GT_JSON       BOP scene_gt.json: image id -> list of {"obj_id", "cam_R_m2c": 9
+                               numbers (row-major), "cam_t_m2c": 3 numbers (mm)}, the model-to-camera
+                               pose x_cam = R_m2c x_model + t_m2c; entry k is instance k
+  --models MODELS_DIR          obj_{obj_id:06d}.ply in mm, with vertex colours (a mesh without
+                               colours is rendered grey and will give too few matches)
+
+output:
+  a table per instance: obj id, instance, views, median IoU, mean feature distance (px) with its
+  95% confidence interval (bootstrap over views), kept matches, or "too few matches" (< 10 over all
+  views). With --out: check.json (every image and instance: IoU, matches, mean distance and its
+  interval, mean offset photo - rendering in px, bounding box; the per-instance summaries; the
+  parameters) and check.png (up to 4 photos with the kept matches: dot = rendering keypoint, line
+  to the photo keypoint).
+
+examples:
+  autoalign check scenes/000002 --labels labels/000002/scene_gt.json --models models/
+  autoalign check scenes/000002 --labels scenes/000002/scene_gt.json --models models/ --images 10 --out report/
+
+exit status: 0 the check ran (whatever the numbers), 2 a mistake in the command or the input files."""
+
+
+def add_check_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Register ``autoalign check`` on an argparse subparsers object."""
+    from autoalign.cli.main import HelpFormatter, positive_int
+
+    p = subparsers.add_parser(
+        "check", help="check pose labels against the photos without ground truth (SIFT feature distance, IoU)",
+        description=_CHECK_DESCRIPTION, epilog=_CHECK_EPILOG, formatter_class=HelpFormatter)
+    p.add_argument("scene", metavar="SCENE_DIR",
+                   help="BOP scene folder with scene_camera.json and rgb/ (mask_visib/ optional; see 'inputs')")
+    req = p.add_argument_group("required")
+    req.add_argument("--labels", metavar="SCENE_GT_JSON", required=True,
+                     help="the labels to check, a BOP scene_gt.json (model-to-camera poses, mm); entry k of an "
+                          "image is instance k, whose mask is mask_visib/{im_id:06d}_{k:06d}.png")
+    req.add_argument("--models", metavar="MODELS_DIR", required=True,
+                     help="BOP models folder with obj_XXXXXX.ply (mm, vertex colours) for every obj_id of the labels")
+    opt = p.add_argument_group("check and report")
+    opt.add_argument("--images", metavar="N", type=positive_int, default=None,
+                     help="check only N labelled images, spread evenly over the scene (default: all; about "
+                          "0.5 s an image at 640x480)")
+    opt.add_argument("--out", metavar="REPORT_DIR", default=None,
+                     help="write check.json and check.png into this folder (created if missing; files of the same "
+                          "name are replaced)")
+    opt.add_argument("--json", action="store_true",
+                     help="print one JSON object on stdout (the contents of check.json, plus the output paths) and "
+                          "nothing else there")
+    p.set_defaults(func=run_check)
+    return p
+
+
+def _ci(ci: tuple[float, float] | None) -> str:
+    return f"[{ci[0]:.2f}, {ci[1]:.2f}]" if ci is not None else ""
+
+
+def format_table(report: Any) -> str:
+    """The per-instance table of a :class:`autoalign.feature_distance.CheckReport`, and a total line."""
+    head = f"{'obj':>4} {'inst':>4} {'views':>5} {'median IoU':>10}  {'feature distance px (95% CI)':<30} {'matches':>7}"
+    lines = [head, "-" * len(head)]
+    for s in report.instances:
+        iou = f"{s.median_iou:.2f}" if s.median_iou is not None else "-"
+        dist = "too few matches" if s.too_few_matches else f"{s.mean_px:.2f} {_ci(s.ci95)}"
+        lines.append(f"{s.obj_id:>4} {s.instance:>4} {s.views:>5} {iou:>10}  {dist:<30} {s.n_matches:>7}")
+    ids = ", ".join(str(i) for i in report.image_ids)
+    if report.mean_px is not None:
+        lines.append(f"all instances with enough matches: {report.mean_px:.2f} px {_ci(report.ci95)} "
+                     f"over {report.n_matches} matches")
+    else:
+        lines.append("no instance has enough matches to judge (untextured objects, or labels far off)")
+    lines.append(f"images ({len(report.image_ids)}): {ids}")
+    return "\n".join(lines)
+
+
+def run_check(args: argparse.Namespace) -> int:
+    """``autoalign check``: see ``autoalign check --help``. Returns 0 once the check ran."""
+    from autoalign.cli.main import ProgressBar, remove_empty_dirs, prepare_out_dir, warn
+
+    scene, labels, models = Path(args.scene), Path(args.labels), Path(args.models)
+    out = Path(args.out) if getattr(args, "out", None) is not None else None
+    if out is not None:
+        taken = {labels.resolve()}
+        for name in REPORT_FILES:
+            if (out / name).resolve() in taken:
+                raise AutoalignError(f"--out {out}: writing {name} there would replace the input file {out / name}; "
+                                     "choose another folder with --out")
+    as_json = bool(getattr(args, "json", False))
+    created = prepare_out_dir(out) if out is not None else []
+    try:
+        from autoalign import feature_distance as fd
+        from autoalign.overlay import encode_png
+
+        bar = ProgressBar(enabled=not as_json and sys.stderr.isatty())
+        try:
+            report = fd.check_scene(scene, labels, models, images=getattr(args, "images", None),
+                                    progress=lambda done, total: bar("checking images", done, total))
+        finally:
+            bar.close()
+        for w in report.warnings:
+            warn(w)
+        record = report.record()
+        paths: dict[str, str] = {}
+        if out is not None:
+            files = {out / "check.json": (json.dumps(record, indent=1) + "\n").encode(),
+                     out / "check.png": encode_png(fd.match_figure(report))}
+            _write(files, out)
+            paths = {p.name: str(p) for p in files}
+    except BaseException:
+        remove_empty_dirs(created)
+        raise
+    if as_json:
+        print(json.dumps({**record, "outputs": paths}))
+    else:
+        print(format_table(report))
+        for name, p in paths.items():
+            print(f"wrote {p}")
+    return 0
+
+
+def _write(files: dict[Path, bytes], out: Path) -> None:
+    """Write the report files atomically (all or none); a failure names ``--out``."""
+    from autoalign.atomic_files import write_files_atomic
+    from autoalign.interrupts import Interrupts
+
+    Interrupts.check()
+    try:
+        write_files_atomic(files)
+    except OSError as exc:
+        raise AutoalignError(f"--out {out}: cannot write the report ({exc.strerror or exc}); "
+                             "free some space or choose another --out") from None
