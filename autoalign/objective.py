@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -103,6 +103,11 @@ class SilhouetteObjective:
             ignore = None if scene.ignore is None else [resampled(g, c) > 0.5 for g, c in zip(scene.ignore, cams)]
             self._levels[key] = LevelViews(cams, tg, np.array([float(t.sum()) for t in tg]), ignore)
         return self._levels[key]
+
+    def use_cameras(self, cameras: list[Camera]) -> None:
+        """Render through ``cameras`` (one per view of the scene, e.g. corrected ones) from now on."""
+        self.scene = replace(self.scene, cameras=list(cameras))
+        self._levels.clear()
 
     def evaluate(self, T_wm: NDArray[np.float64], level: Level, weights: NDArray[np.float64] | None = None,
                  with_derivatives: bool = True) -> Evaluation:

@@ -28,7 +28,8 @@ from autoalign.errors import AutoalignError
 from autoalign.interrupts import Interrupts, is_command_process
 
 PROG = "autoalign"
-OUTPUT_FILES = ("scene_gt.json", "refine.json", "overlay.png")
+OUTPUT_FILES = ("scene_gt.json", "refine.json", "overlay.png", "scene_camera.json")
+"""Every file ``refine`` may write (``scene_camera.json`` only with ``--refine-cameras``)."""
 LOW_WEIGHT = 0.3  # a view whose robust weight (mean 1) ends below this ...
 LOW_WEIGHT_MAX_IOU = 0.95  # ... and whose IoU after stays below this is reported as disagreeing
 POOR_FIT_IOU = 0.7  # a mean IoU after refinement below this is reported as a poor fit
@@ -188,6 +189,10 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
                           "converge), bce = binary cross-entropy, iou = 1 - soft IoU, dice = 1 - soft Dice")
     alg.add_argument("--optimizer", choices=("lm", "gn", "adam"), default="lm",
                      help="lm = Levenberg-Marquardt (default), gn = Gauss-Newton, adam = first-order Adam")
+    alg.add_argument("--refine-cameras", action="store_true",
+                     help="with --models: also correct every camera's pose (a silhouette bundle adjustment: "
+                          "the objects seen together pin each camera down, a prior keeps corrections small); "
+                          "writes the corrected scene_camera.json")
     alg.add_argument("--no-robust", action="store_true",
                      help="weigh all views equally; by default views whose mask disagrees with the others "
                           "(occlusion, bad segmentation) are down-weighted (Cauchy weights on 1 - IoU)")
@@ -484,6 +489,8 @@ def run_refine(args: argparse.Namespace) -> int:
         raise UsageError("--click seeds one object; with --models give a coarse --init for the scene, or no seed")
     if args.instances is not None and args.models is None:
         raise UsageError("--instances needs --models (a models folder for the objects it names)")
+    if args.refine_cameras and args.models is None:
+        raise UsageError("--refine-cameras needs --models: several objects seen together pin a camera down")
     inputs = [Path(x) for x in (args.model, args.init, args.instances) if x is not None]
     check_outputs_spare_inputs(out, Path(args.scene), inputs)
     created = prepare_out_dir(out)
@@ -655,7 +662,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
                  + (f"; weakly observed: {'; '.join(result.uncertainty.weak)}" if result.uncertainty.weak else "")
                  + "\n" if result.uncertainty is not None else "") +
               f"time {elapsed:.1f} s ({result.iterations} iterations, {result.renders} renders)\n"
-              f"wrote {', '.join(OUTPUT_FILES)} to {out}", flush=True)
+              f"wrote {', '.join(files)} to {out}", flush=True)
     for note in notes:
         warn(note)
     if verdict.status != "ok":
@@ -664,5 +671,18 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
     return 0
 
 
+def entry() -> None:
+    """The ``autoalign`` command: exit with :func:`main`'s status. After Ctrl-C the process ends
+    without Python's finalization: drjit's worker threads, still busy, crashed it (SIGSEGV, an abort
+    on the GIL) in about one interrupted run in ten, and a late SIGINT could still raise there."""
+    status = main()
+    if status == 130:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(130)
+    sys.exit(status)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

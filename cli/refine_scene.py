@@ -42,13 +42,17 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
              "from their masks instead")
 
     from autoalign.overlay import encode_png, instance_label, render_instances_overlay
-    from autoalign.scene_refine import refine_instances
+    from autoalign.scene_refine import refine_instances, refine_instances_and_cameras
 
     options = RefineOptions(loss=args.loss, optimizer=args.optimizer, robust=not args.no_robust)
     progress = ProgressBar(enabled=not args.quiet)
     progress.start("loading the renderer")
     try:
-        results = refine_instances(found, models, seeds, options, progress)
+        joint = None
+        if args.refine_cameras:
+            results, joint, found = refine_instances_and_cameras(found, models, seeds, options, progress)
+        else:
+            results = refine_instances(found, models, seeds, options, progress)
         progress("overlay", 0, 1)
         t0 = time.perf_counter()
         overlay = _overlay(found, models, results, scene_dir, render_instances_overlay, instance_label)
@@ -58,6 +62,7 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
     t_overlay = time.perf_counter() - t0
 
     from autoalign.bop import pose_in_camera
+    from autoalign.se3 import rotation_angle_deg
 
     scene_gt = {str(im): [dict(zip(("obj_id", "cam_R_m2c", "cam_t_m2c"), (r.instance.obj_id, *pose_in_camera(r.result.T_wm, cam))))
                           for r in results]
@@ -93,9 +98,31 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
         "outputs": {"scene_gt": "scene_gt.json", "refine": "refine.json", "overlay": "overlay.png"},
         "warnings": list(WARNINGS),
     }
-    write_outputs(out, {"scene_gt.json": json.dumps(jsonable(scene_gt), indent=1).encode(),
-                        "refine.json": json.dumps(jsonable(report), indent=1, allow_nan=False).encode(),
-                        "overlay.png": encode_png(overlay)})
+    files = {"scene_gt.json": json.dumps(jsonable(scene_gt), indent=1).encode(),
+             "overlay.png": encode_png(overlay)}
+    if joint is not None:
+        from autoalign.bop import read_cameras
+
+        corrected = {}
+        for im, (K, R, t) in read_cameras(scene_dir).items():
+            T_cw = np.eye(4)
+            T_cw[:3, :3], T_cw[:3, 3] = R, t
+            T_cw = T_cw @ joint.corrections.get(im, np.eye(4))
+            corrected[str(im)] = {"cam_K": K.ravel(), "cam_R_w2c": T_cw[:3, :3].ravel(), "cam_t_w2c": T_cw[:3, 3]}
+        files["scene_camera.json"] = json.dumps(jsonable(corrected), indent=1).encode()
+        report["cameras"] = {
+            "refined": True, "file": "scene_camera.json", "iterations": joint.iterations,
+            "loss_before": joint.loss_before, "loss_after": joint.loss_after,
+            "median_view_misfit_before": float(np.median(list(joint.view_misfit_before.values()))),
+            "median_view_misfit_after": float(np.median(list(joint.view_misfit_after.values()))),
+            "per_view": {str(im): {"translation_mm": float(np.linalg.norm(E[:3, 3])),
+                                   "rotation_deg": rotation_angle_deg(E[:3, :3], np.eye(3)),
+                                   "misfit_before": joint.view_misfit_before.get(im),
+                                   "misfit_after": joint.view_misfit_after.get(im)}
+                         for im, E in joint.corrections.items()}}
+        report["outputs"]["scene_camera"] = "scene_camera.json"
+    files["refine.json"] = json.dumps(jsonable(report), indent=1, allow_nan=False).encode()
+    write_outputs(out, files)
     elapsed = time.perf_counter() - t_start
     if args.json:
         print(json.dumps(jsonable({"instances": [{k: rec[k] for k in ("instance", "obj_id", "verdict", "reasons",
@@ -109,7 +136,7 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
                 f"{max(rec['uncertainty']['sigma_mm']):.2g} mm / {max(rec['uncertainty']['sigma_deg']):.2g} deg"
                 + (f"; {'; '.join(rec['reasons'])}" if rec["reasons"] else "") for rec in records]
         print(f"{len(records)} instance(s) in {len(found.image_ids)} images, {elapsed:.1f} s:\n" + "\n".join(rows)
-              + f"\nwrote scene_gt.json, refine.json, overlay.png to {out}", flush=True)
+              + f"\nwrote {', '.join(files)} to {out}", flush=True)
     if flagged:
         warn(f"{len(flagged)} of {len(results)} instance(s) flagged: "
              + "; ".join(f"obj {r.instance.obj_id} (instance {r.instance.index}) {r.verdict.status}: "

@@ -712,8 +712,9 @@ def test_mesh_in_metres_loads_with_units_m(data, tmp_path):
 def test_ctrl_c_at_any_moment_exits_130_and_writes_nothing(tmp_path):
     """SIGINT at moments spread over a run of the bundled example (imports, the backend's start-up,
     seeding, refinement): every run exits 130 with one line and no output. Before, an interrupt
-    during the imports (trimesh swallows it in its optional imports) let the run finish with 0.
-    The moments count from the end of ``import autoalign`` (Python's ``-X importtime`` reports
+    during the imports (trimesh swallows it in its optional imports) let the run finish with 0, and
+    about one run in ten interrupted while drjit's backend started crashed in Python's finalization
+    (SIGSEGV, or an abort on the GIL): the command now ends without it. The moments count from the end of ``import autoalign`` (Python's ``-X importtime`` reports
     it): before that the interpreter itself is starting, where no program can handle a signal."""
     import re
     import signal
@@ -727,7 +728,7 @@ def test_ctrl_c_at_any_moment_exits_130_and_writes_nothing(tmp_path):
 
         example = Path(autoalign.__file__).parent / "data" / "example"
     imported = re.compile(r"\|\s+autoalign$")
-    for k, delay in enumerate(np.linspace(0.0, 2.0, 14)):
+    for k, delay in enumerate(np.linspace(0.0, 2.4, 25)):
         out = tmp_path / f"out{k}"
         p = subprocess.Popen([sys.executable, "-X", "importtime", "-m", "autoalign.cli.main", "refine",
                               str(example / "scene"), "--model", str(example / "model.ply"), "--out", str(out), "--quiet"],

@@ -31,7 +31,7 @@ def test_wheel_holds_only_the_autoalign_namespace(tmp_path: Path) -> None:
         assert f"autoalign/{sub}/__init__.py" in names
     assert "autoalign/data/example/scene/scene_camera.json" in names
     entry = next(n for n in names if n.endswith("entry_points.txt"))
-    assert "autoalign = autoalign.cli.main:main" in zipfile.ZipFile(whl).read(entry).decode()
+    assert "autoalign = autoalign.cli.main:entry" in zipfile.ZipFile(whl).read(entry).decode()
 
 
 def test_subpackages_import_under_autoalign_only(tmp_path: Path) -> None:
