@@ -71,13 +71,17 @@ def refine_instances_and_cameras(found: InstanceScenes, models: ModelSet, seeds:
     """Each instance alone, then every pose and a correction of every camera together
     (:func:`~autoalign.camera_refine.refine_cameras`), then each instance again through the
     corrected cameras from its joint pose (its per-view fit, uncertainty and verdict then describe
-    the corrected scene). Returns the results, the camera refinement and the corrected scenes."""
+    the corrected scene). When the corrections explain too little of the misfit to be trusted
+    (``CameraRefinement.accepted``), the instances' own results and the given cameras are kept.
+    Returns the results, the camera refinement and the scenes they were refined in."""
     alone = refine_instances(found, models, seeds, options, progress)
     if progress is not None:
         progress("refining cameras with the objects", 0, 1)
     joint = refine_cameras(found, [models.mesh(r.instance.obj_id) for r in alone], [r.result.T_wm for r in alone])
     if progress is not None:
         progress("refining cameras with the objects", 1, 1)
+    if not joint.accepted:
+        return alone, joint, found
     corrected = with_cameras(found, joint.cameras)
     seeds_after = {r.instance.index: T for r, T in zip(alone, joint.poses)}
     return refine_instances(corrected, models, seeds_after, options, progress), joint, corrected
