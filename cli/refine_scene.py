@@ -41,7 +41,7 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
         warn(f"{args.init} gives no pose for instance(s) {', '.join(map(str, missing))}; they are searched "
              "from their masks instead")
 
-    from autoalign.overlay import encode_png, instance_label, render_instances_overlay
+    from autoalign.overlay import encode_png
     from autoalign.scene_refine import refine_instances, refine_instances_and_cameras
 
     options = RefineOptions(loss=args.loss, optimizer=args.optimizer, robust=not args.no_robust)
@@ -55,7 +55,7 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
             results = refine_instances(found, models, seeds, options, progress)
         progress("overlay", 0, 1)
         t0 = time.perf_counter()
-        overlay = _overlay(found, models, results, scene_dir, render_instances_overlay, instance_label)
+        overlay = _overlay(found, models, results, scene_dir)
         progress("overlay", 1, 1)
     finally:
         progress.close()
@@ -151,10 +151,11 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
     return 0
 
 
-def _overlay(found: Any, models: Any, results: list, scene_dir: Path, render: Any, label: Any) -> Any:
+def _overlay(found: Any, models: Any, results: list, scene_dir: Path) -> Any:
     """The overlay of every instance in up to 9 views spread over the scene."""
     import numpy as np
 
+    from autoalign.overlay import instance_label, render_instances_overlay
     from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
     n = len(found.image_ids)
@@ -164,5 +165,6 @@ def _overlay(found: Any, models: Any, results: list, scene_dir: Path, render: An
     for r, scene in zip(results, found.scenes):
         rast = SoftSilhouetteRasterizer(models.mesh(r.instance.obj_id))
         masks = {im: np.asarray(m) > 0.5 for im, m in zip(scene.image_ids, scene.masks)}
-        layers.append((label(r.instance.obj_id, r.verdict.status), masks, np.stack(rast.hard_masks(r.result.T_wm, cams))))
-    return render(found.cameras, found.image_ids, scene_dir, layers, views)
+        layers.append((instance_label(r.instance.obj_id, r.verdict.status), masks,
+                       np.stack(rast.hard_masks(r.result.T_wm, cams))))
+    return render_instances_overlay(found.cameras, found.image_ids, scene_dir, layers, views)
