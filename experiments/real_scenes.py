@@ -31,12 +31,13 @@ from autoalign.atomic_files import write_json_atomic, write_text_atomic
 from autoalign.bop import read_cameras
 from autoalign.camera import Camera
 from autoalign.mesh import load_mesh
+from autoalign.experiments.shared_data import REAL_SCENES
 from autoalign.experiments.metrics import Symmetries, pose_errors
 from autoalign.experiments.procedural_models import load_bop_models_info
 from autoalign.experiments.synthetic import perturb_pose
 
 RESULTS = Path(__file__).resolve().parent / "results"
-DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "real" / "lmo_dev"
+DEFAULT_DATA = REAL_SCENES
 
 
 def scene_inputs(scene: Path, tmp: Path, seed: int = 0) -> tuple[Path, Path, dict[int, np.ndarray]]:

@@ -35,18 +35,15 @@ from autoalign.camera import uv_to_opencv
 from autoalign.mesh import Mesh, load_mesh, mesh_from_trimesh
 from autoalign.se3 import make_pose, rotation_angle_deg, transform_points
 from autoalign.experiments.procedural_models import procedural_models
+from autoalign.experiments.shared_data import shared_dir
 from autoalign.experiments.synthetic import (corrupt_views, make_scene, perturb_pose, random_rotation,
                                              ring_cameras, sphere_cameras, write_synthetic_scene)
 
 def _find_lm_dir() -> Path:
-    """LINEMOD models: $AUTOALIGN_LM_MODELS, else ``shared/bop_models/lm`` beside the checkout."""
+    """LINEMOD models: $AUTOALIGN_LM_MODELS, else ``bop_models/lm`` in the shared folder."""
     if "AUTOALIGN_LM_MODELS" in os.environ:
         return Path(os.environ["AUTOALIGN_LM_MODELS"])
-    for base in (Path.cwd(), Path.cwd().parent, Path("/work")):
-        cand = base / "shared" / "bop_models" / "lm"
-        if cand.is_dir():
-            return cand
-    return Path("/work/shared/bop_models/lm")
+    return shared_dir() / "bop_models" / "lm"
 
 
 LM_DIR = _find_lm_dir()

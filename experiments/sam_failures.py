@@ -32,13 +32,14 @@ from autoalign.instances import read_init_poses, read_instance_scenes, read_inst
 from autoalign.models import ModelSet
 from autoalign.scene_refine import refine_instances
 from autoalign.se3 import make_pose
+from autoalign.experiments.shared_data import REAL_SCENES
 from autoalign.experiments.metrics import Symmetries, pose_errors
 from autoalign.experiments.procedural_models import procedural_models, write_models
 from autoalign.experiments.synthetic import (default_K, perturb_pose, random_rotation, raycast_visible_masks,
                                              ring_cameras, translate_mask)
 
 RESULTS = Path(__file__).resolve().parent / "results"
-DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "real" / "lmo_dev"
+DEFAULT_DATA = REAL_SCENES
 FAILURES = ("empty", "wrong object", "parts missed", "leak", "shifted")
 MEASURED_RATES = {"empty": 0.059, "wrong object": 0.145, "parts missed": 0.172, "leak": 0.053, "shifted": 0.056}
 """``measure_rates`` on the two lmo_dev scenes (338 trusted views, 506 annotated): 42% of masks fail."""
@@ -196,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
              "of 640x480, starts 10 mm / 15 deg off.", "",
              f"* within 2 mm and 2 deg: {np.mean(ok):.1%} ({sum(ok)} of {len(rows)})",
              f"* outside it and not flagged (verdict ok): {len(unflagged_wrong)}",
-             f"* verdicts ok / check / failed: " + " / ".join(str(sum(r['verdict'] == s for r in rows))
+             "* verdicts ok / check / failed: " + " / ".join(str(sum(r['verdict'] == s for r in rows))
                                                                for s in ("ok", "check", "failed")), "",
              "| scene | object | err mm | err deg | verdict | reasons |", "|---|---|---|---|---|---|"]
     for r in rows:

@@ -34,6 +34,7 @@ import trimesh
 from autoalign.bop import mask_path, read_cameras, read_mask
 from autoalign.camera import Camera
 from autoalign.errors import AutoalignError
+from autoalign.experiments.shared_data import REAL_SCENES
 from autoalign.experiments.synthetic import random_rotation, raycast_masks
 from autoalign.feature_distance import (
     MIN_MATCHES, CheckReport, ColouredMesh, Label, ViewInstanceCheck, check_image, check_scene, load_coloured_mesh,
@@ -43,7 +44,7 @@ from autoalign.bop import photo_path, read_photo
 from autoalign.mesh import load_mesh
 from autoalign.se3 import make_pose
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "real" / "lmo_dev" / "lmo_im0480_0695"
+REAL = REAL_SCENES / "lmo_im0480_0695"
 N_IMAGES = 15  # 15 of the 29 images, spread evenly (4 give only 0-3 matches per object on LM-O)
 TEXTURED = (9, 11, 12)  # duck, glue, hole puncher
 ROOT = Path(__file__).resolve().parents[1]

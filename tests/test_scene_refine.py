@@ -213,8 +213,9 @@ def test_masks_failing_like_sam_leave_poses_right_or_flagged(tmp_path):
     masks: empty, another object's, a part missed, leaking, shifted): every instance is within
     2 mm / 2 deg or its verdict is not ok (here a flashlight 11 deg off in roll is 'check')."""
     from autoalign.experiments.sam_failures import MEASURED_RATES, measure_rates, run_scene, within
+    from autoalign.experiments.shared_data import REAL_SCENES
 
-    real = Path(__file__).resolve().parents[2] / "shared" / "real" / "lmo_dev"
+    real = REAL_SCENES
     if real.is_dir():  # the rates replayed are those of the real scenes
         assert measure_rates(real)[0] == MEASURED_RATES
     rows = run_scene(tmp_path, 3)
