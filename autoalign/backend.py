@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike, DTypeLike, NDArray
 
 from autoalign.errors import BackendError
+from autoalign.interrupts import Interrupts
 
 MIN_LLVM_MAJOR = 16
 _SEARCH_DIRS = (
@@ -78,13 +79,14 @@ def mitsuba() -> ModuleType:
     global _mi
     if _mi is None:
         configure_libllvm()
-        import drjit as dr  # noqa: F401  (imported after the libLLVM path is set)
-        import mitsuba as mi
+        with Interrupts.deferred():  # Ctrl-C inside drjit's module init aborts the process
+            import drjit as dr  # noqa: F401  (imported after the libLLVM path is set)
+            import mitsuba as mi
 
-        try:
-            mi.set_variant("llvm_ad_rgb")
-        except Exception as exc:  # pragma: no cover - depends on the machine
-            raise BackendError(f"mitsuba cannot start its LLVM backend ({exc}); {_FIX}") from None
+            try:
+                mi.set_variant("llvm_ad_rgb")
+            except Exception as exc:  # pragma: no cover - depends on the machine
+                raise BackendError(f"mitsuba cannot start its LLVM backend ({exc}); {_FIX}") from None
         _mi = mi
     return _mi
 

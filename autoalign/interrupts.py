@@ -14,8 +14,12 @@ tens of milliseconds), is out of reach.
 
 from __future__ import annotations
 
+import importlib
 import os
+import signal
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 
@@ -40,6 +44,33 @@ class Interrupts:
         """Raise ``KeyboardInterrupt`` if Ctrl-C was pressed during this run."""
         if cls.seen:
             raise KeyboardInterrupt
+
+    @classmethod
+    @contextmanager
+    def deferred(cls) -> Iterator[None]:
+        """Within the command, Ctrl-C during the block is remembered and raised after it.
+
+        C++ extension modules run Python code while they initialise (drjit imports its submodules
+        from its module init); an exception raised there ends in ``std::terminate``: the process
+        aborted or crashed in about one run in ten interrupted during drjit's import. Outside the
+        command (another SIGINT handler installed) this does nothing.
+        """
+        if signal.getsignal(signal.SIGINT) != cls.handler:
+            yield
+            return
+        signal.signal(signal.SIGINT, cls.remember)
+        try:
+            yield
+        finally:
+            signal.signal(signal.SIGINT, cls.handler)
+        cls.check()
+
+
+def preload(*modules: str) -> None:
+    """Import ``modules`` (extension modules the command will need) with Ctrl-C deferred."""
+    with Interrupts.deferred():
+        for name in modules:
+            importlib.import_module(name)
 
 
 def is_command_process() -> bool:

@@ -108,6 +108,9 @@ def format_table(report: Any) -> str:
 
 def run_check(args: argparse.Namespace) -> int:
     """``autoalign check``: see ``autoalign check --help``. Returns 0 once the check ran."""
+    from autoalign.interrupts import preload
+
+    preload("numpy", "cv2", "open3d", "trimesh")  # extension modules, with Ctrl-C deferred
     from autoalign.cli.main import ProgressBar, remove_empty_dirs, prepare_out_dir, warn
 
     scene, labels, models = Path(args.scene), Path(args.labels), Path(args.models)

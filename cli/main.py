@@ -25,7 +25,7 @@ from typing import Any, Callable
 from autoalign import __version__
 from autoalign.atomic_files import write_files_atomic
 from autoalign.errors import AutoalignError
-from autoalign.interrupts import Interrupts, is_command_process
+from autoalign.interrupts import Interrupts, is_command_process, preload
 
 PROG = "autoalign"
 OUTPUT_FILES = ("scene_gt.json", "refine.json", "overlay.png", "scene_camera.json")
@@ -479,6 +479,7 @@ def check_outputs_spare_inputs(out: Path, scene_dir: Path, inputs: list[Path]) -
 def run_refine(args: argparse.Namespace) -> int:
     """``autoalign refine``: see ``autoalign refine --help``."""
     t_start = time.perf_counter()
+    preload("numpy", "cv2", "scipy.spatial", "trimesh")  # extension modules, with Ctrl-C deferred
     click = None
     if args.click is not None:
         from autoalign.seeding import Click
