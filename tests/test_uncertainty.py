@@ -54,16 +54,21 @@ def test_errors_fall_within_3_sigma_on_noisy_outlines():
     assert float(np.median(z)) > 0.2  # not covering by being huge: a Gaussian's median |z| is 0.67
 
 
+def _flashlight_scene(seed: list[int]):
+    """A flashlight (model z is its axis) in 24 ring views: mesh, scene, true pose, the rng."""
+    pm = next(m for m in procedural_models() if m.name == "flashlight")
+    mesh = mesh_from_trimesh(pm.mesh, pm.name)
+    rng = np.random.default_rng(seed)
+    R = random_rotation(rng)
+    T = make_pose(R, -R @ mesh.centre)
+    return mesh, make_scene(mesh, T, ring_cameras(24, rng)), T, rng
+
+
 @pytest.mark.parametrize("k", range(3))
 def test_flashlight_roll_converges_or_is_named_weak(k):
     """A flashlight (a cylinder with a small button) started 25 degrees off: either within 1 degree,
     or its roll about the model axis is named as weakly observed with a sigma covering the error."""
-    pm = next(m for m in procedural_models() if m.name == "flashlight")
-    mesh = mesh_from_trimesh(pm.mesh, pm.name)
-    rng = np.random.default_rng([3, k])
-    R = random_rotation(rng)
-    T = make_pose(R, -R @ mesh.centre)
-    scene = make_scene(mesh, T, ring_cameras(24, rng))
+    mesh, scene, T, rng = _flashlight_scene([3, k])
     scene = Scene(scene.cameras, [wiggle_mask(m > 0.5, rng).astype(np.float32) for m in scene.masks], scene.image_ids)
     r = refine(scene, mesh, perturb_pose(T, 10.0, 25.0, rng, mesh.centre))
     _, e_r = _model_frame_errors(r.T_wm, T, mesh.centre)
@@ -90,12 +95,7 @@ def test_init_turned_about_the_weak_axis_is_not_returned(k):
     from autoalign.hypotheses import turns
     from autoalign.se3 import rotation_angle_deg
 
-    pm = next(m for m in procedural_models() if m.name == "flashlight")
-    mesh = mesh_from_trimesh(pm.mesh, pm.name)
-    rng = np.random.default_rng([5, k])
-    R = random_rotation(rng)
-    T = make_pose(R, -R @ mesh.centre)
-    scene = make_scene(mesh, T, ring_cameras(24, rng))
+    mesh, scene, T, rng = _flashlight_scene([5, k])
     T0 = turns(perturb_pose(T, 3.0, 3.0, rng, mesh.centre), np.array([0.0, 0.0, 1.0]), mesh.centre, (100.0 + 40 * k,))[0]
     stuck = refine(scene, mesh, T0, RefineOptions(weak_turns=()))
     assert rotation_angle_deg(stuck.T_wm[:3, :3], T[:3, :3]) > 45.0
