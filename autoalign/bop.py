@@ -365,14 +365,24 @@ def pose_in_camera(T_wm: NDArray[np.float64], cam: Camera) -> tuple[list[float],
     return [float(x) for x in T_cm[:3, :3].ravel()], [float(x) for x in T_cm[:3, 3]]
 
 
+def scene_gt_of(objects: list[tuple[int, NDArray[np.float64]]], cameras: list[Camera],
+                image_ids: list[int]) -> dict[str, list[dict[str, Any]]]:
+    """A BOP ``scene_gt.json`` object: in every image, one entry per ``(obj_id, T_wm)`` of
+    ``objects`` (world-from-model, mm), in that order."""
+    out = {}
+    for im, cam in zip(image_ids, cameras):
+        entries = []
+        for obj_id, T_wm in objects:
+            R, t = pose_in_camera(np.asarray(T_wm, dtype=np.float64), cam)
+            entries.append({"obj_id": int(obj_id), "cam_R_m2c": R, "cam_t_m2c": t})
+        out[str(im)] = entries
+    return out
+
+
 def scene_gt_dict(T_wm: NDArray[np.float64], cameras: list[Camera], image_ids: list[int],
                   obj_id: int = 1) -> dict[str, list[dict[str, Any]]]:
     """A BOP ``scene_gt.json`` object: one entry per image for the given world pose."""
-    out = {}
-    for im, cam in zip(image_ids, cameras):
-        R, t = pose_in_camera(T_wm, cam)
-        out[str(im)] = [{"obj_id": int(obj_id), "cam_R_m2c": R, "cam_t_m2c": t}]
-    return out
+    return scene_gt_of([(obj_id, T_wm)], cameras, image_ids)
 
 
 def write_scene(out_dir: str | Path, scene: Scene, T_wm: NDArray[np.float64], obj_id: int = 1,

@@ -128,6 +128,7 @@ def read_instance_scenes(scene_dir: str | Path, instances: list[Instance],
     claimed = {}  # im -> union of every mask of that image
     for (im, _), m in read.masks.items():
         claimed[im] = m | claimed[im] if im in claimed else m.copy()
+    pos = {im: i for i, im in enumerate(ids)}
     scenes = []
     for inst in instances:
         views = [im for im in ids if (im, inst.index) in read.masks]
@@ -136,7 +137,6 @@ def read_instance_scenes(scene_dir: str | Path, instances: list[Instance],
                                  f"non-empty mask ..._{inst.index:06d}.png in any image; remove it from the "
                                  "instances or add its masks")
         own = [read.masks[(im, inst.index)] for im in views]
-        pos = {im: i for i, im in enumerate(ids)}
         scenes.append(Scene([cameras[pos[im]] for im in views], [m.astype(np.float32) for m in own], views,
                             scene_dir, tuple(im for im in ids if (im, inst.index) not in read.masks and
                                              (im, inst.index) not in read.empty),

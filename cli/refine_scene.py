@@ -61,12 +61,10 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
         progress.close()
     t_overlay = time.perf_counter() - t0
 
-    from autoalign.bop import pose_in_camera
+    from autoalign.bop import scene_gt_of
     from autoalign.se3 import rotation_angle_deg
 
-    scene_gt = {str(im): [dict(zip(("obj_id", "cam_R_m2c", "cam_t_m2c"), (r.instance.obj_id, *pose_in_camera(r.result.T_wm, cam))))
-                          for r in results]
-                for im, cam in zip(found.image_ids, found.cameras)}
+    scene_gt = scene_gt_of([(r.instance.obj_id, r.result.T_wm) for r in results], found.cameras, found.image_ids)
     records = []
     for pos, r in enumerate(results):
         res = r.result

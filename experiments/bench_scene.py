@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from autoalign.atomic_files import write_json_atomic, write_text_atomic
-from autoalign.bop import pose_in_camera
+from autoalign.bop import scene_gt_of
 from autoalign.models import ModelSet
 from autoalign.se3 import make_pose
 from autoalign.experiments.metrics import Symmetries, pose_errors
@@ -51,9 +51,7 @@ def make_bench_scene(root: Path, n_obj: int, views: int = 40, seed: int = 0) -> 
                         K=default_K(640, 480, 600.0))
     write_multi_scene(root / "scene", meshes, list(range(1, n_obj + 1)), truth, cams)
     coarse = [perturb_pose(T, 10.0, 15.0, rng, m.centre) for T, m in zip(truth, meshes)]
-    write_json_atomic(root / "init_gt.json", {"0": [dict(zip(("obj_id", "cam_R_m2c", "cam_t_m2c"),
-                                                             (j + 1, *pose_in_camera(T, cams[0]))))
-                                                    for j, T in enumerate(coarse)]})
+    write_json_atomic(root / "init_gt.json", scene_gt_of([(j + 1, T) for j, T in enumerate(coarse)], cams[:1], [0]))
     return truth
 
 

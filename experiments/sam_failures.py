@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.atomic_files import write_json_atomic, write_text_atomic
-from autoalign.bop import pose_in_camera
+from autoalign.bop import scene_gt_of
 from autoalign.engine import RefineOptions
 from autoalign.instances import read_init_poses, read_instance_scenes, read_instances
 from autoalign.models import ModelSet
@@ -36,7 +36,7 @@ from autoalign.experiments.shared_data import REAL_SCENES
 from autoalign.experiments.metrics import Symmetries, pose_errors
 from autoalign.experiments.procedural_models import procedural_models, write_models
 from autoalign.experiments.synthetic import (default_K, perturb_pose, random_rotation, raycast_visible_masks,
-                                             ring_cameras, translate_mask)
+                                             ring_cameras, translate_mask, write_multi_scene)
 
 RESULTS = Path(__file__).resolve().parent / "results"
 DEFAULT_DATA = REAL_SCENES
@@ -137,19 +137,9 @@ def make_sam_scene(root: Path, k: int, n_obj: int = 5, views: int = 40, rates: d
         truth.append(make_pose(R, np.array([75 * np.cos(a), 75 * np.sin(a), 40.0]) - R @ m.centre))
     cams = ring_cameras(views, rng, target=(0.0, 0.0, 40.0), K=default_K(640, 480, 600.0))
     masks, counts = corrupt_like_sam(raycast_visible_masks(meshes, truth, cams), rng, rates)
-    scene = root / "scene"
-    (scene / "mask_visib").mkdir(parents=True, exist_ok=True)
-    write_json_atomic(scene / "scene_camera.json", {str(i): {"cam_K": c.K_opencv.ravel().tolist(),
-                                                            "cam_R_w2c": c.R_w2c.ravel().tolist(),
-                                                            "cam_t_w2c": c.t_w2c.tolist()} for i, c in enumerate(cams)})
-    write_json_atomic(scene / "scene_gt.json", {str(i): [{"obj_id": j + 1} for j in range(n_obj)] for i in range(len(cams))})
-    for i, view in enumerate(masks):
-        for j, m in enumerate(view):
-            if m.any():
-                cv2.imwrite(str(scene / "mask_visib" / f"{i:06d}_{j:06d}.png"), m.astype(np.uint8) * 255)
+    write_multi_scene(root / "scene", meshes, list(range(1, n_obj + 1)), truth, cams, masks)
     coarse = [perturb_pose(T, 10.0, 15.0, rng, m.centre) for T, m in zip(truth, meshes)]
-    write_json_atomic(root / "init_gt.json", {"0": [dict(zip(("obj_id", "cam_R_m2c", "cam_t_m2c"), (j + 1, *pose_in_camera(T, cams[0]))))
-                                                    for j, T in enumerate(coarse)]})
+    write_json_atomic(root / "init_gt.json", scene_gt_of([(j + 1, T) for j, T in enumerate(coarse)], cams[:1], [0]))
     return truth, counts, [m.name for m in chosen]
 
 

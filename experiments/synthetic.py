@@ -18,7 +18,7 @@ import open3d as o3d
 from numpy.typing import ArrayLike, NDArray
 
 from autoalign.atomic_files import write_json_atomic
-from autoalign.bop import Scene, pose_in_camera, write_scene
+from autoalign.bop import Scene, scene_gt_of, write_scene
 from autoalign.camera import Camera, look_at
 from autoalign.mesh import Mesh
 from autoalign.se3 import make_pose, transform_points
@@ -347,22 +347,22 @@ def raycast_visible_masks(meshes: Sequence[Mesh], poses: Sequence[ArrayLike],
 
 
 def write_multi_scene(out_dir: str | Path, meshes: Sequence[Mesh], obj_ids: Sequence[int],
-                      poses: Sequence[ArrayLike], cameras: Sequence[Camera]) -> list[list[NDArray[np.bool_]]]:
+                      poses: Sequence[ArrayLike], cameras: Sequence[Camera],
+                      masks: list[list[NDArray[np.bool_]]] | None = None) -> list[list[NDArray[np.bool_]]]:
     """A BOP scene folder of several objects: ``scene_camera.json``, ``scene_gt.json`` (every
     instance in every image, entry k = instance k) and ``mask_visib/{im:06d}_{k:06d}.png`` visible
-    masks (written only where non-empty); returns the masks ``[view][instance]``."""
+    masks (written only where non-empty): ``masks`` ``[view][instance]`` if given (e.g. corrupted
+    ones), else ray-cast with :func:`raycast_visible_masks`; returns the masks written."""
     out_dir = Path(out_dir)
     (out_dir / "mask_visib").mkdir(parents=True, exist_ok=True)
-    masks = raycast_visible_masks(meshes, poses, cameras)
+    if masks is None:
+        masks = raycast_visible_masks(meshes, poses, cameras)
     ids = list(range(len(cameras)))
     write_scene(out_dir, Scene(list(cameras), [np.zeros((c.height, c.width), np.float32) for c in cameras], ids),
                 np.eye(4), write_masks=False)
-    gt = {}
-    for im, cam, per_view in zip(ids, cameras, masks):
-        gt[str(im)] = [dict(zip(("obj_id", "cam_R_m2c", "cam_t_m2c"), (int(o), *pose_in_camera(np.asarray(T), cam))))
-                       for o, T in zip(obj_ids, poses)]
+    for im, per_view in zip(ids, masks):
         for k, m in enumerate(per_view):
             if m.any():
                 cv2.imwrite(str(out_dir / "mask_visib" / f"{im:06d}_{k:06d}.png"), m.astype(np.uint8) * 255)
-    write_json_atomic(out_dir / "scene_gt.json", gt)
+    write_json_atomic(out_dir / "scene_gt.json", scene_gt_of(list(zip(obj_ids, poses)), list(cameras), ids))
     return masks

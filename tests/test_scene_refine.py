@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import pytest
 
-from autoalign.bop import pose_in_camera
+from autoalign.bop import pose_in_camera, scene_gt_of
 from autoalign.engine import refine
 from autoalign.errors import AutoalignError
 from autoalign.experiments.metrics import Symmetries, pose_errors
@@ -63,8 +63,7 @@ def multi(tmp_path_factory) -> Multi:
     write_multi_scene(d.scene, meshes, d.obj_ids, d.truth, cams)
     coarse = [perturb_pose(T, 10.0, 15.0, rng, m.centre) for T, m in zip(d.truth, meshes)]
     d.init = d.root / "init_gt.json"
-    d.init.write_text(json.dumps({"0": [dict(zip(("obj_id", "cam_R_m2c", "cam_t_m2c"), (o, *pose_in_camera(T, cams[0]))))
-                                        for o, T in zip(d.obj_ids, coarse)]}))
+    d.init.write_text(json.dumps(scene_gt_of(list(zip(d.obj_ids, coarse)), cams[:1], [0])))
     return d
 
 
