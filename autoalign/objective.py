@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 
 from autoalign.bop import Scene
 from autoalign.camera import Camera
-from autoalign.losses import LOSSES, ViewTerms, cauchy_weights, implausible_views, targets_in_crops
+from autoalign.losses import LOSSES, ViewTerms, robust_view_weights, targets_in_crops
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer, Silhouettes
 
 
@@ -67,7 +67,7 @@ class SilhouetteObjective:
         search_rasterizer: an even simpler mesh for levels at 1/8 resolution or less (optional).
         scene: cameras and target masks.
         loss: one of :data:`autoalign.losses.LOSSES`.
-        robust: re-weight views with Cauchy weights on ``1 - IoU`` (see :func:`cauchy_weights`).
+        robust: re-weight views with Cauchy weights on ``1 - IoU`` (see :func:`~autoalign.losses.robust_view_weights`).
     """
 
     def __init__(self, rasterizer: SoftSilhouetteRasterizer, scene: Scene, loss: str = "l2",
@@ -136,9 +136,5 @@ class SilhouetteObjective:
         return self.combine(ev.terms, ev.silhouettes) if self.robust else ev
 
     def view_weights(self, terms: ViewTerms) -> NDArray[np.float64]:
-        """Per-view weights (normalised to mean 1) for the current fit: Cauchy weights on the misfit,
-        and none for a view whose mask is implausible (:func:`~autoalign.losses.implausible_views`)."""
-        if not self.robust:
-            return np.ones(len(terms.iou))
-        w = cauchy_weights(1.0 - terms.iou) * ~implausible_views(terms.iou)
-        return w * (len(w) / max(w.sum(), 1e-12))
+        """Per-view weights for the current fit (:func:`~autoalign.losses.robust_view_weights`; 1 if not robust)."""
+        return robust_view_weights(terms.iou) if self.robust else np.ones(len(terms.iou))

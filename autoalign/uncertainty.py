@@ -112,11 +112,22 @@ def pose_uncertainty(H: NDArray[np.float64], view_grads: NDArray[np.float64], we
     """
     H_inv = np.linalg.pinv(H, rcond=1e-12, hermitian=True)
     g = view_grads * np.asarray(weights, dtype=np.float64)[:, None]
-    V = int(np.sum(np.asarray(weights) > 0))
-    meat = g.T @ g * (V / max(V - 1, 1))
-    cov = _to_model(H_inv @ meat @ H_inv, R_wm)
-    naive = _to_model(H_inv * (2.0 * value / max(n_band - 6, 1)), R_wm)
+    return uncertainty_of(sandwich(H_inv, g), H_inv * (2.0 * value / max(n_band - 6, 1)), R_wm)
+
+
+def sandwich(H_inv: NDArray[np.float64], cluster_grads: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The cluster-robust covariance ``H^-1 (V / (V - 1) sum_v g_v g_v^T) H^-1`` from the weighted
+    gradients ``g_v`` (V, n) of the clusters (views); clusters with a zero gradient do not count."""
+    V = int(np.count_nonzero(np.any(cluster_grads != 0.0, axis=1)))
+    meat = cluster_grads.T @ cluster_grads * (V / max(V - 1, 1))
+    return H_inv @ meat @ H_inv
+
+
+def uncertainty_of(cov_w: NDArray[np.float64], naive_w: NDArray[np.float64], R_wm: NDArray[np.float64]) -> Uncertainty:
+    """What the world-twist covariance ``cov_w`` (6x6, about the object centre) says, in the
+    model's axes; ``naive_w`` is the residual-variance estimate, for comparison."""
+    cov = _to_model(cov_w, R_wm)
     s_mm, s_deg = _sigmas(cov)
-    n_mm, n_deg = _sigmas(naive)
+    n_mm, n_deg = _sigmas(_to_model(naive_w, R_wm))
     weak = _weak(cov)
     return Uncertainty(cov, s_mm, s_deg, [t for t, _ in weak], [u for t, u in weak if t.startswith("turn")], n_mm, n_deg)

@@ -42,17 +42,14 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
              "from their masks instead")
 
     from autoalign.overlay import encode_png
-    from autoalign.scene_refine import refine_instances, refine_instances_and_cameras
+    from autoalign.scene_refine import refine_scene
 
     options = RefineOptions(loss=args.loss, optimizer=args.optimizer, robust=not args.no_robust)
     progress = ProgressBar(enabled=not args.quiet)
     progress.start("loading the renderer")
     try:
-        joint = None
-        if args.refine_cameras:
-            results, joint, found = refine_instances_and_cameras(found, models, seeds, options, progress)
-        else:
-            results = refine_instances(found, models, seeds, options, progress)
+        refined = refine_scene(found, models, seeds, options, args.refine_cameras, progress)
+        results, found, joint = refined.results, refined.found, refined.joint
         progress("overlay", 0, 1)
         t0 = time.perf_counter()
         overlay = _overlay(found, models, results, scene_dir)
@@ -98,31 +95,39 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
     }
     files = {"scene_gt.json": json.dumps(jsonable(scene_gt), indent=1).encode(),
              "overlay.png": encode_png(overlay)}
-    if joint is not None and not joint.accepted:
-        warn("--refine-cameras: the camera corrections explained too little of the misfit "
-             f"(median per-view 1 - IoU {np.median(list(joint.view_misfit_before.values())):.3f} -> "
-             f"{np.median(list(joint.view_misfit_after.values())):.3f}), so the masks, not the cameras, are what "
-             "is off; the given cameras and each instance's own pose are kept")
+    from autoalign.camera_refine import MIN_MISFIT_GAIN
+
     if joint is not None:
+        report["joint"] = {"iterations": joint.iterations, "loss_before": joint.loss_before,
+                           "loss_after": joint.loss_after,
+                           "median_view_misfit_before": float(np.median(list(joint.view_misfit_before.values()))),
+                           "median_view_misfit_after": float(np.median(list(joint.view_misfit_after.values())))}
+    attempt = refined.with_cameras
+    if attempt is not None and not refined.cameras_accepted:
+        warn("--refine-cameras: the camera corrections explained too little of the misfit (median per-view "
+             f"1 - IoU {np.median(list(attempt.view_misfit_before.values())):.3f} -> "
+             f"{np.median(list(attempt.view_misfit_after.values())):.3f}, less than {MIN_MISFIT_GAIN:.0%} lower), "
+             "so the masks, not the cameras, are what is off; the given cameras are kept")
+    if attempt is not None:
         from autoalign.bop import read_cameras
 
         corrected = {}
         for im, (K, R, t) in read_cameras(scene_dir).items():
             T_cw = np.eye(4)
             T_cw[:3, :3], T_cw[:3, 3] = R, t
-            T_cw = T_cw @ (joint.corrections.get(im, np.eye(4)) if joint.accepted else np.eye(4))
+            T_cw = T_cw @ (joint.corrections.get(im, np.eye(4)) if refined.cameras_accepted else np.eye(4))
             corrected[str(im)] = {"cam_K": K.ravel(), "cam_R_w2c": T_cw[:3, :3].ravel(), "cam_t_w2c": T_cw[:3, 3]}
         files["scene_camera.json"] = json.dumps(jsonable(corrected), indent=1).encode()
         report["cameras"] = {
-            "refined": joint.accepted, "file": "scene_camera.json", "iterations": joint.iterations,
-            "loss_before": joint.loss_before, "loss_after": joint.loss_after,
-            "median_view_misfit_before": float(np.median(list(joint.view_misfit_before.values()))),
-            "median_view_misfit_after": float(np.median(list(joint.view_misfit_after.values()))),
+            "refined": refined.cameras_accepted, "file": "scene_camera.json", "iterations": attempt.iterations,
+            "loss_before": attempt.loss_before, "loss_after": attempt.loss_after,
+            "median_view_misfit_before": float(np.median(list(attempt.view_misfit_before.values()))),
+            "median_view_misfit_after": float(np.median(list(attempt.view_misfit_after.values()))),
             "per_view": {str(im): {"translation_mm": float(np.linalg.norm(E[:3, 3])),
                                    "rotation_deg": rotation_angle_deg(E[:3, :3], np.eye(3)),
-                                   "misfit_before": joint.view_misfit_before.get(im),
-                                   "misfit_after": joint.view_misfit_after.get(im)}
-                         for im, E in joint.corrections.items()}}
+                                   "misfit_before": attempt.view_misfit_before.get(im),
+                                   "misfit_after": attempt.view_misfit_after.get(im)}
+                         for im, E in attempt.corrections.items()}}
         report["outputs"]["scene_camera"] = "scene_camera.json"
     files["refine.json"] = json.dumps(jsonable(report), indent=1, allow_nan=False).encode()
     write_outputs(out, files)

@@ -30,7 +30,7 @@ from autoalign.bop import scene_gt_of
 from autoalign.engine import RefineOptions
 from autoalign.instances import read_init_poses, read_instance_scenes, read_instances
 from autoalign.models import ModelSet
-from autoalign.scene_refine import refine_instances
+from autoalign.scene_refine import refine_scene
 from autoalign.se3 import make_pose
 from autoalign.experiments.shared_data import REAL_SCENES
 from autoalign.experiments.metrics import Symmetries, pose_errors
@@ -148,7 +148,7 @@ def run_scene(root: Path, k: int, n_obj: int = 5, views: int = 40) -> list[dict]
     truth, counts, names = make_sam_scene(root, k, n_obj, views)
     found = read_instance_scenes(root / "scene", read_instances(root / "scene"))
     models = ModelSet.read(root / "models")
-    results = refine_instances(found, models, read_init_poses(root / "init_gt.json", found), RefineOptions())
+    results = refine_scene(found, models, read_init_poses(root / "init_gt.json", found), RefineOptions()).results
     rows = []
     for r in results:
         i = r.instance.obj_id

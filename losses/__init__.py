@@ -7,6 +7,7 @@ weights, so second-order and first-order methods see the same objective.
 """
 
 from autoalign.losses.silhouette import LOSSES, ViewTerms, bce, dice, iou, l2, targets_in_crops
-from autoalign.losses.robust import cauchy_weights, implausible_views
+from autoalign.losses.robust import cauchy_weights, implausible_views, robust_view_weights
 
-__all__ = ["LOSSES", "ViewTerms", "bce", "dice", "iou", "l2", "targets_in_crops", "cauchy_weights", "implausible_views"]
+__all__ = ["LOSSES", "ViewTerms", "bce", "dice", "iou", "l2", "targets_in_crops", "cauchy_weights", "implausible_views",
+           "robust_view_weights"]

@@ -39,3 +39,11 @@ def implausible_views(iou: NDArray[np.float64], gate: float = IMPLAUSIBLE_IOU, f
     if len(iou) == 0 or np.mean(iou >= fitting) < fraction:
         return np.zeros(len(iou), dtype=bool)
     return iou < gate
+
+
+def robust_view_weights(iou: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Per-view weights for the current fit, normalised to mean 1: Cauchy weights on the misfit
+    ``1 - IoU``, and none for a view whose mask is implausible (:func:`implausible_views`)."""
+    iou = np.asarray(iou, dtype=np.float64)
+    w = cauchy_weights(1.0 - iou) * ~implausible_views(iou)
+    return w * (len(w) / max(float(w.sum()), 1e-12))

@@ -237,13 +237,25 @@ class SoftSilhouetteRasterizer:
 
     def hits_at(self, T_wm: NDArray[np.float64], cams: "CameraBatch", view: NDArray[np.int64],
                 uv: NDArray[np.float64]) -> NDArray[np.bool_]:
-        """Hard hits of the rays through continuous pixel coordinates ``uv`` (N, 2) of views ``view`` (N,).
-
-        The model-frame rays are formed inside the ray-casting kernel (double precision, then
-        rounded to the caster's single precision) from per-view tables, never as arrays.
-        """
+        """Hard hits of the rays through continuous pixel coordinates ``uv`` (N, 2) of views ``view`` (N,)."""
         if len(view) == 0:
             return np.zeros(0, dtype=bool)
+        return np.array(self._scene.ray_test(self._pixel_rays(T_wm, cams, view, uv)), dtype=bool)
+
+    def depths_at(self, T_wm: NDArray[np.float64], cams: "CameraBatch", view: NDArray[np.int64],
+                  uv: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Distance (mm) from the camera centre to the first surface along the rays through ``uv``
+        (N, 2) of views ``view`` (N,); ``inf`` where the ray misses the object."""
+        if len(view) == 0:
+            return np.zeros(0)
+        t = np.array(self._scene.ray_intersect_preliminary(self._pixel_rays(T_wm, cams, view, uv)).t, dtype=np.float64)
+        t[~np.isfinite(t)] = np.inf
+        return t
+
+    def _pixel_rays(self, T_wm: NDArray[np.float64], cams: "CameraBatch", view: NDArray[np.int64],
+                    uv: NDArray[np.float64]) -> object:
+        """Model-frame unit rays through ``uv`` of views ``view``, formed inside the kernel (double
+        precision, then rounded to the caster's single precision) from per-view tables, never as arrays."""
         dr, mi = self._dr, self._mi
         F64 = mi.Float64
         T_mw = invert(T_wm)
@@ -255,8 +267,7 @@ class SoftSilhouetteRasterizer:
         d = [m[3 * i] * u + m[3 * i + 1] * w + m[3 * i + 2] for i in range(3)]
         inv_norm = dr.rsqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
         o = [dr.gather(mi.Float, jit_array(mi.Float, C_m[:, i], np.float32), v) for i in range(3)]
-        ray = mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*(mi.Float(x * inv_norm) for x in d)))
-        return np.array(self._scene.ray_test(ray), dtype=bool)
+        return mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*(mi.Float(x * inv_norm) for x in d)))
 
     def pixel_hits(self, T_wm: NDArray[np.float64], cameras: list[Camera],
                    uv: list[NDArray[np.float64]]) -> list[NDArray[np.bool_]]:

@@ -1,0 +1,140 @@
+"""The occlusion-aware loss of several instances (issue 13, item 1): each instance's visible
+silhouette is its own minus what modelled instances in front of it hide, checked against open3d's
+ray casting of all the meshes together; its derivatives w.r.t. the occluder's pose are right; and
+the joint refinement labels an instance whose occluder's masks are missing.
+
+The scene: two procedural objects, one partly in front of the other in most of 8 views, visible
+masks from open3d (a pixel belongs to the nearest surface).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from autoalign.experiments.procedural_models import procedural_models, write_models
+from autoalign.experiments.synthetic import default_K, perturb_pose, random_rotation, ring_cameras, write_multi_scene
+from autoalign.instances import read_instance_scenes, read_instances
+from autoalign.joint_refine import refine_jointly
+from autoalign.models import ModelSet
+from autoalign.objective import Level
+from autoalign.occlusion import JointEvaluation, OcclusionObjective
+from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+from autoalign.se3 import apply_twist, make_pose, rotation_angle_deg, transform_points
+
+W, H, VIEWS = 320, 240, 8
+FULL = Level(1.0, 0.5, 0)
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory) -> tuple[Path, ModelSet, list[np.ndarray]]:
+    root = tmp_path_factory.mktemp("pair")
+    write_models(root / "models", procedural_models()[1:3])  # box_plain, mug
+    models = ModelSet.read(root / "models")
+    meshes = [models.mesh(1), models.mesh(2)]
+    rng = np.random.default_rng(5)
+    truth = []
+    for k, m in enumerate(meshes):  # 45 mm apart: each hides part of the other from about half the ring
+        R = random_rotation(rng)
+        truth.append(make_pose(R, np.array([45.0 * k - 22.5, 0.0, 30.0]) - R @ m.centre))
+    cams = ring_cameras(VIEWS, rng, dist_range=(350.0, 450.0), target=(0.0, 0.0, 30.0),
+                        K=default_K(W, H, 380.0), width=W, height=H, elev_range_deg=(10.0, 25.0))
+    write_multi_scene(root / "scene", meshes, [1, 2], truth, cams)
+    return root, models, truth
+
+
+def _objective(root: Path, models: ModelSet, ignore: bool = True) -> tuple[OcclusionObjective, object]:
+    found = read_instance_scenes(root / "scene", read_instances(root / "scene"))
+    if not ignore:
+        found = replace(found, scenes=[replace(s, ignore=None) for s in found.scenes])
+    return OcclusionObjective(found, [SoftSilhouetteRasterizer(models.mesh(i.obj_id)) for i in found.instances]), found
+
+
+def _total_grad(ev: JointEvaluation, n: int) -> np.ndarray:
+    G = np.zeros((n, 6))
+    for fits, w in zip(ev.fits, ev.weights):
+        for f, wk in zip(fits, w):
+            for a, inst in enumerate(f.instances):
+                G[inst] += wk * f.grad[6 * a:6 * a + 6]
+    return G
+
+
+def test_visible_silhouettes_match_open3d_at_the_true_poses(pair):
+    """No pixel ignored: at the true poses every instance's ray-cast visible silhouette equals the
+    open3d-cast visible mask (IoU >= 0.995 in every view), and parts of both are hidden in some
+    views; without the occluder modelled (its pose far away) the hidden parts cost IoU."""
+    root, models, truth = pair
+    obj, found = _objective(root, models, ignore=False)
+    ev = obj.evaluate(truth, FULL)
+    for k in range(2):
+        assert np.min(ev.hard_iou(k)) >= 0.995, ev.hard_iou(k)
+        assert any(len(f.instances) > 1 for f in ev.fits[k])  # the other one is in front somewhere
+    away = [truth[0], make_pose(np.eye(3), np.array([0.0, 0.0, 5e4]))]
+    alone = obj.evaluate(away, FULL)
+    assert np.min(alone.hard_iou(0)) < 0.95
+
+
+def test_derivatives_wrt_the_occluders_pose_match_finite_differences(pair):
+    """The loss of the instance behind depends on the pose of the one in front; its analytic
+    gradient w.r.t. that pose matches central differences (fixed weights)."""
+    root, models, truth = pair
+    obj, _ = _objective(root, models, ignore=False)
+    rng = np.random.default_rng(1)
+    poses = [perturb_pose(T, 1.0, 1.0, rng, models.mesh(k + 1).centre) for k, T in enumerate(truth)]
+    ev = obj.evaluate(poses, FULL)
+    G = _total_grad(ev, 2)
+    for j in range(2):
+        c = transform_points(poses[j], models.mesh(j + 1).centre[None])[0]
+        fd = np.zeros(6)
+        for a in range(6):
+            h = 1e-4 if a < 3 else 1e-6  # small: the soft loss has tiny jumps where the outline changes edges
+            vals = []
+            for s in (1, -1):
+                moved = list(poses)
+                moved[j] = apply_twist(poses[j], s * h * np.eye(6)[a], c)
+                vals.append(obj.evaluate(moved, FULL, ev.weights).value)
+            fd[a] = (vals[0] - vals[1]) / (2 * h)
+        np.testing.assert_allclose(G[j], fd, rtol=0.05, atol=0.02 * np.abs(fd).max())
+
+
+def test_joint_refinement_labels_an_instance_whose_occluders_masks_are_missing(pair, tmp_path):
+    """The front object's masks deleted in all views but one: the parts of the object behind it
+    that it hides are claimed by no mask. Refined alone (engine.refine, other masks ignored) from
+    starts 2 mm / 2 deg off, the hidden parts pull the object behind 0.5-0.8 mm off; refined
+    together, occlusion-aware, from there, it lands within 0.1 mm / 0.2 deg, and the front object,
+    whose own masks are in one view only, is held in place by the other's contours."""
+    import shutil
+
+    from autoalign.engine import refine
+
+    root, models, truth = pair
+    scene = tmp_path / "scene"
+    shutil.copytree(root / "scene", scene)
+    found = read_instance_scenes(scene, read_instances(scene))
+    obj = OcclusionObjective(found, [SoftSilhouetteRasterizer(models.mesh(i.obj_id)) for i in found.instances])
+    ev = obj.evaluate(truth, FULL)
+    behind = int(np.argmax([sum(len(f.instances) > 1 for f in fits) for fits in ev.fits]))
+    front = 1 - behind
+    for im in range(VIEWS):
+        if im != 1:
+            (scene / "mask_visib" / f"{im:06d}_{front:06d}.png").unlink(missing_ok=True)
+    found = read_instance_scenes(scene, read_instances(scene))
+    rng = np.random.default_rng(2)
+    meshes = [models.mesh(i.obj_id) for i in found.instances]
+    start = [perturb_pose(T, 2.0, 2.0, rng, m.centre) for T, m in zip(truth, meshes)]
+    alone = [refine(found.scenes[k], meshes[k], start[k]).T_wm for k in range(2)]
+    joint = refine_jointly(found, meshes, alone).poses
+
+    def err(T, k):
+        c = meshes[k].centre[None]
+        return (float(np.linalg.norm(transform_points(T, c) - transform_points(truth[k], c))),
+                rotation_angle_deg(T[:3, :3], truth[k][:3, :3]))
+
+    e_alone, e_joint = err(alone[behind], behind), err(joint[behind], behind)
+    assert e_joint[0] < 0.1 and e_joint[1] < 0.2, e_joint
+    assert e_alone[0] > 4 * e_joint[0], (e_alone, e_joint)
+    e_front = err(joint[front], front)
+    assert e_front[0] < 0.3 and e_front[1] < 0.3, e_front
