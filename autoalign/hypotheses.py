@@ -45,6 +45,17 @@ def turns(T_wm: NDArray[np.float64], axis_m: NDArray[np.float64], centre_m: NDAr
     return np.stack([T_wm @ _turn_about(so3_exp(a * np.radians(t)), centre_m) for t in angles_deg])
 
 
+def weak_turn_scores(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.float64],
+                     axes_m: list[NDArray[np.float64]], centre_m: NDArray[np.float64],
+                     angles_deg: tuple[float, ...]) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
+    """The robust hard-IoU score (:func:`score_poses` at 1/4 resolution) of ``T_wm`` and of its
+    turns about each model axis of ``axes_m`` through ``centre_m`` by ``angles_deg``: its score,
+    the turns' scores and the turned poses (K, 4, 4)."""
+    cands = np.concatenate([turns(T_wm, a, centre_m, angles_deg) for a in axes_m])
+    scores, _ = score_poses(rast, scene, np.concatenate([T_wm[None], cands]), scale=0.25, recentre=False)
+    return float(scores[0]), scores[1:], cands
+
+
 def orbit(T_a: NDArray[np.float64], T_b: NDArray[np.float64], max_order: int = 12,
           tol_deg: float = 3.0) -> NDArray[np.float64]:
     """The other poses of the cyclic group that two near-equal fits suggest, (K, 4, 4).
@@ -131,7 +142,7 @@ class _LowResViews:
     def overlap_stats(self, rast: SoftSilhouetteRasterizer, poses: NDArray[np.float64]) -> NDArray[np.float64]:
         """(K, 4, V) per pose and view: silhouette area, overlap with the mask, and the sums of
         the silhouette's pixel x and y (px, this resolution)."""
-        return rast.posed_hit_sums(poses, self.centres, self.D, self.view, self._weights)
+        return rast.caster.posed_hit_sums(poses, self.centres, self.D, self.view, self._weights)
 
 
 def score_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.float64],
@@ -145,7 +156,7 @@ def score_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.
     poses. The worst ``trim`` fraction of views is ignored per pose.
     """
     poses = np.array(poses, dtype=np.float64)
-    radius = float(np.linalg.norm(rast._hull - rast.mesh.centre, axis=1).max())
+    radius = float(np.linalg.norm(rast.hull - rast.mesh.centre, axis=1).max())
     centres = poses[:, :3, 3] + np.einsum("kij,j->ki", poses[:, :3, :3], rast.mesh.centre)
     centre_w = centres.mean(0)
     reach = radius + float(np.linalg.norm(centres - centre_w, axis=1).max()) + (0.5 * radius if recentre else 0.0)

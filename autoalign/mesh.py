@@ -70,10 +70,16 @@ class Mesh:
         """This mesh with at most about ``max_faces`` triangles (quadric decimation), same frame and centre.
 
         Used for the coarse, low-resolution levels, where a pixel spans millimetres; returns
-        ``self`` when the mesh is already small enough.
+        ``self`` when the mesh is already small enough. Each size is computed once per mesh.
         """
         if len(self.faces) <= max_faces:
             return self
+        cache = self.__dict__.setdefault("_simplified", {})
+        if max_faces not in cache:
+            cache[max_faces] = self._decimated(max_faces)
+        return cache[max_faces]
+
+    def _decimated(self, max_faces: int) -> "Mesh":
         tm = self.trimesh.simplify_quadric_decimation(face_count=int(max_faces))
         # the decimator leaves collapsed triangles behind as duplicates: drop them and unused vertices
         tm.update_faces(tm.unique_faces() & tm.nondegenerate_faces())

@@ -30,7 +30,8 @@ from autoalign.camera import Camera
 from autoalign.instances import InstanceScenes
 from autoalign.losses import robust_view_weights
 from autoalign.objective import Level, LevelViews, SilhouetteObjective
-from autoalign.rasterizers.soft_silhouette import CameraBatch, Silhouettes, SoftSilhouetteRasterizer
+from autoalign.rasterizers.camera_batch import CameraBatch
+from autoalign.rasterizers.soft_silhouette import Silhouettes, SoftSilhouetteRasterizer
 from autoalign.se3 import transform_points
 
 
@@ -181,7 +182,7 @@ class OcclusionObjective:
         depth: dict[tuple[int, bool], NDArray[np.float64]] = {}
         for inst, qs in queries.items():
             view = np.concatenate([np.full(len(p.uv), p.g, dtype=np.int64) for p, _ in qs])
-            t = self.rasterizers[inst].depths_at(poses[inst], batch, view, np.concatenate([p.uv for p, _ in qs]))
+            t = self.rasterizers[inst].caster.pixel_depths(poses[inst], batch, view, np.concatenate([p.uv for p, _ in qs]))
             for (p, own), part in zip(qs, np.split(t, np.cumsum([len(p.uv) for p, _ in qs])[:-1])):
                 depth[(id(p), own)] = part
         for p in pairs:

@@ -23,8 +23,10 @@ from numpy.typing import NDArray
 from autoalign.camera_refine import corrections_accepted
 from autoalign.engine import RefineOptions, RefineResult, refine
 from autoalign.instances import Instance, InstanceScenes
+from autoalign.hypotheses import weak_turn_scores
 from autoalign.joint_refine import JointRefinement, refine_jointly
 from autoalign.models import ModelSet
+from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 from autoalign.verdict import Verdict, judge
 
 if TYPE_CHECKING:
@@ -43,6 +45,12 @@ class InstanceResult:
     seconds: float
 
 
+def verdict_of(result: RefineResult, empty: tuple[int, ...], models: ModelSet, obj_id: int) -> Verdict:
+    """The verdict on an instance's result, with its model's symmetries (:func:`~autoalign.verdict.judge`)."""
+    return judge(result.iou_after, result.weights, result.image_ids, empty, result.ambiguous, models.symmetric(obj_id),
+                 result.uncertainty, models.continuous_axes(obj_id), result.turn_gap)
+
+
 def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArray[np.float64]],
                      options: RefineOptions | None = None, progress: Progress | None = None) -> list[InstanceResult]:
     """Refine every instance of ``found`` from its seed (``seeds[index]``: 4x4 world-from-model, mm;
@@ -58,9 +66,8 @@ def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, N
                 progress(f"{label}: {stage}", done, total)
 
         result = refine(scene, models.mesh(inst.obj_id), seeds.get(inst.index), options, progress=step)
-        verdict = judge(result.iou_after, result.weights, result.image_ids, scene.empty, result.ambiguous,
-                        models.symmetric(inst.obj_id), result.uncertainty, models.continuous_axes(inst.obj_id))
-        out.append(InstanceResult(inst, result, verdict, time.perf_counter() - t0))
+        out.append(InstanceResult(inst, result, verdict_of(result, scene.empty, models, inst.obj_id),
+                                  time.perf_counter() - t0))
     return out
 
 
@@ -108,13 +115,20 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
         found = with_cameras(found, joint.cameras)
     else:
         joint = refine_jointly(found, meshes, start, progress=progress)
-    seconds = (time.perf_counter() - t0) / max(len(alone), 1)
-    results = []
+    opts = options or RefineOptions()
+    after = []
     for k, r in enumerate(alone):
-        ev = joint.evaluation
-        res = replace(r.result, T_wm=joint.poses[k], iou_after=ev.hard_iou(k), weights=ev.weights[k],
-                      uncertainty=joint.uncertainties[k], timings={**r.result.timings, "joint": seconds})
-        verdict = judge(res.iou_after, res.weights, res.image_ids, found.scenes[k].empty, res.ambiguous,
-                        models.symmetric(r.instance.obj_id), res.uncertainty, models.continuous_axes(r.instance.obj_id))
-        results.append(InstanceResult(r.instance, res, verdict, r.seconds + seconds))
+        unc = joint.uncertainties[k]
+        gap = None
+        if unc.weak_turn_axes and opts.weak_turns:  # the joint system's weak turns, tried at its pose
+            own, scores, _ = weak_turn_scores(SoftSilhouetteRasterizer(meshes[k].simplified(opts.coarse_faces)),
+                                              found.scenes[k], joint.poses[k], unc.weak_turn_axes, meshes[k].centre,
+                                              opts.weak_turns)
+            gap = own - float(scores.max())
+        after.append(replace(r.result, T_wm=joint.poses[k], iou_after=joint.evaluation.hard_iou(k),
+                             weights=joint.evaluation.weights[k], uncertainty=unc, turn_gap=gap))
+    seconds = (time.perf_counter() - t0) / max(len(alone), 1)
+    results = [InstanceResult(r.instance, replace(res, timings={**res.timings, "joint": seconds}),
+                              verdict_of(res, found.scenes[k].empty, models, r.instance.obj_id), r.seconds + seconds)
+               for k, (r, res) in enumerate(zip(alone, after))]
     return SceneRefinement(results, joint, attempt, found)

@@ -92,7 +92,8 @@ outputs (written into OUT_DIR, replacing files of the same name; if the run fail
                  (mean 1; low = the view's mask disagrees with the others) with their image ids,
                  iterations, renders, timings (s), every hypothesis tried (stage, loss, mean IoU,
                  poses), "ambiguous" and "runner_up" (pose, loss, rotation_deg and translation_mm
-                 from the winner), the verdict (ok, check or failed) and its reasons, the
+                 from the winner), "turn_gap" (how much better the pose fits than its turns about
+                 weakly observed axes; near 0: nearly symmetric), the verdict (ok, check or failed) and its reasons, the
                  uncertainty (sigma along/about the model axes, weakly observed directions,
                  covariance), the options, the version, skipped image ids, empty masks,
                  the pixel convention of cam_K and warnings
@@ -588,7 +589,8 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
                      + ", ".join(str(i) for i in scene.skipped[:20]) + (" ..." if len(scene.skipped) > 20 else ""))
     from autoalign.verdict import judge
 
-    verdict = judge(iou_a, weights, ids, scene.empty, bool(result.ambiguous), uncertainty=result.uncertainty)
+    verdict = judge(iou_a, weights, ids, scene.empty, bool(result.ambiguous), uncertainty=result.uncertainty,
+                    turn_gap=result.turn_gap)
     timings = dict(result.timings)
     timings["overlay"] = t_overlay
     report = {
@@ -621,7 +623,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
         "hypotheses": [{"rank": k, "stage": h.stage, "loss": h.loss, "mean_iou": h.mean_iou,
                         "pose_init": pose_record(h.T_init), "pose": pose_record(h.T_final)}
                        for k, h in enumerate(result.hypotheses)],
-        "ambiguous": bool(result.ambiguous),
+        "ambiguous": bool(result.ambiguous), "turn_gap": result.turn_gap,
         "runner_up": runner,
         "options": options,
         "history": result.history,

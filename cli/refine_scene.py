@@ -75,7 +75,7 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
             "image_ids": [int(i) for i in res.image_ids], "iou_before": res.iou_before, "iou_after": res.iou_after,
             "weights": res.weights, "median_iou_after": float(np.median(res.iou_after)),
             "empty_masks": [int(i) for i in found.scenes[pos].empty],
-            "ambiguous": bool(res.ambiguous), "symmetric": models.symmetric(r.instance.obj_id),
+            "ambiguous": bool(res.ambiguous), "symmetric": models.symmetric(r.instance.obj_id), "turn_gap": res.turn_gap,
             "iterations": res.iterations, "renders": res.renders, "timings": {**res.timings, "instance": r.seconds},
         })
     flagged = [r for r in results if r.verdict.status != "ok"]

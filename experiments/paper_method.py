@@ -12,7 +12,7 @@ the camera's x axis (the text says "rotated about z-axis"): ``rot_axis = "x"`` i
 ``"z"`` the alternative. The IoU is that of view ``i`` alone (``I^{i}`` in the equation).
 
 Silhouettes come from the same ray caster as autoalign's
-(:meth:`SoftSilhouetteRasterizer.posed_hit_sums`, mitsuba on the CPU: each candidate's rays are
+(:meth:`RayCaster.posed_hit_sums`, mitsuba on the CPU: each candidate's rays are
 moved to its model frame, cast and counted in one kernel), scored against the same target masks. The argmax over ~1700 candidates per iteration is computed in one batched ray-cast
 per stage:
 
@@ -327,7 +327,7 @@ class CandidateScorer:
                 w = bx[kid, 2]
                 flat = (bx[kid, 1] + local // w) * W + bx[kid, 0] + local % w
                 self.rays += n
-                sums = self.rast.posed_hit_sums(poses[start:stop], cam.centre[None], dimg, np.zeros(len(dimg), np.int64),
+                sums = self.rast.caster.posed_hit_sums(poses[start:stop], cam.centre[None], dimg, np.zeros(len(dimg), np.int64),
                                                 weights, pairs=(kid, flat))
                 area[start:stop] += sums[:, 0, 0]
                 inter[start:stop] += sums[:, 1, 0]
@@ -343,7 +343,7 @@ class CandidateScorer:
             d = dimg.reshape(cam.height, cam.width, 3)[y0:y0 + h, x0:x0 + w].reshape(-1, 3)
             o = np.broadcast_to(cam.centre, d.shape)
             self.rays += len(d)
-            m[y0:y0 + h, x0:x0 + w] = self.rast.ray_hits(T_wm, o, d.astype(np.float64)).reshape(h, w)
+            m[y0:y0 + h, x0:x0 + w] = self.rast.caster.ray_hits(T_wm, o, d.astype(np.float64)).reshape(h, w)
         self.view_renders += 1
         return m
 
@@ -403,7 +403,7 @@ class CandidateScorer:
                 kid = np.repeat(np.arange(stop - start), cs)
                 nearest = np.arange(n) - np.repeat(np.cumsum(cs) - cs, cs)
                 self.rays += n
-                sums = self.rast.posed_hit_sums(poses[start:stop], cam.centre[None], Dw, np.zeros(len(Dw), np.int64),
+                sums = self.rast.caster.posed_hit_sums(poses[start:stop], cam.centre[None], Dw, np.zeros(len(Dw), np.int64),
                                                 weights, pairs=(kid, nearest))
                 area[start:stop] += sums[:, 0, 0]
                 inter[start:stop] += sums[:, 1, 0]

@@ -157,7 +157,8 @@ def run_scene(root: Path, k: int, n_obj: int = 5, views: int = 40) -> list[dict]
                                     "symmetries_continuous": models.info[i].get("symmetries_continuous", [])})
         e = pose_errors(r.result.T_wm, truth[r.instance.index], mesh.centre, None, sym)
         rows.append({"scene": k, "obj": names[r.instance.index], "err_mm": e.pos_err_mm, "err_deg": e.rot_err_deg,
-                     "verdict": r.verdict.status, "reasons": r.verdict.reasons, "failures": dict(counts)})
+                     "verdict": r.verdict.status, "reasons": r.verdict.reasons, "turn_gap": r.result.turn_gap,
+                     "failures": dict(counts)})
     return rows
 
 
@@ -189,9 +190,10 @@ def main(argv: list[str] | None = None) -> int:
              f"* outside it and not flagged (verdict ok): {len(unflagged_wrong)}",
              "* verdicts ok / check / failed: " + " / ".join(str(sum(r['verdict'] == s for r in rows))
                                                                for s in ("ok", "check", "failed")), "",
-             "| scene | object | err mm | err deg | verdict | reasons |", "|---|---|---|---|---|---|"]
+             "| scene | object | err mm | err deg | turn gap | verdict | reasons |", "|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['scene']} | {r['obj']} | {r['err_mm']:.3f} | {r['err_deg']:.3f} | {r['verdict']} | "
+        gap = "-" if r["turn_gap"] is None else f"{r['turn_gap']:.3f}"
+        lines.append(f"| {r['scene']} | {r['obj']} | {r['err_mm']:.3f} | {r['err_deg']:.3f} | {gap} | {r['verdict']} | "
                      f"{'; '.join(r['reasons'])} |")
     a.out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(a.out / "sam_failures.json", {"rates": rates, "rows": rows})

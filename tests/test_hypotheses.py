@@ -167,11 +167,11 @@ def test_posed_hit_sums_match_casting_each_pose() -> None:
     centres = np.array([c.centre for c in cams])
     weights = np.column_stack([np.ones(len(view)), rng.uniform(size=len(view)), np.concatenate(uv)])
     poses = np.stack([geo.T_gt, geo.T_gt @ _turn(20.0, [1, 2, 0], mesh.centre), geo.T_init])
-    sums = rast.posed_hit_sums(poses, centres, dirs, view, weights)
+    sums = rast.caster.posed_hit_sums(poses, centres, dirs, view, weights)
     assert sums.shape == (3, 4, len(cams))
     assert sums[:2, 0].min() > 30  # near the truth the rays see the object in every view
     for k, T in enumerate(poses):
-        hits = rast.ray_hits(T, centres[view], dirs)
+        hits = rast.caster.ray_hits(T, centres[view], dirs)
         expected = np.stack([np.bincount(view, weights=weights[:, c] * hits, minlength=len(cams)) for c in range(4)])
         # model-frame directions rounded to float32 in a different order: at most a grazing ray apart
         assert np.abs(sums[k, 0] - expected[0]).max() <= 1

@@ -19,7 +19,8 @@ from autoalign.experiments.procedural_models import procedural_models
 from autoalign.experiments.refine_study import LM_DIR
 from autoalign.experiments.synthetic import random_rotation, raycast_masks, sphere_cameras
 from autoalign.mesh import Mesh, load_mesh, mesh_from_trimesh
-from autoalign.rasterizers.soft_silhouette import Silhouettes, SoftSilhouetteRasterizer, smoothstep_edge
+from autoalign.rasterizers.soft_edge import smoothstep_edge
+from autoalign.rasterizers.soft_silhouette import Silhouettes, SoftSilhouetteRasterizer
 from autoalign.se3 import apply_twist, make_pose, transform_points
 
 W, H = 640, 480
@@ -232,13 +233,13 @@ def test_work_grows_with_outline_not_faces_times_pixels():
         mesh = _ellipsoid(count)
         ras = SoftSilhouetteRasterizer(mesh)
         n_rays = [0]
-        cast = ras.hits_at
+        cast = ras.caster.pixel_hits
 
         def counting(T, cams, view, uv, cast=cast, n_rays=n_rays):
             n_rays[0] += len(view)
             return cast(T, cams, view, uv)
 
-        ras.hits_at = counting  # count every ray the renderer casts
+        ras.caster.pixel_hits = counting  # count every ray the renderer casts
         sil = ras.render(T_wm, cams, sigma=1.0)
         stats[count] = dict(faces=len(mesh.faces), band=len(sil.band), pixels=len(sil.soft),
                             rays=n_rays[0], outline=int(sil.n_outline.sum()))

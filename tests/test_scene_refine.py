@@ -199,12 +199,32 @@ def test_verdict_rules():
     assert loose.status == "check"
     w = np.ones(10)
     w[:4] = 0.05
-    aside = judge(np.r_[np.full(4, 0.3), np.full(6, 0.95)], w, ids)
-    assert aside.status == "check" and aside.set_aside == [0, 1, 2, 3]
+    some = judge(np.r_[np.full(4, 0.3), np.full(6, 0.95)], w, ids)  # a minority of wrong masks: noted, not doubted
+    assert some.status == "ok" and some.set_aside == [0, 1, 2, 3] and "down-weighted" in some.reasons[0]
+    w[:6] = 0.05
+    most = judge(np.r_[np.full(6, 0.9), np.full(4, 0.95)], w, ids)
+    assert most.status == "check" and most.set_aside == [0, 1, 2, 3, 4, 5] and "more than 50%" in most.reasons[-1]
     assert judge(np.full(10, 0.3), np.ones(10), ids).status == "failed"
     assert judge(np.full(2, 0.99), np.ones(2), ids[:2]).status == "failed"
     assert judge(np.full(10, 0.95), np.ones(10), ids, ambiguous=True).status == "check"
     assert judge(np.full(10, 0.95), np.ones(10), ids, ambiguous=True, symmetric=True).status == "ok"
+
+
+def test_nearly_symmetric_is_a_reason_unless_turning_clearly_worsens_the_fit():
+    """A weakly observed turn (not about an axis of continuous symmetry) flags the pose, unless
+    the pose's turns about it were tried and fit clearly worse (``turn_gap``)."""
+    from autoalign.uncertainty import Uncertainty
+    from autoalign.verdict import NEAR_SYMMETRY_GAP
+
+    ids = list(range(10))
+    cov = np.diag([0.01, 0.01, 0.01, 1e-6, 1e-6, np.radians(0.3) ** 2])
+    u = Uncertainty(cov, np.full(3, 0.1), np.array([0.06, 0.06, 0.3]), ["turn about model z: 0.3 deg"],
+                    [np.array([0.0, 0.0, 1.0])])
+    fit = (np.full(10, 0.95), np.ones(10), ids)
+    assert judge(*fit, uncertainty=u).status == "check"  # not tried: cautious
+    assert judge(*fit, uncertainty=u, turn_gap=0.5 * NEAR_SYMMETRY_GAP).status == "check"
+    assert judge(*fit, uncertainty=u, turn_gap=2 * NEAR_SYMMETRY_GAP).status == "ok"
+    assert judge(*fit, uncertainty=u, free_axes_m=(np.array([0.0, 0.0, 1.0]),)).status == "ok"  # a true symmetry
 
 
 def test_masks_failing_like_sam_leave_poses_right_or_flagged(tmp_path):

@@ -1,0 +1,129 @@
+"""The visible outline of a mesh in many views: contour edges split into sub-pixel segments.
+
+Contour edges are the mesh edges whose two faces point to opposite sides of the camera, plus
+open boundary edges. Each is projected, split into segments of about ``segment_px`` pixels, and
+a segment is kept when two rays just either side of it disagree (one hits, one misses): that is
+the outline a viewer sees, without the contour parts the mesh itself hides.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.mesh import Mesh
+from autoalign.rasterizers.camera_batch import CameraBatch, per_view_matvec
+from autoalign.rasterizers.ray_casting import RayCaster
+from autoalign.se3 import invert, transform_points
+
+NEAR_MM = 1.0
+"""Points closer than this to a camera plane are not projected."""
+_SIDE_PX = 0.3  # how far either side of a segment its two test rays pass
+
+
+@dataclass
+class Outline:
+    """The outline segments of all views (S of them), in image pixels (internal convention).
+
+    Attributes:
+        view: (S,) view of each segment.
+        edge: (S,) its mesh edge (row of ``Mesh.edges``).
+        mid: (S, 2) its midpoint.
+        t0, t1: (S,) the visible interval of its edge, as fractions from the edge's first end
+            (from the first to the last outline segment of that edge in that view).
+        a, b: (S, 2) the end points of that interval: distances are taken to the whole interval,
+            so the nearest outline point moves continuously while the pose changes.
+    """
+
+    view: NDArray[np.int64]
+    edge: NDArray[np.int64]
+    mid: NDArray[np.float64]
+    t0: NDArray[np.float64]
+    t1: NDArray[np.float64]
+    a: NDArray[np.float64]
+    b: NDArray[np.float64]
+
+    @staticmethod
+    def empty() -> "Outline":
+        return Outline(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0), np.zeros(0),
+                       np.zeros((0, 2)), np.zeros((0, 2)))
+
+    def __len__(self) -> int:
+        return len(self.view)
+
+    def per_view(self, n_views: int) -> NDArray[np.int64]:
+        """(n_views,) segments found per view."""
+        return np.bincount(self.view, minlength=n_views).astype(np.int64)
+
+
+class OutlineFinder:
+    """Finds the visible outline of ``mesh`` (model frame, mm), using ``caster`` for the side rays.
+
+    Args:
+        segment_px: length of the segments contour edges are split into, pixels.
+    """
+
+    def __init__(self, mesh: Mesh, caster: RayCaster, segment_px: float = 0.75) -> None:
+        self.mesh = mesh
+        self.caster = caster
+        self.segment_px = float(segment_px)
+        # per-face constants of the facing test n.(c - v0) > 0  <=>  n.c > n.v0
+        self._n = mesh.face_normals
+        self._nv0 = np.einsum("ij,ij->i", mesh.face_normals, mesh.vertices[mesh.faces[:, 0]])
+        ef = mesh.edge_faces
+        self._interior = ef[:, 1] >= 0
+        self._ef0, self._ef1 = ef[:, 0], np.where(ef[:, 1] >= 0, ef[:, 1], ef[:, 0])
+
+    def contour_matrix(self, T_wm: NDArray[np.float64], cams: CameraBatch) -> NDArray[np.bool_]:
+        """(E, N) whether edge e is a contour-generator edge in view n."""
+        T_mw = invert(T_wm)
+        C_m = cams.centres @ T_mw[:3, :3].T + T_mw[:3, 3]  # (N, 3) camera centres, model frame
+        facing = (self._n @ C_m.T) > self._nv0[:, None]  # (F, N)
+        flip = facing[self._ef0] != facing[self._ef1]  # (E, N)
+        flip |= ~self._interior[:, None]
+        return flip
+
+    def find(self, T_wm: NDArray[np.float64], cams: CameraBatch, crops: NDArray[np.int64]) -> Outline:
+        """The outline at pose ``T_wm`` in every view whose crop (N, 4: x0, y0, w, h) is not empty."""
+        flip = self.contour_matrix(T_wm, cams)  # (E, N)
+        flip[:, crops[:, 2] * crops[:, 3] == 0] = False
+        view, edge = np.nonzero(flip.T)  # grouped by view
+        if len(edge) == 0:
+            return Outline.empty()
+        used = np.unique(self.mesh.edges[edge])
+        V_w = np.zeros_like(self.mesh.vertices)
+        V_w[used] = transform_points(T_wm, self.mesh.vertices[used])
+        ends = self.mesh.edges[edge]
+        t = cams.t_w2c[view]
+        Xa = per_view_matvec(cams.R_w2c, view, V_w[ends[:, 0]]) + t
+        Xb = per_view_matvec(cams.R_w2c, view, V_w[ends[:, 1]]) + t
+        ok = (Xa[:, 2] > NEAR_MM) & (Xb[:, 2] > NEAR_MM)
+        view, edge, Xa, Xb = view[ok], edge[ok], Xa[ok], Xb[ok]
+        ua, ub = per_view_matvec(cams.K, view, Xa), per_view_matvec(cams.K, view, Xb)
+        A, B = ua[:, :2] / ua[:, 2:3], ub[:, :2] / ub[:, 2:3]
+        d = B - A
+        L = np.linalg.norm(d, axis=1)
+        good = L > 1e-9
+        view, edge, A, d, L = view[good], edge[good], A[good], d[good], L[good]
+        n_sub = np.maximum(1, np.ceil(L / self.segment_px).astype(np.int64))
+        rep = np.repeat(np.arange(len(L)), n_sub)
+        k = np.arange(len(rep)) - np.repeat(np.cumsum(n_sub) - n_sub, n_sub)
+        t = (k + 0.5) / n_sub[rep]
+        mid = A[rep] + t[:, None] * d[rep]
+        nrm = np.column_stack([-d[:, 1], d[:, 0]]) / L[:, None]
+        p_plus = mid + _SIDE_PX * nrm[rep]
+        p_minus = mid - _SIDE_PX * nrm[rep]
+        sv = view[rep]
+        hits = self.caster.pixel_hits(T_wm, cams, np.concatenate([sv, sv]), np.concatenate([p_plus, p_minus]))
+        on_outline = hits[:len(rep)] != hits[len(rep):]
+        pair = np.flatnonzero(on_outline)
+        owner = rep[pair]
+        t0 = np.full(len(L), np.inf)
+        t1 = np.full(len(L), -np.inf)
+        np.minimum.at(t0, owner, k[pair] / n_sub[owner])
+        np.maximum.at(t1, owner, (k[pair] + 1.0) / n_sub[owner])
+        t0, t1 = t0[owner], t1[owner]
+        a, b = A[owner] + t0[:, None] * d[owner], A[owner] + t1[:, None] * d[owner]
+        return Outline(sv[pair], edge[owner], mid[pair], t0, t1, a, b)
