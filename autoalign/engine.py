@@ -1,4 +1,4 @@
-"""The refinement engine: seed -> hypotheses -> coarse-to-fine optimisation -> result.
+"""The refinement engine, in stages: seed -> search -> polish -> disambiguate -> report.
 
 ``refine(scene, mesh, seed)`` is the Python API behind ``autoalign refine``.
 """
@@ -19,6 +19,7 @@ from autoalign.mesh import Mesh
 from autoalign.losses import targets_in_crops
 from autoalign.objective import Evaluation, Level, SilhouetteObjective
 from autoalign.optim import FTOL, OPTIMIZERS, Trace
+from autoalign.overlap import iou_from_counts, mask_iou
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 from autoalign.se3 import rotation_angle_deg, transform_points
 from autoalign.uncertainty import Uncertainty, pose_uncertainty
@@ -122,6 +123,24 @@ class Hypothesis:
 
 
 @dataclass
+class Finalist:
+    """A hypothesis polished through the last level, with its final view weights."""
+
+    hypothesis: Hypothesis
+    weights: NDArray[np.float64]
+
+
+@dataclass
+class Standing:
+    """Every hypothesis ranked best first, the best one at a clearly different pose, and whether it
+    fits almost as well as the best (``ambiguous``)."""
+
+    ranked: list[Hypothesis]
+    runner_up: Hypothesis | None
+    ambiguous: bool
+
+
+@dataclass
 class RefineResult:
     """What :func:`refine` found.
 
@@ -201,23 +220,14 @@ def _hard_ious_of(ev: Evaluation, scene: Scene) -> NDArray[np.float64]:
     vp = sil.view_of_pixel()
     inter = np.bincount(vp, weights=sil.hard & t_crop, minlength=sil.n_views)
     area = np.bincount(vp, weights=sil.hard, minlength=sil.n_views)
-    t_tot = np.array([float(t.sum()) for t in tg])
-    union = area + t_tot - inter
-    return np.where(union > 0, inter / np.maximum(union, 1.0), 1.0)
+    return iou_from_counts(inter, area, [float(t.sum()) for t in tg])
 
 
 def hard_ious(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.float64]) -> NDArray[np.float64]:
     """Per-view IoU of the ray-cast silhouette at ``T_wm`` with the scene's masks, full resolution
     (pixels the scene ignores left out)."""
-    out = []
-    for k, (m, t) in enumerate(zip(rast.hard_masks(T_wm, scene.cameras), scene.masks)):
-        tt = t > 0.5
-        care = scene.compared(k)
-        if care is not None:
-            m = m & care
-        u = np.logical_or(m, tt).sum()
-        out.append(float(np.logical_and(m, tt).sum() / u) if u else 1.0)
-    return np.array(out)
+    return np.array([mask_iou(m, t > 0.5, scene.compared(k))
+                     for k, (m, t) in enumerate(zip(rast.hard_masks(T_wm, scene.cameras), scene.masks))])
 
 
 def _differs(A: NDArray[np.float64], B: NDArray[np.float64], centre_m: NDArray[np.float64],
@@ -268,7 +278,7 @@ def _search(obj: SilhouetteObjective, starts: list[NDArray[np.float64]], mesh: M
 
 def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple[Level, ...], opts: RefineOptions,
             progress: Progress | None, label: str = "refine"
-            ) -> tuple[list[tuple[Hypothesis, NDArray[np.float64]]], list[Hypothesis]]:
+            ) -> tuple[list["Finalist"], list[Hypothesis]]:
     """Take the finalists (best first) through ``levels`` together.
 
     After each level below the last, one no longer within ``opts.competitive`` of the best stops
@@ -278,10 +288,10 @@ def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple
     (``ambiguity_tol``) better than the best. On a symmetric object the runner-up is an equivalent
     pose, and polishing it bought nothing.
 
-    Returns ``([(hypothesis, view weights)], best first, stage "final")`` and the ones that stopped early.
+    Returns the finalists (best first, stage "final") and the ones that stopped early.
     """
     alive, dropped = list(finalists), []
-    scored: list[tuple[Hypothesis, NDArray[np.float64]]] = []
+    scored: list[Finalist] = []
     gain = 1.0
     for li, lv in enumerate(levels):
         at_last = li == len(levels) - 1
@@ -290,28 +300,28 @@ def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple
             if at_last and k > 0:
                 ev = obj.evaluate(h.T_final, lv, with_derivatives=False)
                 estimate = ev.value / len(ev.weights) * gain
-                if estimate >= scored[0][0].loss * (1.0 - opts.ambiguity_tol):
-                    scored.append((Hypothesis(h.T_init, h.T_final, estimate, float(np.mean(ev.terms.iou)), "final",
-                                              h.path, estimated=True), ev.weights))
+                if estimate >= scored[0].hypothesis.loss * (1.0 - opts.ambiguity_tol):
+                    scored.append(Finalist(Hypothesis(h.T_init, h.T_final, estimate, float(np.mean(ev.terms.iou)),
+                                                      "final", h.path, estimated=True), ev.weights))
                     continue
             name = label if len(alive) == 1 else f"{label} {k + 1}/{len(alive)}"
             T, tr = _run_schedule(obj, h.T_final, (lv,), opts.optimizer, progress, f"{name} (level {li + 1}/{len(levels)})")
             loss, miou, weights = _final_loss(obj, T, lv, tr[-1])
-            scored.append((Hypothesis(h.T_init, T, loss, miou, "final", h.path + ((lv, tr[-1]),)), weights))
+            scored.append(Finalist(Hypothesis(h.T_init, T, loss, miou, "final", h.path + ((lv, tr[-1]),)), weights))
             start = tr[-1].start
             if k == 0 and start is not None:  # the best's polishing gain at this level
                 gain = loss / max(start.value / len(start.weights), 1e-12)
-        scored.sort(key=lambda x: x[0].rank())  # an estimate ranks last: had it been clearly better, it was polished
+        scored.sort(key=lambda f: f.hypothesis.rank())  # an estimate ranks last: had it been clearly better, it was polished
         if not at_last:
-            bar = scored[0][0].loss * opts.competitive + 1e-4
-            dropped.extend(replace(h, stage=f"level {lv.scale:g}") for h, _ in scored if h.loss > bar)
-            scored = [x for x in scored if x[0].loss <= bar]
-        alive = [h for h, _ in scored]
+            bar = scored[0].hypothesis.loss * opts.competitive + 1e-4
+            dropped.extend(replace(f.hypothesis, stage=f"level {lv.scale:g}") for f in scored if f.hypothesis.loss > bar)
+            scored = [f for f in scored if f.hypothesis.loss <= bar]
+        alive = [f.hypothesis for f in scored]
     return scored, dropped
 
 
-def _final_state(obj: SilhouetteObjective, best: Hypothesis, weights: NDArray[np.float64], levels: tuple[Level, ...],
-                 scene: Scene) -> tuple[Evaluation, Uncertainty]:
+def _final_state(obj: SilhouetteObjective, best: Hypothesis, weights: NDArray[np.float64],
+                 levels: tuple[Level, ...]) -> tuple[Evaluation, Uncertainty]:
     """The full-resolution evaluation at the best pose (the optimiser's last one when it has it)
     and the pose's uncertainty from it."""
     last_level, last_trace = best.path[-1] if best.path else (None, None)
@@ -322,9 +332,109 @@ def _final_state(obj: SilhouetteObjective, best: Hypothesis, weights: NDArray[np
     return ev, pose_uncertainty(ev.gn, ev.terms.grad, ev.weights, ev.value, len(ev.silhouettes.band), best.T_final[:3, :3])
 
 
+@dataclass
+class _Renderers:
+    """The mesh at the detail of each use: ``fine`` at full resolution, ``coarse`` below it,
+    ``search`` for the orientation search (1/8 resolution)."""
+
+    fine: SoftSilhouetteRasterizer
+    coarse: SoftSilhouetteRasterizer
+    search: SoftSilhouetteRasterizer
+
+    @staticmethod
+    def of(mesh: Mesh, opts: RefineOptions, searching: bool) -> "_Renderers":
+        fine = SoftSilhouetteRasterizer(mesh if opts.fine_faces is None else mesh.simplified(opts.fine_faces))
+        coarse = SoftSilhouetteRasterizer(mesh.simplified(opts.coarse_faces))
+        search = SoftSilhouetteRasterizer(mesh.simplified(opts.search_faces)) if searching else coarse
+        return _Renderers(fine, coarse, search)
+
+
+def _seed(scene: Scene, mesh: Mesh, seed: Seed, opts: RefineOptions, search: SoftSilhouetteRasterizer,
+          progress: Progress | None) -> list[NDArray[np.float64]]:
+    """Stage 1: the starting poses: the seed itself, or the best-scoring orientations of a rotation
+    grid placed at the click's or the visual hull's centre, each polished by a pattern search."""
+    if seed is not None and not isinstance(seed, Click):
+        return [np.asarray(seed, dtype=np.float64)]
+    centre = click_centre(scene, seed, mesh.diameter) if isinstance(seed, Click) else hull_centre(scene, mesh.diameter)
+    poses = poses_at(rotation_grid(opts.n_rotations), centre, mesh.centre)
+    if progress is not None:
+        progress("scoring orientations", 0, 1)
+    top = best_poses(search, scene, poses, opts.n_coarse)
+    starts = list(polish_poses(search, scene, top, opts.polish_deg))
+    if progress is not None:
+        progress("scoring orientations", 1, 1)
+    return starts
+
+
+def _rank(final: list[Finalist], others: list[Hypothesis], centre_m: NDArray[np.float64],
+          opts: RefineOptions) -> Standing:
+    """The standing of the finalists (best first) and every other hypothesis tried."""
+    ranked = [f.hypothesis for f in final] + sorted(others, key=lambda h: h.loss)
+    runner = next((h for h in ranked[1:] if _differs(h.T_final, ranked[0].T_final, centre_m)), None)
+    ambiguous = bool(runner is not None and runner.stage == "final"
+                     and runner.loss <= ranked[0].loss * (1.0 + opts.ambiguity_tol) + 1e-4)
+    return Standing(ranked, runner, ambiguous)
+
+
+def _with_candidate(obj: SilhouetteObjective, final: list[Finalist], parent: Hypothesis, T: NDArray[np.float64],
+                    stage: str, level: Level, opts: RefineOptions, progress: Progress | None) -> list[Finalist]:
+    """``final`` with the pose ``T`` (reached from ``parent``'s path by a known turn) polished at
+    ``level`` added, best first."""
+    polished, _ = _polish(obj, [Hypothesis(parent.T_init, T, float("nan"), float("nan"), stage, parent.path)],
+                          (level,), opts, progress, f"refine {stage}")
+    return sorted(final + polished, key=lambda f: f.hypothesis.rank())
+
+
+def _disambiguate(obj: SilhouetteObjective, renderers: _Renderers, scene: Scene, mesh: Mesh, final: list[Finalist],
+                  others: list[Hypothesis], given_pose: bool, opts: RefineOptions,
+                  progress: Progress | None) -> tuple[list[Finalist], Standing, Evaluation, Uncertainty, float | None]:
+    """Stage 4: poses the polish cannot tell apart from the best by descent.
+
+    * **Orbits.** When the runner-up is competitive and a 1/n turn away, the rest of that turn's
+      orbit is scored by full-resolution hard IoU (a gear whose key only shows at full
+      resolution) and a clearly better one is polished.
+    * **Weak turns.** From a given pose, the best's turns about its weakly observed axes are
+      scored at 1/4 resolution and a clearly better one is polished; how much worse the best
+      turn fits is returned (``turn_gap``; ``None`` when none were tried).
+
+    Returns the finalists, their standing, the full-resolution evaluation and the uncertainty of
+    the best, and the turn gap.
+    """
+    levels = opts.schedule
+    standing = _rank(final, others, mesh.centre, opts)
+    runner = standing.runner_up
+    if (opts.orbits and runner is not None and runner.stage == "final"
+            and runner.loss <= standing.ranked[0].loss * opts.competitive + 1e-4):
+        best = standing.ranked[0]
+        cands = orbit(best.T_final, runner.T_final)
+        if len(cands):
+            ious = np.array([float(np.mean(hard_ious(renderers.fine, scene, T))) for T in cands])
+            if ious.max() > float(np.mean(hard_ious(renderers.fine, scene, best.T_final))) + opts.orbit_margin:
+                final = _with_candidate(obj, final, best, cands[int(np.argmax(ious))], "orbit", levels[-1], opts,
+                                        progress)
+                standing = _rank(final, others, mesh.centre, opts)
+    best = final[0]
+    ev, uncertainty = _final_state(obj, best.hypothesis, best.weights, levels)
+    turn_gap = None
+    if given_pose and opts.weak_turns and uncertainty.weak_turn_axes:
+        own, scores, cands = weak_turn_scores(renderers.coarse, scene, best.hypothesis.T_final,
+                                              uncertainty.weak_turn_axes, mesh.centre, opts.weak_turns)
+        k = int(np.argmax(scores))
+        turn_gap = own - float(scores[k])
+        if scores[k] > own + opts.orbit_margin:
+            final = _with_candidate(obj, final, best.hypothesis, cands[k], "weak turn", levels[-1], opts, progress)
+            standing = _rank(final, others, mesh.centre, opts)
+            if final[0] is not best:
+                ev, uncertainty = _final_state(obj, final[0].hypothesis, final[0].weights, levels)
+    return final, standing, ev, uncertainty, turn_gap
+
+
 def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions | None = None,
            progress: Progress | None = None) -> RefineResult:
     """Find the world-from-model pose of ``mesh`` whose silhouettes match the masks of ``scene``.
+
+    The stages: seed (:func:`_seed`) -> search (:func:`_search`, when there are several starts)
+    -> polish (:func:`_polish`) -> disambiguate (:func:`_disambiguate`) -> report.
 
     Args:
         scene: calibrated views with target masks (mm, BOP world frame). Views whose mask is
@@ -341,86 +451,35 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
         raise AutoalignError("every mask of the scene is empty; there is nothing to align the object with")
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
-    rast = SoftSilhouetteRasterizer(mesh if opts.fine_faces is None else mesh.simplified(opts.fine_faces))
-    coarse = SoftSilhouetteRasterizer(mesh.simplified(opts.coarse_faces))
-    search = coarse
-    if seed is None or isinstance(seed, Click):
-        search = SoftSilhouetteRasterizer(mesh.simplified(opts.search_faces))
-    obj = SilhouetteObjective(rast, scene, opts.loss, opts.robust, coarse_rasterizer=coarse, search_rasterizer=search)
+    given_pose = seed is not None and not isinstance(seed, Click)
+    renderers = _Renderers.of(mesh, opts, searching=not given_pose)
+    obj = SilhouetteObjective(renderers.fine, scene, opts.loss, opts.robust, coarse_rasterizer=renderers.coarse,
+                              search_rasterizer=renderers.search)
     levels = opts.schedule
     timings["setup"] = time.perf_counter() - t_start
 
     t0 = time.perf_counter()
-    if seed is not None and not isinstance(seed, Click):
-        starts = [np.asarray(seed, dtype=np.float64)]
-    else:
-        centre = click_centre(scene, seed, mesh.diameter) if isinstance(seed, Click) else hull_centre(scene, mesh.diameter)
-        poses = poses_at(rotation_grid(opts.n_rotations), centre, mesh.centre)
-        if progress is not None:
-            progress("scoring orientations", 0, 1)
-        top = best_poses(search, scene, poses, opts.n_coarse)
-        starts = list(polish_poses(search, scene, top, opts.polish_deg))
-        if progress is not None:
-            progress("scoring orientations", 1, 1)
+    starts = _seed(scene, mesh, seed, opts, renderers.search, progress)
     timings["seed"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     if len(starts) > 1:
-        finalists, hyps = _search(obj, starts, mesh, opts, progress)
+        finalists, others = _search(obj, starts, mesh, opts, progress)
         rest = levels[1:] or levels  # a one-level schedule polishes the search's result at that level
     else:
-        finalists, hyps = [Hypothesis(starts[0], starts[0], float("nan"), float("nan"), "seed")], []
+        finalists, others = [Hypothesis(starts[0], starts[0], float("nan"), float("nan"), "seed")], []
         rest = levels
     timings["hypotheses"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     final, dropped = _polish(obj, finalists, rest, opts, progress)
-    hyps.extend(dropped)
-
-    def judge() -> tuple[list[Hypothesis], Hypothesis | None, bool]:
-        ranked = [f[0] for f in final] + sorted(hyps, key=lambda h: h.loss)
-        runner = next((h for h in ranked[1:] if _differs(h.T_final, ranked[0].T_final, mesh.centre)), None)
-        ambiguous = bool(runner is not None and runner.stage == "final"
-                         and runner.loss <= ranked[0].loss * (1.0 + opts.ambiguity_tol) + 1e-4)
-        return ranked, runner, ambiguous
-
-    ranked, runner, ambiguous = judge()
-    if (opts.orbits and runner is not None and runner.stage == "final"
-            and runner.loss <= ranked[0].loss * opts.competitive + 1e-4):
-        # Two near-equal fits a fraction 1/n of a turn apart: the rest of that turn's orbit may
-        # hold a better one (a gear whose key only shows at full resolution). Hard IoU picks it.
-        cands = orbit(ranked[0].T_final, runner.T_final)
-        if len(cands):
-            ious = np.array([float(np.mean(hard_ious(rast, scene, T))) for T in cands])
-            if ious.max() > float(np.mean(hard_ious(rast, scene, ranked[0].T_final))) + opts.orbit_margin:
-                T = cands[int(np.argmax(ious))]  # reached from the best's path by a known turn
-                polished, _ = _polish(obj, [Hypothesis(ranked[0].T_init, T, float("nan"), float("nan"), "orbit",
-                                                       ranked[0].path)], levels[-1:], opts, progress, "refine orbit")
-                final.extend(polished)
-                final.sort(key=lambda x: x[0].rank())
-                ranked, runner, ambiguous = judge()
-    best, weights = final[0]
-    final_ev, uncertainty = _final_state(obj, best, weights, levels, scene)
-    turn_gap = None
-    if len(starts) == 1 and opts.weak_turns and uncertainty.weak_turn_axes:
-        own, scores, cands = weak_turn_scores(coarse, scene, best.T_final, uncertainty.weak_turn_axes, mesh.centre,
-                                              opts.weak_turns)
-        k = int(np.argmax(scores))
-        turn_gap = own - float(scores[k])
-        if scores[k] > own + opts.orbit_margin:
-            polished, _ = _polish(obj, [Hypothesis(best.T_init, cands[k], float("nan"), float("nan"), "weak turn",
-                                                   best.path)], levels[-1:], opts, progress, "refine weak turn")
-            final.extend(polished)
-            final.sort(key=lambda x: x[0].rank())
-            ranked, runner, ambiguous = judge()
-            if final[0][0] is not best:
-                best, weights = final[0]
-                final_ev, uncertainty = _final_state(obj, best, weights, levels, scene)
+    final, standing, final_ev, uncertainty, turn_gap = _disambiguate(obj, renderers, scene, mesh, final,
+                                                                     others + dropped, given_pose, opts, progress)
     timings["refine"] = time.perf_counter() - t0
-    hyps = ranked
 
     t0 = time.perf_counter()
-    iou_before = hard_ious(rast, scene, best.T_init)
+    best = final[0].hypothesis
+    iou_before = hard_ious(renderers.fine, scene, best.T_init)
     iou_after = _hard_ious_of(final_ev, scene)
     timings["report"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
@@ -429,5 +488,6 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
     return RefineResult(
         T_wm=best.T_final, T_init=best.T_init, iou_before=iou_before, iou_after=iou_after,
         iterations=sum(tr.iterations for _, tr in best.path), renders=obj.renders, timings=timings,
-        hypotheses=hyps, ambiguous=ambiguous, runner_up=runner, weights=weights, history=history,
-        image_ids=list(scene.image_ids), uncertainty=uncertainty, turn_gap=turn_gap)
+        hypotheses=standing.ranked, ambiguous=standing.ambiguous, runner_up=standing.runner_up,
+        weights=final[0].weights, history=history, image_ids=list(scene.image_ids), uncertainty=uncertainty,
+        turn_gap=turn_gap)

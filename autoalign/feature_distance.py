@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 
 from autoalign.bop import json_floats, mask_path, photo_path, read_cameras, read_json_file, read_mask, read_photo
 from autoalign.errors import AutoalignError
+from autoalign.overlap import mask_iou
 
 RATIO_TEST = 0.8
 """Lowe's ratio: a match is kept when its descriptor distance is below this times the second best's."""
@@ -495,8 +496,7 @@ def check_image(image_id: int, photo_bgr: NDArray[np.uint8], K: NDArray[np.float
         iou = None
         if masks is not None and lab.instance in masks:
             m = np.asarray(masks[lab.instance], dtype=bool)
-            union = int((m | sil).sum())
-            iou = float((m & sil).sum() / union) if union else None
+            iou = mask_iou(m, sil) if (m | sil).any() else None
         check = ViewInstanceCheck(lab.image_id, lab.instance, lab.obj_id, iou, 0, None, visible_px=visible)
         if visible:
             rows, cols = np.flatnonzero(sil.any(axis=1)), np.flatnonzero(sil.any(axis=0))

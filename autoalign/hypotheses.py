@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.bop import Scene
+from autoalign.overlap import iou_from_counts
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 from autoalign.se3 import invert, make_pose, so3_exp, so3_log
 
@@ -179,7 +180,7 @@ def score_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.
         poses[:, :3, 3] += np.clip(shifts, -0.5 * radius, 0.5 * radius)
         stats = views.overlap_stats(rast, poses)
     area, inter = stats[:, 0], stats[:, 1]
-    iou = inter / np.maximum(area + views.t_tot[None] - inter, 1.0)
+    iou = iou_from_counts(inter, area, views.t_tot[None])
     scores = np.sort(iou, axis=1)[:, int(np.floor(trim * views.n)):].mean(1)
     return scores, poses
 

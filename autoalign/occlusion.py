@@ -30,6 +30,7 @@ from autoalign.camera import Camera
 from autoalign.instances import InstanceScenes
 from autoalign.losses import robust_view_weights
 from autoalign.objective import Level, LevelViews, SilhouetteObjective
+from autoalign.overlap import iou_from_counts
 from autoalign.rasterizers.camera_batch import CameraBatch
 from autoalign.rasterizers.soft_silhouette import Silhouettes, SoftSilhouetteRasterizer
 from autoalign.se3 import transform_points
@@ -224,9 +225,7 @@ class OcclusionObjective:
         norm = max(total, 1.0)
         outside = max(total - float(t.sum()), 0.0)
         loss = 0.5 * (float(e @ e) + outside) / norm
-        inter = float(V @ t)
-        union = float(V.sum()) + total - inter
-        iou = inter / union if union > 1e-9 else 1.0
+        iou = float(iou_from_counts(V @ t, V.sum(), total))  # soft counts
 
         # Jacobian rows: i's own band (times what hides it), and the occluders' bands (times -V_i / (1 - S_j))
         r0, r1 = band_rows[i].range(g)
@@ -257,11 +256,8 @@ class OcclusionObjective:
         hard_iou = np.nan
         if level.scale == 1.0:
             hv = sil.hard[o:o + w * h] & ~hidden_hard & ~ignored
-            tt = t > 0.5
-            n_t = float(np.count_nonzero(lv.targets[k] > 0.5))
-            hi = float(np.count_nonzero(hv & tt))
-            hu = float(np.count_nonzero(hv)) + n_t - hi
-            hard_iou = hi / hu if hu > 0 else 1.0
+            hard_iou = float(iou_from_counts(np.count_nonzero(hv & (t > 0.5)), np.count_nonzero(hv),
+                                             np.count_nonzero(lv.targets[k] > 0.5)))
         return ViewFit(np.array(involved, dtype=np.int64), loss, grad, gn, iou, hard_iou, len(pix))
 
 

@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from autoalign.atomic_files import write_bytes_atomic
 from autoalign.bop import Scene, photo_path, read_photo
 from autoalign.errors import AutoalignError
+from autoalign.overlap import mask_iou
 from autoalign.mesh import Mesh
 
 MAX_TILES = 12
@@ -156,8 +157,7 @@ def render_overlay(scene: Scene, mesh: Mesh, T_before: ArrayLike, T_after: Array
     tiles = []
     for j, i in enumerate(idx):
         target = np.asarray(scene.masks[i]) > 0.5
-        union = np.logical_or(before[j], target).sum()
-        iou_before = np.logical_and(before[j], target).sum() / union if union else 1.0
+        iou_before = mask_iou(before[j], target, scene.compared(i))
         label = f"im {scene.image_ids[i]}  IoU {iou_before:.3f} -> {ious[i]:.3f}" + ("  worst" if i == worst else "")
         tiles.append(_tile(target, before[j], after[j], label, i == worst))
     cols = min(4, len(tiles))
