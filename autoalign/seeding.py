@@ -41,7 +41,13 @@ class Click:
 
 
 def _mask_support(scene: Scene, X: NDArray[np.float64], dilate_px: int = 0) -> NDArray[np.int64]:
-    """How many views see each world point ``X`` (N, 3, mm) inside their mask or an ignored region; (N,) counts.
+    """How many views see each world point ``X`` (N, 3, mm) inside their mask; (N,) counts.
+
+    Only the instance's own masks count, not the pixels other masks claim (``Scene.ignore``): in a
+    cluttered scene those cover much of every image, and counting them as support carried the
+    hull's centre 127-393 mm away for 6 of the 8 objects of the real LM-O groups (own masks only:
+    5-76 mm). Where another object hides this one, its mask is smaller and the support lower; the
+    carving keeps voxels seen in most views, not all.
 
     Projected in single precision: for points within metres of the cameras the error is far
     below a pixel, and the points are voxel centres of a carving grid.
@@ -49,9 +55,7 @@ def _mask_support(scene: Scene, X: NDArray[np.float64], dilate_px: int = 0) -> N
     count = np.zeros(len(X), dtype=np.int64)
     kernel = np.ones((2 * dilate_px + 1,) * 2, np.uint8) if dilate_px else None
     Xh = np.column_stack([X, np.ones(len(X))]).astype(np.float32)
-    for k, (cam, m) in enumerate(zip(scene.cameras, scene.masks)):
-        if scene.ignore is not None:  # the object may be hidden behind another instance there
-            m = np.logical_or(m > 0.5, scene.ignore[k])
+    for cam, m in zip(scene.cameras, scene.masks):
         P = cam.K @ np.column_stack([cam.R_w2c, cam.t_w2c])  # world to homogeneous pixels, (3, 4)
         uvw = Xh @ P.T.astype(np.float32)
         z = uvw[:, 2]
