@@ -359,6 +359,53 @@ def pose_of_entry(e: dict[str, Any], path: Path, where: str, fix: str) -> NDArra
     return make_pose(U @ Vt, t)
 
 
+@dataclass(frozen=True)
+class Label:
+    """One labelled instance in one image: its position ``instance`` in the image's ``scene_gt.json``
+    list and the model-to-camera pose (``x_cam = R_m2c x_model + t_m2c``, mm)."""
+
+    image_id: int
+    instance: int
+    obj_id: int
+    R_m2c: NDArray[np.float64]
+    t_m2c: NDArray[np.float64]
+
+    @property
+    def T_cm(self) -> NDArray[np.float64]:
+        """Camera-from-model pose (4x4, mm)."""
+        return make_pose(self.R_m2c, self.t_m2c)
+
+
+def read_labels(path: str | Path) -> dict[int, list[Label]]:
+    """``{image_id: [Label, ...]}`` (instance order) from a BOP ``scene_gt.json``, validated, image ids sorted."""
+    path = Path(path)
+    fix = ('every image id needs a list of {"obj_id": K, "cam_R_m2c": 9 numbers (row-major), '
+           '"cam_t_m2c": 3 numbers (mm)}')
+    data = read_json_file(path, f"--labels must be a BOP scene_gt.json ({fix})")
+    if not isinstance(data, dict) or not data:
+        raise AutoalignError(f"{path}: expected an object mapping image ids to lists of poses; {fix}")
+    out: dict[int, list[Label]] = {}
+    for key, entries in data.items():
+        try:
+            im_id = int(key)
+        except ValueError:
+            raise AutoalignError(f"{path}: key '{key}' is not an image id; keys must be integers") from None
+        if not isinstance(entries, list):
+            raise AutoalignError(f"{path}: image {key} is not a list; {fix}")
+        labels = []
+        for k, e in enumerate(entries):
+            where = f"image {key} entry {k}"
+            if not isinstance(e, dict):
+                raise AutoalignError(f"{path}: {where} is not an object; {fix}")
+            obj = e.get("obj_id")
+            if isinstance(obj, bool) or not isinstance(obj, int) or obj < 0:
+                raise AutoalignError(f"{path}: {where} needs a whole-number 'obj_id'; {fix}")
+            T = pose_of_entry(e, path, where, fix)
+            labels.append(Label(im_id, k, int(obj), T[:3, :3], T[:3, 3]))
+        out[im_id] = labels
+    return dict(sorted(out.items()))
+
+
 def pose_in_camera(T_wm: NDArray[np.float64], cam: Camera) -> tuple[list[float], list[float]]:
     """BOP ``cam_R_m2c`` (9, row-major) and ``cam_t_m2c`` (3, mm) of a world-from-model pose."""
     T_cm = cam.T_cw @ T_wm

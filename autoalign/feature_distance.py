@@ -38,7 +38,7 @@ import open3d as o3d
 import trimesh
 from numpy.typing import NDArray
 
-from autoalign.bop import json_floats, mask_path, photo_path, read_cameras, read_json_file, read_mask, read_photo
+from autoalign.bop import Label, mask_path, photo_path, read_cameras, read_labels, read_mask, read_photo
 from autoalign.errors import AutoalignError
 from autoalign.overlap import mask_iou
 
@@ -66,17 +66,6 @@ GREY = (0.5, 0.5, 0.5)
 # --------------------------------------------------------------------------------------------
 # Data
 # --------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class Label:
-    """One labelled instance in one image: the model-to-camera pose (``x_cam = R_m2c x_model + t_m2c``, mm)."""
-
-    image_id: int
-    instance: int
-    obj_id: int
-    R_m2c: NDArray[np.float64]
-    t_m2c: NDArray[np.float64]
-
 
 @dataclass
 class ColouredMesh:
@@ -220,40 +209,6 @@ def _pair(p: tuple[float, float] | None) -> list[float | None] | None:
 # --------------------------------------------------------------------------------------------
 # Reading
 # --------------------------------------------------------------------------------------------
-
-def read_labels(path: str | Path) -> dict[int, list[Label]]:
-    """``{image_id: [Label, ...]}`` (instance order) from a BOP ``scene_gt.json``, validated."""
-    path = Path(path)
-    fix = ('every image id needs a list of {"obj_id": K, "cam_R_m2c": 9 numbers (row-major), '
-           '"cam_t_m2c": 3 numbers (mm)}')
-    data = read_json_file(path, f"--labels must be a BOP scene_gt.json ({fix})")
-    if not isinstance(data, dict) or not data:
-        raise AutoalignError(f"{path}: expected an object mapping image ids to lists of poses; {fix}")
-    out: dict[int, list[Label]] = {}
-    for key, entries in data.items():
-        try:
-            im_id = int(key)
-        except ValueError:
-            raise AutoalignError(f"{path}: key '{key}' is not an image id; keys must be integers") from None
-        if not isinstance(entries, list):
-            raise AutoalignError(f"{path}: image {key} is not a list; {fix}")
-        labels = []
-        for k, e in enumerate(entries):
-            where = f"image {key} entry {k}"
-            if not isinstance(e, dict):
-                raise AutoalignError(f"{path}: {where} is not an object; {fix}")
-            obj = e.get("obj_id")
-            if isinstance(obj, bool) or not isinstance(obj, int) or obj < 0:
-                raise AutoalignError(f"{path}: {where} needs a whole-number 'obj_id'; {fix}")
-            R = json_floats(e, "cam_R_m2c", 9, path, where, fix).reshape(3, 3)
-            t = json_floats(e, "cam_t_m2c", 3, path, where, fix)
-            if abs(np.linalg.det(R) - 1.0) > 0.02 or np.abs(R @ R.T - np.eye(3)).max() > 0.02:
-                raise AutoalignError(f"{path}: {where} cam_R_m2c is not a rotation matrix; write it row-major "
-                                     "with det +1")
-            labels.append(Label(im_id, k, int(obj), R, t))
-        out[im_id] = labels
-    return dict(sorted(out.items()))
-
 
 def load_coloured_mesh(path: str | Path) -> ColouredMesh:
     """A mesh file (mm) with its per-vertex colours (``trimesh.load(path, process=False)`` keeps

@@ -215,8 +215,10 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands", parser_class=_Parser)
     add_refine_parser(sub)
     from autoalign.cli.check import add_check_parser
+    from autoalign.cli.export import add_export_parser
 
     add_check_parser(sub)
+    add_export_parser(sub)
     try:
         from autoalign.experiments import simulate
     except ImportError:

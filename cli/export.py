@@ -1,0 +1,134 @@
+"""``autoalign export``: a BOP scene folder with labels for every frame, from poses (e.g. refine's).
+
+Start-up imports only the standard library and :mod:`autoalign.errors`; the rest loads inside
+:func:`run_export`. Helpers of :mod:`autoalign.cli.main` are imported inside the functions, since
+that module registers this one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from autoalign.errors import AutoalignError
+
+_DESCRIPTION = """\
+Export BOP labels for every frame of a scene: for each image and each labelled object in view,
+its pose (scene_gt.json), its full and visible masks (mask/, mask_visib/), its boxes and pixel
+counts (scene_gt_info.json, as the bop_toolkit defines them) and, with --coco, COCO instance
+annotations (RLE). Visibility comes from all labelled objects (the nearest surface wins) and,
+where SCENE_DIR/depth/ has a depth image, from the measured depth (15 mm tolerance, as the
+bop_toolkit). An object out of view in an image gets no entry there, and mask file k is always
+entry k of that image's list. The scene's photos, depth and cameras are copied along, so OUT_DIR
+is a complete BOP scene folder."""
+
+_EPILOG = """\
+inputs:
+  SCENE_DIR/scene_camera.json  per image id: cam_K (9 numbers, px; OpenCV/BOP convention: the
+                               centre of the top-left pixel is at 0,0), cam_R_w2c, cam_t_w2c (mm),
+                               depth_scale (depth png value times it = mm; default 1)
+  SCENE_DIR/rgb/{im_id:06d}.png or .jpg, SCENE_DIR/depth/{im_id:06d}.png (optional)
+  --labels SCENE_GT_JSON       BOP scene_gt.json: image id -> list of {"obj_id", "cam_R_m2c": 9
+                               numbers (row-major), "cam_t_m2c": 3 numbers (mm)}, e.g. the one
+                               'autoalign refine' wrote (every object in every image)
+  --models MODELS_DIR          obj_{obj_id:06d}.ply (mm) for every obj_id of the labels
+
+outputs (in OUT_DIR, written all or none):
+  scene_gt.json, scene_gt_info.json, mask/ and mask_visib/{im_id:06d}_{k:06d}.png (0/255),
+  scene_camera.json, rgb/ and depth/ (copies), export.json (counts, parameters, version) and,
+  with --coco, scene_gt_coco.json (COCO image id = BOP image id, category id = obj_id).
+
+examples:
+  autoalign export scenes/000001 --labels labels/000001/scene_gt.json --models models/ --out bop/000001
+  autoalign export scenes/000001 --labels labels/000001/scene_gt.json --models models/ --out bop/000001 --coco
+
+exit status: 0 exported, 2 a mistake in the command or the input files (nothing written)."""
+
+OUTPUT_NAMES = ("scene_gt.json", "scene_gt_info.json", "scene_camera.json", "scene_gt_coco.json", "export.json")
+
+
+def add_export_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Register ``autoalign export`` on an argparse subparsers object."""
+    from autoalign.cli.main import HelpFormatter
+
+    p = subparsers.add_parser("export", help="write BOP labels (poses, masks, boxes; COCO) for every frame of a scene",
+                              description=_DESCRIPTION, epilog=_EPILOG, formatter_class=HelpFormatter)
+    p.add_argument("scene", metavar="SCENE_DIR", help="BOP scene folder with scene_camera.json and rgb/")
+    req = p.add_argument_group("required")
+    req.add_argument("--labels", metavar="SCENE_GT_JSON", required=True, help="the poses, a BOP scene_gt.json")
+    req.add_argument("--models", metavar="MODELS_DIR", required=True, help="BOP models folder (obj_XXXXXX.ply, mm)")
+    req.add_argument("--out", metavar="OUT_DIR", required=True,
+                     help="the BOP scene folder to write (created if missing; not SCENE_DIR)")
+    opt = p.add_argument_group("options")
+    opt.add_argument("--coco", action="store_true", help="also write scene_gt_coco.json (COCO RLE of mask_visib)")
+    opt.add_argument("--units", choices=("mm", "m"), default=None,
+                     help="units of the meshes when they look like metres (default: mm, metres refused)")
+    opt.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    p.set_defaults(func=run_export)
+    return p
+
+
+def run_export(args: argparse.Namespace) -> int:
+    """``autoalign export``: see ``autoalign export --help``."""
+    from autoalign.interrupts import preload
+
+    preload("numpy", "cv2", "trimesh")  # extension modules, with Ctrl-C deferred
+    from autoalign.bop import read_labels
+    from autoalign.cli.main import ProgressBar, prepare_out_dir, remove_empty_dirs, write_outputs
+    from autoalign.export import bop_files, coco_annotations, export_frames
+    from autoalign.models import ModelSet
+
+    t0 = time.perf_counter()
+    scene, labels_path, out = Path(args.scene), Path(args.labels), Path(args.out)
+    if not (scene / "scene_camera.json").is_file():
+        raise AutoalignError(f"{scene}: no scene_camera.json; pass a BOP scene folder as SCENE_DIR")
+    if out.resolve() == scene.resolve():
+        raise AutoalignError(f"--out {out}: is the scene folder itself; choose another folder with --out")
+    if labels_path.resolve().parent == out.resolve() and labels_path.name in OUTPUT_NAMES:
+        raise AutoalignError(f"--out {out}: would replace the input {labels_path}; choose another folder with --out")
+    labels = read_labels(labels_path)
+    models = ModelSet.read(args.models, args.units)
+    bar = ProgressBar(enabled=not args.quiet)
+    try:
+        frames = export_frames(scene, labels, models, labels_path, progress=bar)
+    finally:
+        bar.close()
+    files = bop_files(frames)
+    if args.coco:
+        files["scene_gt_coco.json"] = json.dumps(coco_annotations(frames, scene)).encode()
+    files["scene_camera.json"] = (scene / "scene_camera.json").read_bytes()
+    for sub in ("rgb", "depth"):
+        if (scene / sub).is_dir():
+            ids = set(labels)
+            for f in sorted((scene / sub).iterdir()):
+                if f.is_file() and f.stem.isdigit() and int(f.stem) in ids:
+                    files[f"{sub}/{f.name}"] = f.read_bytes()
+    entries = sum(len(f.labels) for f in frames)
+    dropped = sum(f.out_of_view for f in frames)
+    summary = {"images": len(frames), "entries": entries, "out_of_view_dropped": dropped,
+               "visib_fract_median": statistics.median([i.visib_fract for f in frames for i in f.info] or [0.0]),
+               "labels": str(labels_path.absolute()), "models": str(Path(args.models).absolute()),
+               "scene_dir": str(scene.absolute()), "coco": bool(args.coco), "time_s": time.perf_counter() - t0}
+    from autoalign import __version__
+
+    files["export.json"] = json.dumps({"autoalign_version": __version__, **summary}, indent=1).encode()
+    created = prepare_out_dir(out)
+    for sub in sorted({name.rsplit("/", 1)[0] for name in files if "/" in name}):
+        if not (out / sub).is_dir():
+            (out / sub).mkdir()
+            created.append(out / sub)
+    try:
+        write_outputs(out, files)
+    except BaseException:
+        remove_empty_dirs(created)
+        raise
+    if not args.quiet:
+        print(f"{len(frames)} image(s), {entries} entries ({dropped} out of view left out), "
+              f"{time.perf_counter() - t0:.1f} s; wrote {len(files)} files to {out}", file=sys.stdout, flush=True)
+    return 0
+

@@ -1,0 +1,185 @@
+"""``autoalign export`` (issue 14): BOP labels for every frame, checked against independent code:
+open3d ray casting for the masks (the visible one: the nearest surface of all objects) and the
+silhouettes on a canvas three times the image (the bop_toolkit's px_count_all and bbox_obj), and
+pycocotools for the boxes, areas and the COCO file.
+
+The scene: three procedural objects, the third placed off to the side so that it is truncated by
+the image border in some views and out of view in others, 8 views of 320x240.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from pycocotools import mask as coco_mask
+
+from autoalign.bop import read_labels
+from autoalign.camera import Camera
+from autoalign.experiments.procedural_models import procedural_models, write_models
+from autoalign.experiments.synthetic import (default_K, random_rotation, raycast_masks, raycast_visible_masks,
+                                             ring_cameras, write_multi_scene)
+from autoalign.export import bop_files, coco_annotations, export_frames
+from autoalign.models import ModelSet
+from autoalign.se3 import make_pose
+
+W, H, VIEWS = 320, 240, 8
+
+
+class Exported:
+    root: Path
+    scene: Path
+    models: ModelSet
+    meshes: list
+    truth: list[np.ndarray]
+    cams: list[Camera]
+
+
+@pytest.fixture(scope="module")
+def ex(tmp_path_factory) -> Exported:
+    d = Exported()
+    d.root = tmp_path_factory.mktemp("export")
+    write_models(d.root / "models", procedural_models()[:3])
+    d.models = ModelSet.read(d.root / "models")
+    d.meshes = [d.models.mesh(i) for i in (1, 2, 3)]
+    rng = np.random.default_rng(3)
+    places = [(-30.0, 0.0), (35.0, 10.0), (280.0, -20.0)]  # the third near the edge of the views
+    d.truth = []
+    for m, (x, y) in zip(d.meshes, places):
+        R = random_rotation(rng)
+        d.truth.append(make_pose(R, np.array([x, y, 30.0]) - R @ m.centre))
+    d.cams = ring_cameras(VIEWS, rng, dist_range=(380.0, 420.0), target=(0.0, 0.0, 30.0),
+                          K=default_K(W, H, 300.0), width=W, height=H, elev_range_deg=(25.0, 40.0))
+    d.scene = d.root / "scene"
+    write_multi_scene(d.scene, d.meshes, [1, 2, 3], d.truth, d.cams)
+    return d
+
+
+def _canvas_camera(cam: Camera) -> Camera:
+    """The same camera on a canvas three times as wide and high, the image in its middle."""
+    K = cam.K.copy()
+    K[0, 2] += cam.width
+    K[1, 2] += cam.height
+    return replace(cam, K=K, width=3 * cam.width, height=3 * cam.height)
+
+
+def _coco_bbox_as_bop(mask: np.ndarray, dx: int = 0, dy: int = 0) -> list[int]:
+    """pycocotools' box of ``mask`` (w = x_max - x_min + 1) in the bop_toolkit's convention (w = x_max - x_min)."""
+    x, y, w, h = coco_mask.toBbox(coco_mask.encode(np.asfortranarray(mask.astype(np.uint8))))
+    return [int(x) - dx, int(y) - dy, int(w) - 1, int(h) - 1]
+
+
+def test_masks_and_info_match_open3d_and_pycocotools(ex):
+    labels = read_labels(ex.scene / "scene_gt.json")
+    frames = export_frames(ex.scene, labels, ex.models, ex.scene / "scene_gt.json")
+    visible = raycast_visible_masks(ex.meshes, ex.truth, ex.cams)
+    dropped = truncated = 0
+    for f, cam, vis_ref in zip(frames, ex.cams, visible):
+        full_ref = [raycast_masks(m, T, [cam])[0] for m, T in zip(ex.meshes, ex.truth)]
+        in_view = [k for k in range(3) if full_ref[k].any()]
+        assert [lab.obj_id for lab in f.labels] == [k + 1 for k in in_view]  # out of view: no entry, renumbered
+        assert [lab.instance for lab in f.labels] == list(range(len(in_view)))
+        dropped += 3 - len(in_view)
+        canvas = _canvas_camera(cam)
+        for j, k in enumerate(in_view):
+            for mine, ref in ((f.masks[j], full_ref[k]), (f.visib[j], vis_ref[k])):
+                inter, union = np.count_nonzero(mine & ref), np.count_nonzero(mine | ref)
+                assert union == 0 or inter / union >= 0.99, (f.image_id, k, inter / max(union, 1))
+            all_ref = raycast_masks(ex.meshes[k], ex.truth[k], [canvas])[0]
+            info = f.info[j]
+            n_all, n_vis = int(all_ref.sum()), int(vis_ref[k].sum())
+            assert abs(info.px_count_all - n_all) <= max(3, 0.005 * n_all)
+            assert abs(info.px_count_visib - n_vis) <= max(3, 0.005 * n_vis)
+            assert info.px_count_valid == int(f.masks[j].sum())  # no depth: every silhouette pixel counts
+            assert abs(info.visib_fract - n_vis / n_all) < 0.01
+            truncated += n_all > int(full_ref[k].sum()) + 50
+            if n_vis:
+                assert np.abs(np.subtract(info.bbox_obj, _coco_bbox_as_bop(all_ref, W, H))).max() <= 1
+                assert np.abs(np.subtract(info.bbox_visib, _coco_bbox_as_bop(vis_ref[k]))).max() <= 1
+            else:
+                assert info.bbox_obj == info.bbox_visib == (-1, -1, -1, -1)
+    assert dropped > 0 and truncated > 0  # the scene does exercise both
+
+
+def test_measured_depth_hides_what_an_unmodelled_occluder_covers(ex, tmp_path):
+    """A depth image with a surface 200 mm from the camera over the left third of the image (an
+    unmodelled occluder, the objects are ~400 mm away) and no measurement elsewhere: mask_visib
+    loses exactly that third; px_count_valid counts the silhouette pixels with a measurement."""
+    scene = tmp_path / "scene"
+    shutil.copytree(ex.scene, scene)
+    (scene / "depth").mkdir()
+    depth = np.zeros((H, W), np.uint16)
+    depth[:, :W // 3] = 200
+    for im in range(VIEWS):
+        cv2.imwrite(str(scene / "depth" / f"{im:06d}.png"), depth)
+    labels = read_labels(scene / "scene_gt.json")
+    plain = export_frames(ex.scene, labels, ex.models, scene / "scene_gt.json")
+    deep = export_frames(scene, labels, ex.models, scene / "scene_gt.json")
+    left = np.zeros((H, W), bool)
+    left[:, :W // 3] = True
+    hidden = 0
+    for a, b in zip(plain, deep):
+        for j in range(len(a.labels)):
+            np.testing.assert_array_equal(b.visib[j], a.visib[j] & ~left)
+            assert b.info[j].px_count_valid == int((a.masks[j] & left).sum())
+            hidden += int((a.visib[j] & left).sum())
+    assert hidden > 0
+
+
+def test_command_writes_a_bop_folder_with_coco(ex, tmp_path):
+    out = tmp_path / "bop"
+    p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "export", str(ex.scene), "--labels",
+                        str(ex.scene / "scene_gt.json"), "--models", str(ex.root / "models"), "--out", str(out),
+                        "--coco", "--quiet"], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr
+    gt = json.loads((out / "scene_gt.json").read_text())
+    info = json.loads((out / "scene_gt_info.json").read_text())
+    coco = json.loads((out / "scene_gt_coco.json").read_text())
+    assert (out / "scene_camera.json").read_bytes() == (ex.scene / "scene_camera.json").read_bytes()
+    n_ann = 0
+    for im, entries in gt.items():
+        assert len(info[im]) == len(entries)
+        for k in range(len(entries)):
+            vis = cv2.imread(str(out / "mask_visib" / f"{int(im):06d}_{k:06d}.png"), cv2.IMREAD_GRAYSCALE) > 0
+            assert (out / "mask" / f"{int(im):06d}_{k:06d}.png").is_file()
+            assert int(vis.sum()) == info[im][k]["px_count_visib"]
+            anns = [a for a in coco["annotations"] if a["image_id"] == int(im) and a["bop_gt_index"] == k]
+            if vis.any():
+                (a,) = anns
+                rle = dict(a["segmentation"], counts=a["segmentation"]["counts"].encode())
+                np.testing.assert_array_equal(coco_mask.decode(rle).astype(bool), vis)
+                assert a["category_id"] == entries[k]["obj_id"] and a["area"] == int(vis.sum())
+                n_ann += 1
+            else:
+                assert not anns
+        assert not (out / "mask_visib" / f"{int(im):06d}_{len(entries):06d}.png").exists()
+    assert n_ann == len(coco["annotations"]) > 0
+
+
+def test_bad_inputs_are_one_line_errors_and_write_nothing(ex, tmp_path):
+    def run(scene, labels):
+        out = tmp_path / "out"
+        p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "export", str(scene), "--labels", str(labels),
+                            "--models", str(ex.root / "models"), "--out", str(out), "--quiet"],
+                           capture_output=True, text=True, timeout=600)
+        assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, p.stderr
+        assert not out.exists()
+        return p.stderr
+
+    gt = json.loads((ex.scene / "scene_gt.json").read_text())
+    gt["0"][1]["obj_id"] = 9
+    bad = tmp_path / "labels.json"
+    bad.write_text(json.dumps(gt))
+    assert "object 9 has no model" in run(ex.scene, bad)
+    scene = tmp_path / "scene"
+    shutil.copytree(ex.scene, scene)
+    (scene / "depth").mkdir()
+    cv2.imwrite(str(scene / "depth" / "000003.png"), np.zeros((H // 2, W // 2), np.uint16))
+    assert "depth is 160x120 but the image is 320x240" in run(scene, scene / "scene_gt.json")
