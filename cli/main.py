@@ -216,7 +216,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_refine_parser(sub)
     from autoalign.cli.check import add_check_parser
     from autoalign.cli.export import add_export_parser
+    from autoalign.cli.recon import add_recon_parser
 
+    add_recon_parser(sub)
     add_check_parser(sub)
     add_export_parser(sub)
     try:

@@ -1,0 +1,137 @@
+"""A capture to reconstruct: its frames (a folder of images or a video), optional aligned depth
+and optional intrinsics, validated with errors that name the file and the fix."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.errors import AutoalignError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+INTRINSICS_FIX = ('an intrinsics file is JSON {"cam_K": 9 numbers (row-major, px, OpenCV convention: the centre '
+                  'of the top-left pixel at 0,0)} or {"fx", "fy", "cx", "cy"}')
+
+
+@dataclass
+class Capture:
+    """The frames to reconstruct.
+
+    Attributes:
+        frames: image file of each frame (a video is first written out as PNGs).
+        ids: the frame number of each (its BOP image id).
+        size: image ``(W, H)`` shared by every frame.
+        depth: aligned depth file of each frame (``None`` without depth).
+        depth_scale: depth file value times this is mm.
+        K_opencv: given intrinsics (OpenCV convention), or ``None`` to estimate them.
+    """
+
+    frames: list[Path]
+    ids: list[int]
+    size: tuple[int, int]
+    depth: list[Path] | None
+    depth_scale: float
+    K_opencv: NDArray[np.float64] | None
+
+
+def read_intrinsics(path: Path) -> NDArray[np.float64]:
+    """``K`` (3x3, OpenCV convention) from an intrinsics JSON file (see :data:`INTRINSICS_FIX`)."""
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise AutoalignError(f"{path}: intrinsics file not found; {INTRINSICS_FIX}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise AutoalignError(f"{path}: not valid JSON; {INTRINSICS_FIX}") from None
+    try:
+        if isinstance(data, dict) and "cam_K" in data:
+            K = np.asarray(data["cam_K"], dtype=np.float64).reshape(3, 3)
+        else:
+            K = np.array([[data["fx"], 0.0, data["cx"]], [0.0, data["fy"], data["cy"]], [0.0, 0.0, 1.0]], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        raise AutoalignError(f"{path}: wrong shape; {INTRINSICS_FIX}") from None
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise AutoalignError(f"{path}: the focal lengths must be positive; {INTRINSICS_FIX}")
+    return K
+
+
+def _frames_of_video(video: Path, every: int, workdir: Path) -> list[Path]:
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # FFmpeg's own messages: ours says it in one line
+    cap = cv2.VideoCapture(str(video))
+    if not cap.isOpened():
+        raise AutoalignError(f"{video}: cannot open the video (OpenCV could not decode it); convert it to MP4 "
+                             "(H.264) or pass a folder of frames")
+    out, n = [], 0
+    (workdir / "frames").mkdir(parents=True, exist_ok=True)
+    try:
+        while True:
+            ok, img = cap.read()
+            if not ok:
+                break
+            if n % every == 0:
+                p = workdir / "frames" / f"{n:06d}.png"
+                cv2.imwrite(str(p), img)
+                out.append(p)
+            n += 1
+    finally:
+        cap.release()
+    if not out:
+        raise AutoalignError(f"{video}: the video has no readable frame; check the file")
+    return out
+
+
+def read_capture(capture: str | Path, workdir: Path, depth_dir: str | Path | None = None, depth_scale: float = 1.0,
+                 intrinsics: str | Path | None = None, every: int = 1) -> Capture:
+    """The frames of ``capture`` (a folder of images, its ``rgb/`` if it has one, or a video file),
+    every ``every``-th; depth from ``depth_dir`` (default ``capture/depth`` if present), one file
+    per frame with the frame's name; every frame read once to check it."""
+    capture = Path(capture)
+    if capture.is_file():
+        frames = _frames_of_video(capture, every, workdir)
+    elif capture.is_dir():
+        folder = capture / "rgb" if (capture / "rgb").is_dir() else capture
+        frames = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)[::every]
+        if not frames:
+            raise AutoalignError(f"{folder}: no image files ({', '.join(IMAGE_SUFFIXES)}); pass a folder of frames "
+                                 "or a video file")
+    else:
+        raise AutoalignError(f"{capture}: not found; pass a folder of frames or a video file")
+    ids = [int(p.stem) if p.stem.isdigit() else k for k, p in enumerate(frames)]
+    if len(set(ids)) != len(ids):
+        ids = list(range(len(frames)))
+    size = None
+    for p in frames:
+        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise AutoalignError(f"{p}: cannot read the frame; replace or remove it")
+        s = (int(img.shape[1]), int(img.shape[0]))
+        if size is None:
+            size = s
+        elif s != size:
+            raise AutoalignError(f"{p}: {s[0]}x{s[1]} but the first frame is {size[0]}x{size[1]}; one capture, one size")
+    assert size is not None
+    if depth_dir is None and capture.is_dir() and (capture / "depth").is_dir():
+        depth_dir = capture / "depth"
+    depth = None
+    if depth_dir is not None:
+        depth_dir = Path(depth_dir)
+        depth = []
+        for p in frames:
+            d = depth_dir / f"{p.stem}.png"
+            if not d.is_file():
+                raise AutoalignError(f"{d}: no depth for frame {p.name}; give every frame a depth PNG of the same name "
+                                     "or leave out --depth")
+            img = cv2.imread(str(d), cv2.IMREAD_UNCHANGED)
+            if img is None or img.ndim != 2:
+                raise AutoalignError(f"{d}: not a single-channel depth image; write 16-bit PNG depth")
+            if (img.shape[1], img.shape[0]) != size:
+                raise AutoalignError(f"{d}: depth is {img.shape[1]}x{img.shape[0]} but the frames are {size[0]}x{size[1]}; "
+                                     "register the depth to the colour camera at its resolution")
+            depth.append(d)
+    K = read_intrinsics(Path(intrinsics)) if intrinsics is not None else None
+    return Capture(frames, ids, size, depth, float(depth_scale), K)
