@@ -101,9 +101,9 @@ def common_motion(T_cw: dict[int, np.ndarray], true_T: dict[int, np.ndarray]) ->
     return G
 
 
-def time_command(root: Path, *extra: str) -> tuple[float, dict]:
+def time_command(root: Path, *extra: str, init: bool = True) -> tuple[float, dict]:
     cmd = [sys.executable, "-m", "autoalign.cli.main", "refine", str(root / "scene"), "--models", str(root / "models"),
-           "--init", str(root / "init_gt.json"), "--out", str(root / "out"), "--quiet", *extra]
+           *(["--init", str(root / "init_gt.json")] if init else []), "--out", str(root / "out"), "--quiet", *extra]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t0
@@ -117,6 +117,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--objects", default="1,4,8")
     p.add_argument("--repeats", type=int, default=1)
     p.add_argument("--cameras", type=int, default=5, help="objects of the camera-refinement row (0: none)")
+    p.add_argument("--no-seed", type=int, default=5, help="objects of the scenes refined without --init (0: none)")
+    p.add_argument("--no-seed-scenes", type=int, default=3, help="how many such scenes")
     p.add_argument("--out", type=Path, default=RESULTS)
     a = p.parse_args(argv)
     rows = []
@@ -145,6 +147,7 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(row)
             print(json.dumps(row), flush=True)
         cam_row = camera_row(Path(tmp) / "cameras", a.cameras) if a.cameras else None
+        free_row = no_seed_row(Path(tmp) / "no_seed", a.no_seed, a.no_seed_scenes) if a.no_seed else None
     base = rows[0]
     lines = ["# autoalign refine --models benchmark", "",
              f"`python -m autoalign.experiments.bench_scene --objects {a.objects} --repeats {a.repeats}` on "
@@ -170,11 +173,37 @@ def main(argv: list[str] | None = None) -> int:
                   f"{c['max_err_world'][0]:.2f} / {c['max_err_world'][1]:.2f} | "
                   f"{c['max_err_relative'][0]:.2f} / {c['max_err_relative'][1]:.2f} | {c['corrections_kept']} | "
                   f"{c['ok']}/{c['objects']} |"]
+    if free_row is not None:
+        f = free_row
+        lines += ["", f"Without a seed (no `--init`): {f['scenes']} scenes of {f['objects']} objects:", "",
+                  "| instances | within 1 mm, 1 deg | wrong and not flagged | verdict ok | median wall s |",
+                  "|---|---|---|---|---|",
+                  f"| {f['instances']} | {f['within_1mm_1deg']:.0%} | {f['wrong_unflagged']} | {f['ok']} | {f['wall_s']:.1f} |"]
     a.out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(a.out / "bench_scene.json", rows + ([cam_row] if cam_row is not None else []))
+    write_json_atomic(a.out / "bench_scene.json", rows + [r for r in (cam_row, free_row) if r is not None])
     write_text_atomic(a.out / "bench_scene.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
+
+
+def no_seed_row(root: Path, n: int, scenes: int) -> dict:
+    """``scenes`` scenes of ``n`` objects refined without a seed: how many instances end within
+    1 mm / 1 deg, and how many outside that are not flagged."""
+    within, wrong_ok, ok, walls = [], 0, 0, []
+    for k in range(scenes):
+        truth = make_bench_scene(root / f"s{k}", n, seed=100 + k)
+        wall, rec = time_command(root / f"s{k}", init=False)
+        walls.append(wall)
+        models = ModelSet.read(root / f"s{k}" / "models")
+        for r in rec["instances"]:
+            e = pose_errors(np.asarray(r["pose"]["T_wm"]), truth[r["instance"]], models.mesh(r["obj_id"]).centre,
+                            None, symmetries(models, r["obj_id"]))
+            good = e.pos_err_mm <= 1.0 and e.rot_err_deg <= 1.0
+            within.append(good)
+            ok += r["verdict"] == "ok"
+            wrong_ok += (not good) and r["verdict"] == "ok"
+    return {"objects": n, "scenes": scenes, "instances": len(within), "within_1mm_1deg": float(np.mean(within)),
+            "wrong_unflagged": wrong_ok, "ok": ok, "wall_s": float(np.median(walls)), "seed": "none"}
 
 
 def camera_row(root: Path, n: int) -> dict:

@@ -21,7 +21,15 @@ from autoalign.recon.capture import Capture
 from autoalign.se3 import make_pose
 
 EXHAUSTIVE_MAX = 120
-SEQUENTIAL_OVERLAP = 12
+SEQUENTIAL_OVERLAP = 10
+MAX_FEATURES = 4096
+"""SIFT features per frame (COLMAP's default is 8192; a 640x480 frame has fewer good ones anyway)."""
+GLOBAL_BA_GROWTH = 2.0
+"""Global bundle adjustment runs each time the model has grown by this factor (COLMAP: 1.1) ..."""
+GLOBAL_BA_ITERATIONS = 20
+"""... with at most this many iterations. On the 200-frame 640x480 benchmark stream, mapping took
+230 s with COLMAP's settings and 149 s with these, at the same accuracy (0.12 / 0.11 mm median
+camera error after Sim(3) alignment)."""
 
 Progress = Callable[[str, int, int], None]
 
@@ -75,8 +83,10 @@ def run_sfm(capture: Capture, workdir: Path, progress: Progress | None = None) -
     else:
         reader.camera_model = "SIMPLE_PINHOLE"
     step("structure from motion: features", 0)
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.max_num_features = MAX_FEATURES
     pycolmap.extract_features(db, folder, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                              reader_options=reader, device=pycolmap.Device.cpu)
+                              reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
     step("structure from motion: matching", 1)
     if len(names) <= EXHAUSTIVE_MAX:
         pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
@@ -92,6 +102,8 @@ def run_sfm(capture: Capture, workdir: Path, progress: Progress | None = None) -
         options.ba_refine_principal_point = False
         options.ba_refine_extra_params = False
     options.multiple_models = False
+    options.ba_global_frames_ratio = options.ba_global_points_ratio = GLOBAL_BA_GROWTH
+    options.ba_global_max_num_iterations = GLOBAL_BA_ITERATIONS
     (workdir / "sparse").mkdir(parents=True, exist_ok=True)
     models = pycolmap.incremental_mapping(db, folder, workdir / "sparse", options)
     step("structure from motion: mapping", 3)
