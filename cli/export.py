@@ -79,7 +79,7 @@ def run_export(args: argparse.Namespace) -> int:
 
     preload("numpy", "cv2", "trimesh")  # extension modules, with Ctrl-C deferred
     from autoalign.bop import read_labels
-    from autoalign.cli.main import ProgressBar, prepare_out_dir, remove_empty_dirs, write_outputs
+    from autoalign.cli.main import ProgressBar, write_folder
     from autoalign.export import bop_files, coco_annotations, export_frames
     from autoalign.models import ModelSet
 
@@ -117,16 +117,7 @@ def run_export(args: argparse.Namespace) -> int:
     from autoalign import __version__
 
     files["export.json"] = json.dumps({"autoalign_version": __version__, **summary}, indent=1).encode()
-    created = prepare_out_dir(out)
-    for sub in sorted({name.rsplit("/", 1)[0] for name in files if "/" in name}):
-        if not (out / sub).is_dir():
-            (out / sub).mkdir()
-            created.append(out / sub)
-    try:
-        write_outputs(out, files)
-    except BaseException:
-        remove_empty_dirs(created)
-        raise
+    write_folder(out, files)
     if not args.quiet:
         print(f"{len(frames)} image(s), {entries} entries ({dropped} out of view left out), "
               f"{time.perf_counter() - t0:.1f} s; wrote {len(files)} files to {out}", file=sys.stdout, flush=True)

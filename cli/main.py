@@ -366,6 +366,21 @@ def write_outputs(out: Path, files: dict[str, bytes]) -> dict[str, Path]:
     return {name: out / name for name in files}
 
 
+def write_folder(out: Path, files: dict[str, bytes]) -> None:
+    """Write ``files`` (names relative to ``out``, subfolders allowed) with :func:`write_outputs`;
+    the folders this creates are removed again if the writing fails."""
+    created = prepare_out_dir(out)
+    for sub in sorted({name.rsplit("/", 1)[0] for name in files if "/" in name}):
+        if not (out / sub).is_dir():
+            (out / sub).mkdir(parents=True)
+            created.append(out / sub)
+    try:
+        write_outputs(out, files)
+    except BaseException:
+        remove_empty_dirs(created)
+        raise
+
+
 class ProgressBar:
     """``progress(stage, done, total)`` callback drawing one tqdm bar on stderr."""
 

@@ -84,7 +84,7 @@ def run_recon(args: argparse.Namespace) -> int:
     if importlib.util.find_spec("pycolmap") is None:
         raise AutoalignError("autoalign recon needs pycolmap; install it with: pip install 'autoalign[recon]'")
     preload("numpy", "cv2", "open3d", "pycolmap")  # extension modules, with Ctrl-C deferred
-    from autoalign.cli.main import EXIT_FLAGGED, ProgressBar, prepare_out_dir, remove_empty_dirs, warn, write_outputs
+    from autoalign.cli.main import EXIT_FLAGGED, ProgressBar, warn, write_folder
     from autoalign.recon.capture import read_capture
     from autoalign.recon.pipeline import reconstruct, scene_files
 
@@ -102,16 +102,7 @@ def run_recon(args: argparse.Namespace) -> int:
         finally:
             bar.close()
         files = scene_files(rec)
-    created = prepare_out_dir(out)
-    for sub in sorted({name.rsplit("/", 1)[0] for name in files if "/" in name}):
-        if not (out / sub).is_dir():
-            (out / sub).mkdir()
-            created.append(out / sub)
-    try:
-        write_outputs(out, files)
-    except BaseException:
-        remove_empty_dirs(created)
-        raise
+    write_folder(out, files)
     report = json.loads(files["recon.json"])
     if not args.quiet:
         scale = (f"scale {report['scale_mm_per_unit']:.4g} mm/unit (spread {report['scale_spread']:.2%})"
