@@ -44,6 +44,7 @@ outputs (in OUT_DIR, written all or none):
                                depth_scale; image id = the frame's number
   rgb/, depth/                 the registered frames, named {im_id:06d}
   cloud.ply                    fused cloud (with depth) or the triangulated points, world frame
+  mesh.ply                     the fused surface (with depth)
   recon.json                   frames registered, reprojection error, scale and its spread, plane
   trajectory.png               the camera path over the cloud, from above and from the side
 

@@ -84,7 +84,7 @@ def _scaled(T: NDArray[np.float64], s: float) -> NDArray[np.float64]:
 
 def scene_files(rec: Reconstruction) -> dict[str, bytes]:
     """The BOP scene folder's files: ``scene_camera.json``, ``rgb/`` and ``depth/`` of the
-    registered frames, ``cloud.ply``, ``recon.json`` and ``trajectory.png``."""
+    registered frames, ``cloud.ply`` (and ``mesh.ply`` with depth), ``recon.json`` and ``trajectory.png``."""
     import open3d as o3d
 
     cap = rec.capture
@@ -105,20 +105,26 @@ def scene_files(rec: Reconstruction) -> dict[str, bytes]:
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rec.cloud))
     pcd.colors = o3d.utility.Vector3dVector(rec.cloud_colors.astype(np.float64) / 255.0)
     files["cloud.ply"] = _ply_bytes(pcd)
+    if rec.mesh is not None:
+        files["mesh.ply"] = _ply_bytes(rec.mesh)
     files["recon.json"] = json.dumps(report(rec), indent=1).encode()
     files["trajectory.png"] = trajectory_png(rec)
     return files
 
 
-def _ply_bytes(pcd: Any) -> bytes:
-    """An open3d point cloud as binary PLY bytes (open3d writes files only: a temporary one)."""
+def _ply_bytes(geometry: Any) -> bytes:
+    """An open3d point cloud or triangle mesh as binary PLY bytes (open3d writes files only: a
+    temporary one)."""
     import tempfile
 
     import open3d as o3d
 
     with tempfile.TemporaryDirectory() as d:
-        p = Path(d) / "cloud.ply"
-        o3d.io.write_point_cloud(str(p), pcd, write_ascii=False)
+        p = Path(d) / "geometry.ply"
+        if isinstance(geometry, o3d.geometry.TriangleMesh):
+            o3d.io.write_triangle_mesh(str(p), geometry, write_ascii=False)
+        else:
+            o3d.io.write_point_cloud(str(p), geometry, write_ascii=False)
         return p.read_bytes()
 
 
@@ -149,9 +155,8 @@ def trajectory_png(rec: Reconstruction) -> bytes:
     import matplotlib.pyplot as plt
 
     centres = np.array([c.centre for c in rec.cameras.values()])
-    pts = rec.cloud[np.random.default_rng(0).choice(len(rec.cloud), min(20000, len(rec.cloud)), replace=False)]
-    col = rec.cloud_colors[: len(rec.cloud)]
-    col = col[np.random.default_rng(0).choice(len(rec.cloud), min(20000, len(rec.cloud)), replace=False)] / 255.0
+    shown = np.random.default_rng(0).choice(len(rec.cloud), min(20000, len(rec.cloud)), replace=False)
+    pts, col = rec.cloud[shown], rec.cloud_colors[shown] / 255.0
     fig, axes = plt.subplots(1, 2, figsize=(11, 5))
     unit = "mm" if rec.metric else "units"
     for ax, (a, b), name in zip(axes, ((0, 1), (0, 2)), ("top (x, y)", "side (x, z)")):

@@ -68,6 +68,7 @@ def test_rgbd_stream_cameras_scale_and_table(stream, tmp_path):
     assert rec["metric"] and rec["registered"] == len(ours) and rec["scale_spread"] < 0.02
     assert len(list((out / "rgb").iterdir())) == len(ours) == len(list((out / "depth").iterdir()))
     assert o3d.io.read_point_cloud(str(out / "cloud.ply")).has_points()
+    assert o3d.io.read_triangle_mesh(str(out / "mesh.ply")).has_triangles()
     assert cv2.imread(str(out / "trajectory.png")) is not None
 
 
