@@ -65,11 +65,13 @@ class JointRefinement:
 
 def refine_jointly(found: InstanceScenes, meshes: list[Mesh], poses: list[NDArray[np.float64]],
                    with_cameras: bool = False, level: Level = LEVEL, prior: CameraPrior | None = None,
-                   fine_faces: int | None = 20000, progress: Progress | None = None) -> JointRefinement:
+                   fine_faces: int | None = 20000, robust: bool = True,
+                   progress: Progress | None = None) -> JointRefinement:
     """Refine the poses of all instances of ``found`` together from ``poses`` (world from model,
-    mm), occlusion-aware, and with ``with_cameras`` a correction of every camera."""
+    mm), occlusion-aware, and with ``with_cameras`` a correction of every camera (``robust``: views
+    weighted by their fit, as in :class:`~autoalign.engine.RefineOptions`)."""
     rasts = [SoftSilhouetteRasterizer(m if fine_faces is None else m.simplified(fine_faces)) for m in meshes]
-    objective = OcclusionObjective(found, rasts)
+    objective = OcclusionObjective(found, rasts, robust)
     ids = objective.image_ids
     base = dict(zip(ids, objective.cameras))
     prior = prior or CameraPrior()

@@ -70,6 +70,7 @@ class JointEvaluation:
     fits: list[list[ViewFit]]
     weights: list[NDArray[np.float64]]
     value: float
+    robust: bool = True
 
     def iou(self, i: int) -> NDArray[np.float64]:
         return np.array([f.iou for f in self.fits[i]])
@@ -78,9 +79,11 @@ class JointEvaluation:
         return np.array([f.hard_iou for f in self.fits[i]])
 
     def reweighted(self) -> "JointEvaluation":
-        """The same fits with the weights computed from their own IoU (an IRLS step)."""
+        """The same fits with the weights computed from their own IoU (an IRLS step; none if not robust)."""
+        if not self.robust:
+            return self
         w = [robust_view_weights(self.iou(i)) for i in range(len(self.fits))]
-        return JointEvaluation(self.fits, w, _weighted_value(self.fits, w))
+        return JointEvaluation(self.fits, w, _weighted_value(self.fits, w), self.robust)
 
 
 def _weighted_value(fits: list[list[ViewFit]], weights: list[NDArray[np.float64]]) -> float:
@@ -107,10 +110,12 @@ class OcclusionObjective:
     Args:
         found: the instances and their views (:func:`~autoalign.instances.read_instance_scenes`).
         rasterizers: one per instance, in ``found.instances`` order.
+        robust: weigh views by their fit (:func:`~autoalign.losses.robust_view_weights`); else all 1.
     """
 
-    def __init__(self, found: InstanceScenes, rasterizers: list[SoftSilhouetteRasterizer]) -> None:
+    def __init__(self, found: InstanceScenes, rasterizers: list[SoftSilhouetteRasterizer], robust: bool = True) -> None:
         self.rasterizers = rasterizers
+        self.robust = robust
         self.objectives = [SilhouetteObjective(r, s) for r, s in zip(rasterizers, found.scenes)]
         used = sorted({im for s in found.scenes for im in s.image_ids})
         by_id = dict(zip(found.image_ids, found.cameras))
@@ -146,8 +151,9 @@ class OcclusionObjective:
             fits.append([self._fit(i, k, int(g), sil, lv, sils, band_rows, by_view.get((i, int(g)), []), level)
                          for k, g in enumerate(self.views_of[i])])
         if weights is None:
-            weights = [robust_view_weights(np.array([f.iou for f in fs])) for fs in fits]
-        return JointEvaluation(fits, weights, _weighted_value(fits, weights))
+            weights = [robust_view_weights(np.array([f.iou for f in fs])) if self.robust else np.ones(len(fs))
+                       for fs in fits]
+        return JointEvaluation(fits, weights, _weighted_value(fits, weights), self.robust)
 
     # -------------------------------------------------------------------------------- steps
     def _overlaps(self, sils: list[Silhouettes]) -> list[_Pair]:

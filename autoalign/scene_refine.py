@@ -103,19 +103,20 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
     solved along with them, and the joint stage runs again without them. Each instance's pose,
     per-view fit, uncertainty and verdict are then those of the joint stage. A single instance
     without camera refinement has nothing to be solved with: its own result is kept."""
-    alone = refine_instances(found, models, seeds, options, progress)
+    opts = options or RefineOptions()
+    alone = refine_instances(found, models, seeds, opts, progress)
     if len(alone) == 1 and not refine_cameras:
         return SceneRefinement(alone, None, None, found)
     meshes = [models.mesh(r.instance.obj_id) for r in alone]
     start = [r.result.T_wm for r in alone]
     t0 = time.perf_counter()
-    attempt = refine_jointly(found, meshes, start, with_cameras=True, progress=progress) if refine_cameras else None
+    attempt = (refine_jointly(found, meshes, start, with_cameras=True, robust=opts.robust, progress=progress)
+               if refine_cameras else None)
     if attempt is not None and corrections_accepted(attempt.view_misfit_before, attempt.view_misfit_after):
         joint = attempt
         found = with_cameras(found, joint.cameras)
     else:
-        joint = refine_jointly(found, meshes, start, progress=progress)
-    opts = options or RefineOptions()
+        joint = refine_jointly(found, meshes, start, robust=opts.robust, progress=progress)
     after = []
     for k, r in enumerate(alone):
         unc = joint.uncertainties[k]
