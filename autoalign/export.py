@@ -90,13 +90,11 @@ class FrameRenderer:
     def __init__(self, models: ModelSet, delta_mm: float = DELTA_MM) -> None:
         self.models = models
         self.delta_mm = float(delta_mm)
-        self._casters: dict[int, tuple[RayCaster, NDArray[np.float64]]] = {}
+        self._casters: dict[int, RayCaster] = {}
 
-    def _caster(self, obj_id: int) -> tuple[RayCaster, NDArray[np.float64]]:
+    def _caster(self, obj_id: int) -> RayCaster:
         if obj_id not in self._casters:
-            mesh = self.models.mesh(obj_id)
-            hull = mesh.trimesh.convex_hull.vertices if len(mesh.vertices) > 4 else mesh.vertices
-            self._casters[obj_id] = (RayCaster(mesh), np.asarray(hull, dtype=np.float64))
+            self._casters[obj_id] = RayCaster(self.models.mesh(obj_id))
         return self._casters[obj_id]
 
     def render(self, image_id: int, labels: list[Label], K_opencv: NDArray[np.float64], size: tuple[int, int],
@@ -109,8 +107,8 @@ class FrameRenderer:
         silhouettes = []  # per label: (x0, y0, hit crop, distance crop) on the 3x canvas
         dist = np.full((len(labels), H, W), np.inf, dtype=np.float32)
         for k, lab in enumerate(labels):
-            caster, hull = self._caster(lab.obj_id)
-            x0, y0, x1, y1 = _canvas_crop(cam, lab.T_cm, hull)
+            caster = self._caster(lab.obj_id)
+            x0, y0, x1, y1 = _canvas_crop(cam, lab.T_cm, self.models.mesh(lab.obj_id).hull)
             gx, gy = np.meshgrid(np.arange(x0, x1), np.arange(y0, y1))
             uv = np.column_stack([gx.ravel(), gy.ravel()]).astype(np.float64) + 0.5  # internal centres
             d = caster.pixel_depths(lab.T_cm, batch, np.zeros(len(uv), dtype=np.int64), uv).reshape(gy.shape)

@@ -55,6 +55,12 @@ class Mesh:
         return _diameter(self.vertices)
 
     @functools.cached_property
+    def hull(self) -> NDArray[np.float64]:
+        """(H, 3) vertices of the convex hull (model frame, mm), for projected bounds and crops."""
+        hull = self.trimesh.convex_hull.vertices if len(self.vertices) > 4 else self.vertices
+        return np.asarray(hull, dtype=np.float64)
+
+    @functools.cached_property
     def principal_axes(self) -> NDArray[np.float64]:
         """(3, 3) rows: unit principal axes of the surface (second moments of surface samples
         about ``centre``), major first; model frame."""

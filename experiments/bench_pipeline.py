@@ -58,6 +58,19 @@ def rigid_alignment(ours: dict, truth: dict, scaling: bool) -> np.ndarray:
         pcs[0], pcs[1], corr)
 
 
+def aligned_camera_errors(ours: dict, truth: dict, T: np.ndarray) -> tuple[list[float], list[float]]:
+    """Per camera of ``ours`` (``read_cameras`` tables), its centre's distance (mm) and rotation
+    error (degrees) from the true one once ``T`` (a similarity: ours -> truth) is applied."""
+    s = float(np.cbrt(np.linalg.det(T[:3, :3])))
+    R_align = T[:3, :3] / s
+    pos, rot = [], []
+    for i, (_, R, t) in ours.items():
+        centre = T[:3, :3] @ (-R.T @ t) + T[:3, 3]
+        pos.append(float(np.linalg.norm(centre + truth[i][1].T @ truth[i][2])))
+        rot.append(rotation_angle_deg(R @ R_align.T, truth[i][1]))
+    return pos, rot
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--frames", type=int, default=200)
@@ -76,13 +89,7 @@ def main(argv: list[str] | None = None) -> int:
         rec = json.loads((root / "scene" / "recon.json").read_text())
         ours, truth = read_cameras(root / "scene"), read_cameras(root / "capture" / "gt")
         sim3, T = rigid_alignment(ours, truth, True), rigid_alignment(ours, truth, False)
-        pos, rot = [], []
-        for i, (_, R, t) in ours.items():
-            T_cw = np.eye(4)
-            T_cw[:3, :3], T_cw[:3, 3] = R, t
-            T_cw = T_cw @ np.linalg.inv(T)
-            pos.append(float(np.linalg.norm(-T_cw[:3, :3].T @ T_cw[:3, 3] + truth[i][1].T @ truth[i][2])))
-            rot.append(rotation_angle_deg(T_cw[:3, :3], truth[i][1]))
+        pos, rot = aligned_camera_errors(ours, truth, T)
         normal = T[:3, :3] @ np.array([0.0, 0.0, 1.0])
         # keyframe masks from the truth (the user's segmenter), in the reconstruction's scene folder
         keys = [i for i in sorted(ours) if i % KEYFRAME_EVERY == 0]

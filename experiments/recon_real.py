@@ -21,9 +21,8 @@ import numpy as np
 
 from autoalign.atomic_files import write_json_atomic, write_text_atomic
 from autoalign.bop import read_cameras
-from autoalign.experiments.bench_pipeline import rigid_alignment
+from autoalign.experiments.bench_pipeline import aligned_camera_errors, rigid_alignment
 from autoalign.experiments.shared_data import REAL_SCENES
-from autoalign.se3 import rotation_angle_deg
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -45,11 +44,7 @@ def run_scene(scene: Path, tmp: Path) -> dict:
     ours = read_cameras(out)
     sim3 = rigid_alignment(ours, given, scaling=True)
     s = float(np.cbrt(np.linalg.det(sim3[:3, :3])))
-    pos, rot = [], []
-    for i, (_, R, t) in ours.items():
-        c = sim3[:3, :3] @ (-R.T @ t) + sim3[:3, 3]
-        pos.append(float(np.linalg.norm(c + given[i][1].T @ given[i][2])))
-        rot.append(rotation_angle_deg(R @ (sim3[:3, :3] / s).T, given[i][1]))
+    pos, rot = aligned_camera_errors(ours, given, sim3)
     return {"scene": scene.name, "frames": len(given), "registered": rec["registered"], "wall_s": wall,
             "reprojection_px": rec["reprojection_error_px"], "median_mm": float(np.median(pos)),
             "median_deg": float(np.median(rot)), "max_mm": float(np.max(pos)), "max_deg": float(np.max(rot)),

@@ -105,8 +105,7 @@ class SoftSilhouetteRasterizer:
         self.mesh = mesh
         self.caster = RayCaster(mesh)
         self.outlines = OutlineFinder(mesh, self.caster, segment_px)
-        hull = mesh.trimesh.convex_hull.vertices if len(mesh.vertices) > 4 else mesh.vertices
-        self.hull = np.asarray(hull, dtype=np.float64)
+        self.hull = mesh.hull
 
     def hard_masks(self, T_wm: NDArray[np.float64], cameras: list[Camera]) -> list[NDArray[np.bool_]]:
         """Full-image hard masks (H, W) by ray casting at every pixel centre of the object's crops."""

@@ -1,6 +1,7 @@
 """``autoalign recon`` (issue 14) on a synthetic hand-held RGB-D stream rendered with mitsuba
 (``experiments/stream.py``: textured objects on a textured table, true cameras known): frames
-registered, the trajectory after alignment (open3d's point-to-point estimation, Sim(3) and SE(3)),
+registered, the trajectory after alignment (open3d's point-to-point estimation, Sim(3) and SE(3),
+``experiments/bench_pipeline.py``),
 the scale from depth and the table frame; RGB only is flagged; bad inputs are one-line errors."""
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import open3d as o3d
 import pytest
 
 from autoalign.bop import read_cameras
+from autoalign.experiments.bench_pipeline import aligned_camera_errors, rigid_alignment
 from autoalign.experiments.stream import DEPTH_SCALE, render_stream
 
 FRAMES = 30
@@ -34,32 +36,16 @@ def _recon(capture: Path, out: Path, *extra: str) -> subprocess.CompletedProcess
                            "--quiet", *extra], capture_output=True, text=True, timeout=900)
 
 
-def _alignment(ours: dict, truth: dict, scaling: bool) -> np.ndarray:
-    ids = sorted(ours)
-    centres = [np.array([-R.T @ t for _, R, t in (cams[i] for i in ids)]) for cams in (ours, truth)]
-    clouds = [o3d.geometry.PointCloud(o3d.utility.Vector3dVector(c)) for c in centres]
-    corr = o3d.utility.Vector2iVector(np.stack([np.arange(len(ids))] * 2, 1))
-    est = o3d.pipelines.registration.TransformationEstimationPointToPoint(with_scaling=scaling)
-    return est.compute_transformation(clouds[0], clouds[1], corr)
-
-
 def test_rgbd_stream_cameras_scale_and_table(stream, tmp_path):
     out = tmp_path / "scene"
     p = _recon(stream, out, "--intrinsics", str(stream / "intrinsics.json"), "--depth-scale", str(DEPTH_SCALE))
     assert p.returncode == 0, p.stderr
     ours, truth = read_cameras(out), read_cameras(stream / "gt")
     assert len(ours) >= 0.98 * FRAMES
-    sim3 = _alignment(ours, truth, scaling=True)
+    sim3 = rigid_alignment(ours, truth, scaling=True)
     assert abs(np.cbrt(np.linalg.det(sim3[:3, :3])) - 1.0) < 0.005  # the scale from depth, within 0.5%
-    T = _alignment(ours, truth, scaling=False)  # metric: a rigid motion is all that may differ
-    pos, rot = [], []
-    for i, (_, R, t) in ours.items():
-        T_cw = np.eye(4)
-        T_cw[:3, :3], T_cw[:3, 3] = R, t
-        T_cw = T_cw @ np.linalg.inv(T)
-        R_true, t_true = truth[i][1], truth[i][2]
-        pos.append(np.linalg.norm(-T_cw[:3, :3].T @ T_cw[:3, 3] + R_true.T @ t_true))
-        rot.append(np.degrees(np.arccos(np.clip((np.trace(R_true.T @ T_cw[:3, :3]) - 1) / 2, -1, 1))))
+    T = rigid_alignment(ours, truth, scaling=False)  # metric: a rigid motion is all that may differ
+    pos, rot = aligned_camera_errors(ours, truth, T)
     assert np.median(pos) <= 2.0 and np.median(rot) <= 0.2, (np.median(pos), np.median(rot))
     normal = T[:3, :3] @ np.array([0.0, 0.0, 1.0])  # our table normal in the true frame, whose table is z = 0
     assert np.degrees(np.arccos(np.clip(normal[2], -1, 1))) <= 0.5
