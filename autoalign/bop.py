@@ -113,9 +113,14 @@ def json_floats(entry: dict[str, Any], key: str, n: int, path: Path, where: str,
 
 
 def read_cameras(scene_dir: Path) -> dict[int, tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]:
-    """``{im_id: (K, R_w2c, t_w2c)}`` from ``scene_camera.json``, validated; ``K`` as in the file
-    (OpenCV / BOP convention: build cameras with :meth:`Camera.from_opencv`)."""
-    path = scene_dir / "scene_camera.json"
+    """``{im_id: (K, R_w2c, t_w2c)}`` from ``scene_dir/scene_camera.json`` (:func:`read_camera_file`)."""
+    return read_camera_file(Path(scene_dir) / "scene_camera.json")
+
+
+def read_camera_file(path: Path) -> dict[int, tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]:
+    """``{im_id: (K, R_w2c, t_w2c)}`` from a BOP ``scene_camera.json``, validated; ``K`` as in the
+    file (OpenCV / BOP convention: build cameras with :meth:`Camera.from_opencv`)."""
+    path = Path(path)
     fix = "every image needs cam_K (9 numbers), cam_R_w2c (9, row-major) and cam_t_w2c (3, mm)"
     data = read_json_file(path, f"a BOP scene folder needs scene_camera.json ({fix})")
     if not isinstance(data, dict) or not data:

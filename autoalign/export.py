@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.bop import Label, photo_path, read_cameras, read_json_file
+from autoalign.bop import Label, photo_path, read_camera_file, read_json_file
 from autoalign.camera import Camera
 from autoalign.errors import AutoalignError
 from autoalign.models import ModelSet
@@ -201,13 +201,16 @@ def depth_scales(scene_dir: Path) -> dict[int, float]:
 
 
 def export_frames(scene_dir: Path, labels: dict[int, list[Label]], models: ModelSet, labels_path: Path,
-                  delta_mm: float = DELTA_MM, progress: Progress | None = None) -> list[FrameExport]:
-    """Render every image of ``labels`` (see :func:`autoalign.bop.read_labels`) of the scene."""
-    cams = read_cameras(scene_dir)
+                  delta_mm: float = DELTA_MM, progress: Progress | None = None,
+                  cameras_path: Path | None = None) -> list[FrameExport]:
+    """Render every image of ``labels`` (see :func:`autoalign.bop.read_labels`) of the scene, with
+    the intrinsics of ``cameras_path`` (default ``scene_dir/scene_camera.json``)."""
+    cameras_path = cameras_path or scene_dir / "scene_camera.json"
+    cams = read_camera_file(cameras_path)
     missing = sorted(set(labels) - set(cams))
     if missing:
         raise AutoalignError(f"{labels_path}: image(s) {', '.join(map(str, missing[:10]))} have no camera in "
-                             f"{scene_dir / 'scene_camera.json'}; label only the scene's images")
+                             f"{cameras_path}; label only the scene's images")
     for obj in sorted({lab.obj_id for ls in labels.values() for lab in ls}):
         if not models.path(obj).is_file():
             raise AutoalignError(f"{labels_path}: object {obj} has no model {models.path(obj)}; add it to --models "

@@ -21,7 +21,7 @@ strayed onto it. Its silhouette is compared with its own mask everywhere else.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -59,6 +59,18 @@ class InstanceScenes:
     cameras: list[Camera]
     image_ids: list[int]
     unmodelled: list[int]
+
+    def through(self, cameras: dict[int, Camera]) -> "InstanceScenes":
+        """The same scene seen through ``cameras`` (by image id; images not in it keep theirs), e.g.
+        corrected or rescaled ones."""
+        return replace(self, scenes=[replace(sc, cameras=[cameras.get(im, c) for im, c in zip(sc.image_ids, sc.cameras)])
+                                     for sc in self.scenes],
+                       cameras=[cameras.get(im, c) for im, c in zip(self.image_ids, self.cameras)])
+
+    @property
+    def camera_by_id(self) -> dict[int, Camera]:
+        """Every image's camera by image id."""
+        return dict(zip(self.image_ids, self.cameras))
 
 
 def read_instances(scene_dir: Path, instances_file: Path | None = None) -> list[Instance]:

@@ -9,6 +9,14 @@
    occlusion-aware loss (:mod:`autoalign.occlusion`, :mod:`autoalign.joint_refine`): what a
    modelled object hides is predicted, not only what another mask claims, so an instance whose
    occluder's masks are missing is not pulled, and the contour between two objects holds both.
+
+Cameras known only up to scale (``solve_scale``) come in scaled by a first guess
+(:mod:`autoalign.scene_scale`); the joint stage solves the scale with the poses, and while it moves
+the scale by more than :data:`SCALE_SETTLED` the scene is rescaled and both stages run again from
+there (the instances seeded with their joint poses), at most :data:`SCALE_ROUNDS` times. The joint
+stage converges from a scale 30-40% off when the orientations are right, but the alone stage fits
+each instance in cameras of the wrong scale, so a round first re-guesses the scale from the
+orientations it found (:data:`SCALE_REGUESS`).
 """
 
 from __future__ import annotations
@@ -27,12 +35,22 @@ from autoalign.hypotheses import weak_turn_scores
 from autoalign.joint_refine import JointRefinement, refine_jointly
 from autoalign.models import ModelSet
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+from autoalign.scene_scale import grown_pose, rescaled, scale_from_masks, scaled_cameras
 from autoalign.verdict import Verdict, judge
 
 if TYPE_CHECKING:
     from autoalign.camera import Camera
 
 Progress = Callable[[str, int, int], None]
+
+SCALE_SETTLED = 0.005
+"""A joint stage that moves the scene's scale by less than this fraction ends the rounds: at the
+start of a round the alone stage fits each instance with the cameras at the round's scale."""
+SCALE_ROUNDS = 4
+SCALE_REGUESS = 0.02
+"""After an alone stage, a first guess of the scale from the orientations it found
+(:func:`~autoalign.scene_scale.scale_from_masks`) that differs by more than this fraction rescales
+the scene and starts the round again, before the joint stage solves the scale exactly."""
 
 
 @dataclass
@@ -71,22 +89,19 @@ def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, N
     return out
 
 
-def with_cameras(found: InstanceScenes, cameras: dict[int, "Camera"]) -> InstanceScenes:
-    """``found`` seen through ``cameras`` (by image id), e.g. corrected ones."""
-    return replace(found, scenes=[replace(sc, cameras=[cameras[im] for im in sc.image_ids]) for sc in found.scenes],
-                   cameras=[cameras.get(im, c) for im, c in zip(found.image_ids, found.cameras)])
-
-
 @dataclass
 class SceneRefinement:
     """What :func:`refine_scene` found: every instance's result (after the joint stage), the joint
     stage itself, the joint stage with camera corrections if they were asked for (``joint`` when
-    they were kept), and the scenes (through the cameras used at the end)."""
+    they were kept), the scenes (through the cameras used at the end), and with ``solve_scale``
+    the factor by which the given cameras' translations were scaled, with its relative sigma."""
 
     results: list[InstanceResult]
     joint: JointRefinement | None
     with_cameras: JointRefinement | None
     found: InstanceScenes
+    scale: float = 1.0
+    scale_sigma: float = 0.0
 
     @property
     def cameras_accepted(self) -> bool:
@@ -94,7 +109,7 @@ class SceneRefinement:
 
 
 def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArray[np.float64]],
-                 options: RefineOptions | None = None, refine_cameras: bool = False,
+                 options: RefineOptions | None = None, refine_cameras: bool = False, solve_scale: bool = False,
                  progress: Progress | None = None) -> SceneRefinement:
     """Every instance alone (seed, search, polish: :func:`refine_instances`), then all of them
     together, occlusion-aware (:func:`~autoalign.joint_refine.refine_jointly`), with a correction
@@ -102,21 +117,42 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
     trusted (:func:`~autoalign.camera_refine.corrections_accepted`) are dropped with the poses
     solved along with them, and the joint stage runs again without them. Each instance's pose,
     per-view fit, uncertainty and verdict are then those of the joint stage. A single instance
-    without camera refinement has nothing to be solved with: its own result is kept."""
+    without camera refinement has nothing to be solved with: its own result is kept.
+
+    With ``solve_scale`` the cameras' translations are taken to be in an unknown unit, already
+    scaled by a first guess (:func:`~autoalign.scene_scale.scale_from_masks`); the scale is solved
+    with the poses (see module doc)."""
     opts = options or RefineOptions()
-    alone = refine_instances(found, models, seeds, opts, progress)
-    if len(alone) == 1 and not refine_cameras:
-        return SceneRefinement(alone, None, None, found)
-    meshes = [models.mesh(r.instance.obj_id) for r in alone]
-    start = [r.result.T_wm for r in alone]
-    t0 = time.perf_counter()
-    attempt = (refine_jointly(found, meshes, start, with_cameras=True, robust=opts.robust, progress=progress)
-               if refine_cameras else None)
-    if attempt is not None and corrections_accepted(attempt.view_misfit_before, attempt.view_misfit_after):
-        joint = attempt
-        found = with_cameras(found, joint.cameras)
-    else:
-        joint = refine_jointly(found, meshes, start, robust=opts.robust, progress=progress)
+    scale, scale_sigma = 1.0, 0.0
+    rounds = SCALE_ROUNDS if solve_scale else 1
+    for round_ in range(rounds):
+        alone = refine_instances(found, models, seeds, opts, progress)
+        if len(alone) == 1 and not refine_cameras and not solve_scale:
+            return SceneRefinement(alone, None, None, found)
+        if solve_scale and round_ < rounds - 1:  # the scale again, from the orientations found at this one
+            guess = scale_from_masks(found, models, {r.instance.index: r.result.T_wm[:3, :3] for r in alone})
+            if abs(guess.factor - 1.0) > SCALE_REGUESS:
+                found, scale = rescaled(found, guess.factor), scale * guess.factor
+                seeds = {r.instance.index: grown_pose(r.result.T_wm, models.mesh(r.instance.obj_id).centre, guess.factor)
+                         for r in alone}
+                continue
+        meshes = [models.mesh(r.instance.obj_id) for r in alone]
+        start = [r.result.T_wm for r in alone]
+        t0 = time.perf_counter()
+        attempt = (refine_jointly(found, meshes, start, with_cameras=True, robust=opts.robust, with_scale=solve_scale,
+                                  progress=progress) if refine_cameras else None)
+        if attempt is not None and corrections_accepted(attempt.view_misfit_before, attempt.view_misfit_after):
+            joint = attempt
+        else:
+            joint = refine_jointly(found, meshes, start, robust=opts.robust, with_scale=solve_scale, progress=progress)
+        if solve_scale:
+            found = found.through({**scaled_cameras(found.camera_by_id, joint.scale), **joint.cameras})
+            scale, scale_sigma = scale * joint.scale, joint.scale_sigma
+            seeds = {r.instance.index: T for r, T in zip(alone, joint.poses)}  # already grown with the scene
+            if abs(joint.scale - 1.0) < SCALE_SETTLED:
+                break
+        elif joint is attempt:
+            found = found.through(joint.cameras)
     after = []
     for k, r in enumerate(alone):
         unc = joint.uncertainties[k]
@@ -132,4 +168,5 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
     results = [InstanceResult(r.instance, replace(res, timings={**res.timings, "joint": seconds}),
                               verdict_of(res, found.scenes[k].empty, models, r.instance.obj_id), r.seconds + seconds)
                for k, (r, res) in enumerate(zip(alone, after))]
-    return SceneRefinement(results, joint, attempt, found)
+    return SceneRefinement(results, joint, attempt, found, scale, scale_sigma)
+

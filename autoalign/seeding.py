@@ -69,7 +69,7 @@ def _mask_support(scene: Scene, X: NDArray[np.float64], dilate_px: int = 0) -> N
     return count
 
 
-def _closest_point_to_rays(origins: NDArray[np.float64], dirs: NDArray[np.float64]) -> NDArray[np.float64]:
+def closest_point_to_rays(origins: NDArray[np.float64], dirs: NDArray[np.float64]) -> NDArray[np.float64]:
     """Least-squares point nearest to a set of lines."""
     A = np.zeros((3, 3))
     b = np.zeros(3)
@@ -98,7 +98,7 @@ def hull_centre(scene: Scene, diameter: float, grid: int = 40, min_fraction: flo
         dirs.append(cam.ray_directions(np.array([[xs.mean() + 0.5, ys.mean() + 0.5]]))[0])
     if not origins:
         raise AutoalignError("the masks are empty in every view; check the segmentation or --instance")
-    centre = _closest_point_to_rays(np.array(origins), np.array(dirs)) if start is None else np.asarray(start, float)
+    centre = closest_point_to_rays(np.array(origins), np.array(dirs)) if start is None else np.asarray(start, float)
     n_views = len(origins)
     for half in (1.5 * diameter, 0.75 * diameter):
         ax = np.linspace(-half, half, grid)

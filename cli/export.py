@@ -37,6 +37,9 @@ inputs:
                                numbers (row-major), "cam_t_m2c": 3 numbers (mm)}, e.g. the one
                                'autoalign refine' wrote (every object in every image)
   --models MODELS_DIR          obj_{obj_id:06d}.ply (mm) for every obj_id of the labels
+  --cameras SCENE_CAMERA_JSON  the cameras to export (default: the scene_camera.json beside
+                               --labels if there is one, i.e. the cameras 'autoalign refine'
+                               corrected or scaled, else SCENE_DIR's)
 
 outputs (in OUT_DIR, written all or none):
   scene_gt.json, scene_gt_info.json, mask/ and mask_visib/{im_id:06d}_{k:06d}.png (0/255),
@@ -65,6 +68,8 @@ def add_export_parser(subparsers: Any) -> argparse.ArgumentParser:
     req.add_argument("--out", metavar="OUT_DIR", required=True,
                      help="the BOP scene folder to write (created if missing; not SCENE_DIR)")
     opt = p.add_argument_group("options")
+    opt.add_argument("--cameras", metavar="SCENE_CAMERA_JSON", default=None,
+                     help="cameras to export (default: scene_camera.json beside --labels if present, else SCENE_DIR's)")
     opt.add_argument("--coco", action="store_true", help="also write scene_gt_coco.json (COCO RLE of mask_visib)")
     opt.add_argument("--units", choices=("mm", "m"), default=None,
                      help="units of the meshes when they look like metres (default: mm, metres refused)")
@@ -91,17 +96,18 @@ def run_export(args: argparse.Namespace) -> int:
         raise AutoalignError(f"--out {out}: is the scene folder itself; choose another folder with --out")
     if labels_path.resolve().parent == out.resolve() and labels_path.name in OUTPUT_NAMES:
         raise AutoalignError(f"--out {out}: would replace the input {labels_path}; choose another folder with --out")
+    cameras = cameras_to_export(scene, labels_path, Path(args.cameras) if args.cameras else None)
     labels = read_labels(labels_path)
     models = ModelSet.read(args.models, args.units)
     bar = ProgressBar(enabled=not args.quiet)
     try:
-        frames = export_frames(scene, labels, models, labels_path, progress=bar)
+        frames = export_frames(scene, labels, models, labels_path, progress=bar, cameras_path=cameras)
     finally:
         bar.close()
     files = bop_files(frames)
     if args.coco:
         files["scene_gt_coco.json"] = json.dumps(coco_annotations(frames, scene)).encode()
-    files["scene_camera.json"] = (scene / "scene_camera.json").read_bytes()
+    files["scene_camera.json"] = cameras.read_bytes()
     for sub in ("rgb", "depth"):
         if (scene / sub).is_dir():
             ids = set(labels)
@@ -113,7 +119,7 @@ def run_export(args: argparse.Namespace) -> int:
     summary = {"images": len(frames), "entries": entries, "out_of_view_dropped": dropped,
                "visib_fract_median": statistics.median([i.visib_fract for f in frames for i in f.info] or [0.0]),
                "labels": str(labels_path.absolute()), "models": str(Path(args.models).absolute()),
-               "scene_dir": str(scene.absolute()), "coco": bool(args.coco), "time_s": time.perf_counter() - t0}
+               "scene_dir": str(scene.absolute()), "cameras": str(cameras.absolute()), "coco": bool(args.coco), "time_s": time.perf_counter() - t0}
     from autoalign import __version__
 
     files["export.json"] = json.dumps({"autoalign_version": __version__, **summary}, indent=1).encode()
@@ -123,3 +129,20 @@ def run_export(args: argparse.Namespace) -> int:
               f"{time.perf_counter() - t0:.1f} s; wrote {len(files)} files to {out}", file=sys.stdout, flush=True)
     return 0
 
+
+
+def cameras_to_export(scene: Path, labels_path: Path, given: Path | None) -> Path:
+    """The ``scene_camera.json`` to export: ``given``, else the one beside the labels (refine writes
+    the cameras it corrected or scaled there), else the scene's. Cameras without a metric scale
+    (the scene's ``recon.json`` says so) are refused: a BOP scene's translations are in mm."""
+    from autoalign.scene_scale import cameras_up_to_scale
+
+    beside = labels_path.parent / "scene_camera.json"
+    path = given or (beside if beside.is_file() else scene / "scene_camera.json")
+    if not path.is_file():
+        raise AutoalignError(f"--cameras {path}: not found; pass a BOP scene_camera.json")
+    if path.resolve() == (scene / "scene_camera.json").resolve() and cameras_up_to_scale(scene):
+        raise AutoalignError(f"{scene / 'recon.json'}: the scene's cameras have no metric scale; export with the "
+                             "scene_camera.json that 'autoalign refine' wrote beside its scene_gt.json (it solves "
+                             "the scale), or give metric cameras with --cameras")
+    return path

@@ -29,7 +29,7 @@ from autoalign.interrupts import Interrupts, is_command_process, preload
 
 PROG = "autoalign"
 OUTPUT_FILES = ("scene_gt.json", "refine.json", "overlay.png", "scene_camera.json")
-"""Every file ``refine`` may write (``scene_camera.json`` only with ``--refine-cameras``)."""
+"""Every file ``refine`` may write (``scene_camera.json`` only with ``--refine-cameras`` or a solved scale)."""
 LOW_WEIGHT = 0.3  # a view whose robust weight (mean 1) ends below this ...
 LOW_WEIGHT_MAX_IOU = 0.95  # ... and whose IoU after stays below this is reported as disagreeing
 POOR_FIT_IOU = 0.7  # a mean IoU after refinement below this is reported as a poor fit
@@ -194,6 +194,11 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
                      help="with --models: also correct every camera's pose (a silhouette bundle adjustment: "
                           "the objects seen together pin each camera down, a prior keeps corrections small); "
                           "writes the corrected scene_camera.json")
+    alg.add_argument("--solve-scale", action="store_true",
+                     help="with --models: scene_camera.json's translations are in an unknown unit (structure "
+                          "from motion without depth); solve the scene's scale from the objects' known size with "
+                          "the poses and write the metric scene_camera.json. On by itself when the scene's "
+                          "recon.json says it has no metric scale")
     alg.add_argument("--no-robust", action="store_true",
                      help="weigh all views equally; by default views whose mask disagrees with the others "
                           "(occlusion, bad segmentation) are down-weighted (Cauchy weights on 1 - IoU)")
@@ -269,6 +274,9 @@ def main(argv: list[str] | None = None) -> int:
     Interrupts.seen = False
     try:
         return _main(argv)
+    except KeyboardInterrupt:  # pressed while the parser's modules loaded, before the command's own handling
+        print(f"\n{PROG}: interrupted", file=sys.stderr, flush=True)
+        return 130
     finally:
         signal.signal(signal.SIGINT, previous)
 
@@ -512,6 +520,8 @@ def run_refine(args: argparse.Namespace) -> int:
         raise UsageError("--instances needs --models (a models folder for the objects it names)")
     if args.refine_cameras and args.models is None:
         raise UsageError("--refine-cameras needs --models: several objects seen together pin a camera down")
+    if args.solve_scale and args.models is None:
+        raise UsageError("--solve-scale needs --models (a models folder whose meshes give the objects' size)")
     inputs = [Path(x) for x in (args.model, args.init, args.instances) if x is not None]
     check_outputs_spare_inputs(out, Path(args.scene), inputs)
     created = prepare_out_dir(out)

@@ -12,12 +12,16 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from autoalign import __version__
 from autoalign.cli.main import (EXIT_FLAGGED, WARNINGS, ProgressBar, jsonable, one_line, pose_record, uncertainty_record,
                                 warn, write_outputs)
+
+SCALE_SIGMA_WARN = 0.01
+"""A solved scene scale with a relative sigma above this is reported as uncertain."""
 
 
 def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> int:
@@ -35,7 +39,22 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
     models = ModelSet.read(args.models, args.units)
     for inst in found.instances:
         models.mesh(inst.obj_id)  # every model present and readable before the slow part
+    from autoalign.scene_scale import cameras_up_to_scale, rescaled, scale_from_masks
+
+    solve_scale = args.solve_scale or cameras_up_to_scale(scene_dir)
     seeds = read_init_poses(args.init, found) if args.init is not None else {}
+    guess = None
+    if solve_scale:  # a first guess, then one from the seeds' orientations (which need no scale)
+        if not args.solve_scale:
+            warn(f"{scene_dir / 'recon.json'} says the cameras have no metric scale: solving it from the objects' "
+                 "size (as --solve-scale)")
+        guess = scale_from_masks(found, models)
+        found = rescaled(found, guess.factor)
+        if seeds:
+            better = scale_from_masks(found, models, {k: T[:3, :3] for k, T in seeds.items()})
+            found = rescaled(found, better.factor)
+            guess = replace(better, factor=guess.factor * better.factor)
+        seeds = read_init_poses(args.init, found) if args.init is not None else {}  # their positions in mm
     missing = [i.index for i in found.instances if i.index not in seeds]
     if args.init is not None and missing:
         warn(f"{args.init} gives no pose for instance(s) {', '.join(map(str, missing))}; they are searched "
@@ -48,7 +67,7 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
     progress = ProgressBar(enabled=not args.quiet)
     progress.start("loading the renderer")
     try:
-        refined = refine_scene(found, models, seeds, options, args.refine_cameras, progress)
+        refined = refine_scene(found, models, seeds, options, args.refine_cameras, solve_scale, progress)
         results, found, joint = refined.results, refined.found, refined.joint
         progress("overlay", 0, 1)
         t0 = time.perf_counter()
@@ -108,16 +127,25 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
              f"1 - IoU {np.median(list(attempt.view_misfit_before.values())):.3f} -> "
              f"{np.median(list(attempt.view_misfit_after.values())):.3f}, less than {MIN_MISFIT_GAIN:.0%} lower), "
              "so the masks, not the cameras, are what is off; the given cameras are kept")
-    if attempt is not None:
+    if guess is not None:
+        mm_per_unit = guess.factor * refined.scale
+        report["scale"] = {"solved": True, "mm_per_unit": mm_per_unit, "sigma_relative": refined.scale_sigma,
+                           "guess_mm_per_unit": guess.factor, "guess_spread": guess.spread,
+                           "file": "scene_camera.json"}
+        if refined.scale_sigma > SCALE_SIGMA_WARN:
+            warn(f"the scene's scale is uncertain: {mm_per_unit:.4g} mm per unit, sigma {refined.scale_sigma:.1%}; "
+                 "more views of the objects from different distances, or depth (recon --depth), pin it down")
+    if attempt is not None or guess is not None:
         from autoalign.bop import read_cameras
 
+        final = dict(zip(found.image_ids, found.cameras))
         corrected = {}
         for im, (K, R, t) in read_cameras(scene_dir).items():
-            T_cw = np.eye(4)
-            T_cw[:3, :3], T_cw[:3, 3] = R, t
-            T_cw = T_cw @ (joint.corrections.get(im, np.eye(4)) if refined.cameras_accepted else np.eye(4))
+            T_cw = final[im].T_cw if im in final else np.vstack([np.column_stack([R, t]), [0, 0, 0, 1]])
             corrected[str(im)] = {"cam_K": K.ravel(), "cam_R_w2c": T_cw[:3, :3].ravel(), "cam_t_w2c": T_cw[:3, 3]}
         files["scene_camera.json"] = json.dumps(jsonable(corrected), indent=1).encode()
+        report["outputs"]["scene_camera"] = "scene_camera.json"
+    if attempt is not None:
         report["cameras"] = {
             "refined": refined.cameras_accepted, "file": "scene_camera.json", "iterations": attempt.iterations,
             "loss_before": attempt.loss_before, "loss_after": attempt.loss_after,
@@ -128,7 +156,6 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
                                    "misfit_before": attempt.view_misfit_before.get(im),
                                    "misfit_after": attempt.view_misfit_after.get(im)}
                          for im, E in attempt.corrections.items()}}
-        report["outputs"]["scene_camera"] = "scene_camera.json"
     files["refine.json"] = json.dumps(jsonable(report), indent=1, allow_nan=False).encode()
     write_outputs(out, files)
     elapsed = time.perf_counter() - t_start

@@ -4,11 +4,14 @@ objects on a textured table, true cameras and poses known).
 
 The segmenter is played by open3d: visible masks of every fifth frame, ray-cast at the true
 poses through the true cameras (the keyframes a user would segment). The coarse ``--init`` is the
-truth moved into the reconstruction's frame (by the rigid motion that best maps its cameras onto
-the true ones) and then 10 mm / 15 degrees off. Each command runs as a child process; their wall
-times and the accuracy of each stage are reported. Results: ``experiments/results/bench_pipeline.md``.
+truth 10 mm / 15 degrees off, given in the first keyframe's camera frame (as a user's coarse
+label). The labels are judged in every keyframe's camera frame (``scene_gt.json``), which needs no
+alignment of the reconstruction. With ``--rgb-only`` the depth is withheld: ``recon`` leaves the
+scale free and ``refine`` solves it from the objects (the 7th parameter), and ``export`` takes the
+metric cameras ``refine`` wrote. Each command runs as a child process; their wall times and the
+accuracy of each stage are reported. Results: ``experiments/results/bench_pipeline[_rgb].md``.
 
-``python -m autoalign.experiments.bench_pipeline [--frames 200] [--size 640x480]``
+``python -m autoalign.experiments.bench_pipeline [--frames 200] [--size 640x480] [--rgb-only]``
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from autoalign.atomic_files import write_json_atomic, write_text_atomic
 from autoalign.bop import read_cameras, scene_gt_of
 from autoalign.camera import Camera
 from autoalign.experiments.metrics import Symmetries, pose_errors
-from autoalign.experiments.stream import DEPTH_SCALE, render_stream
+from autoalign.experiments.stream import DEPTH_SCALE, Stream, render_stream
 from autoalign.experiments.synthetic import perturb_pose, raycast_visible_masks
 from autoalign.se3 import rotation_angle_deg
 
@@ -71,10 +74,28 @@ def aligned_camera_errors(ours: dict, truth: dict, T: np.ndarray) -> tuple[list[
     return pos, rot
 
 
+def label_errors(scene_gt: dict, truth: dict, stream: Stream, refine_json: dict) -> list[tuple[float, float, str]]:
+    """Per instance of ``refine_json``: the largest position (mm) and rotation (degrees) error of its
+    label (``scene_gt``: camera from model) over the images, against the true camera from the true
+    pose, and its verdict."""
+    worst: dict[int, list[float]] = {}
+    for im, entries in scene_gt.items():
+        T_cw = np.eye(4)
+        T_cw[:3, :3], T_cw[:3, 3] = truth[int(im)][1], truth[int(im)][2]
+        for k, e in enumerate(entries):
+            est = np.eye(4)
+            est[:3, :3], est[:3, 3] = np.reshape(e["cam_R_m2c"], (3, 3)), e["cam_t_m2c"]
+            err = pose_errors(est, T_cw @ stream.poses[k], stream.meshes[k].centre, None, Symmetries())
+            w = worst.setdefault(k, [0.0, 0.0])
+            w[0], w[1] = max(w[0], err.pos_err_mm), max(w[1], err.rot_err_deg)
+    return [(worst[r["instance"]][0], worst[r["instance"]][1], r["verdict"]) for r in refine_json["instances"]]
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--frames", type=int, default=200)
     p.add_argument("--size", default="640x480")
+    p.add_argument("--rgb-only", action="store_true", help="withhold the depth: the scale is solved by refine")
     p.add_argument("--out", type=Path, default=RESULTS)
     a = p.parse_args(argv)
     W, H = (int(x) for x in a.size.split("x"))
@@ -84,11 +105,14 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         stream = render_stream(root / "capture", n_frames=a.frames, width=W, height=H, seed=0)
         t_render = time.perf_counter() - t0
+        if a.rgb_only:
+            (root / "capture" / "depth").rename(root / "depth_withheld")
         t_recon, _ = _run(cli + ["recon", str(root / "capture"), "--intrinsics", str(root / "capture" / "intrinsics.json"),
                                  "--depth-scale", str(DEPTH_SCALE), "--out", str(root / "scene"), "--quiet"])
         rec = json.loads((root / "scene" / "recon.json").read_text())
         ours, truth = read_cameras(root / "scene"), read_cameras(root / "capture" / "gt")
-        sim3, T = rigid_alignment(ours, truth, True), rigid_alignment(ours, truth, False)
+        sim3 = rigid_alignment(ours, truth, True)
+        T = sim3 if a.rgb_only else rigid_alignment(ours, truth, False)
         pos, rot = aligned_camera_errors(ours, truth, T)
         normal = T[:3, :3] @ np.array([0.0, 0.0, 1.0])
         # keyframe masks from the truth (the user's segmenter), in the reconstruction's scene folder
@@ -102,20 +126,17 @@ def main(argv: list[str] | None = None) -> int:
         n_obj = len(stream.meshes)
         write_json_atomic(root / "instances.json", {"instances": {str(k): k + 1 for k in range(n_obj)}})
         rng = np.random.default_rng(1)
-        T_inv = np.linalg.inv(T)  # truth -> our frame
-        coarse = [perturb_pose(T_inv @ P, 10.0, 15.0, rng, m.centre) for P, m in zip(stream.poses, stream.meshes)]
+        coarse = [perturb_pose(P, 10.0, 15.0, rng, m.centre) for P, m in zip(stream.poses, stream.meshes)]
         k0 = keys[0]
-        cam0 = Camera.from_opencv(*ours[k0], W, H)
+        cam0 = Camera.from_opencv(*truth[k0], W, H)  # the coarse labels in the first keyframe's camera frame
         write_json_atomic(root / "init.json", scene_gt_of([(k + 1, P) for k, P in enumerate(coarse)], [cam0], [k0]))
         t_refine, _ = _run(cli + ["refine", str(root / "scene"), "--models", str(root / "capture" / "gt" / "models"),
                                   "--instances", str(root / "instances.json"), "--init", str(root / "init.json"),
                                   "--out", str(root / "labels"), "--quiet"])
         labels = json.loads((root / "labels" / "refine.json").read_text())
-        errs = []
-        for r in labels["instances"]:
-            k = r["instance"]
-            e = pose_errors(T @ np.asarray(r["pose"]["T_wm"]), stream.poses[k], stream.meshes[k].centre, None, Symmetries())
-            errs.append((e.pos_err_mm, e.rot_err_deg, r["verdict"]))
+        errs = label_errors(json.loads((root / "labels" / "scene_gt.json").read_text()), truth, stream, labels)
+        true_scale = float(np.cbrt(np.linalg.det(sim3[:3, :3])))  # mm per reconstruction unit
+        solved = labels.get("scale", {}).get("mm_per_unit")
         t_export, _ = _run(cli + ["export", str(root / "scene"), "--labels", str(root / "labels" / "scene_gt.json"),
                                   "--models", str(root / "capture" / "gt" / "models"), "--out", str(root / "bop"),
                                   "--coco", "--quiet"])
@@ -135,7 +156,8 @@ def main(argv: list[str] | None = None) -> int:
         "recon_s": t_recon, "refine_s": t_refine, "export_s": t_export, "pipeline_s": t_recon + t_refine + t_export,
         "registered": rec["registered"], "reprojection_px": rec["reprojection_error_px"],
         "trajectory_median_mm": float(np.median(pos)), "trajectory_median_deg": float(np.median(rot)),
-        "scale_error": float(np.cbrt(np.linalg.det(sim3[:3, :3])) - 1.0), "scale_spread": rec["scale_spread"],
+        "rgb_only": a.rgb_only, "scale_error": None if a.rgb_only else true_scale - 1.0,
+        "scale_spread": rec["scale_spread"], "solved_scale_error": None if solved is None else solved / true_scale - 1.0,
         "table_normal_deg": float(np.degrees(np.arccos(np.clip(normal[2], -1, 1)))),
         "pose_err_mm": [e[0] for e in errs], "pose_err_deg": [e[1] for e in errs], "verdicts": [e[2] for e in errs],
         "export_mask_iou_min": float(min(ious)) if ious else None, "export_mask_iou_median": float(np.median(ious)) if ious else None,
@@ -144,21 +166,26 @@ def main(argv: list[str] | None = None) -> int:
     lines = ["# Capture to dataset: recon -> refine -> export", "",
              f"`python -m autoalign.experiments.bench_pipeline --frames {a.frames} --size {a.size}` on {platform.machine()}, "
              f"{os.cpu_count()} cores, Python {platform.python_version()}: a synthetic hand-held RGB-D stream, {n_obj} "
-             f"objects; masks of every {KEYFRAME_EVERY}th frame from the truth (the segmenter), `--init` 10 mm / 15 deg off; "
+             f"objects{' (RGB only: depth withheld)' if a.rgb_only else ''}; masks of every {KEYFRAME_EVERY}th frame from the truth (the segmenter), `--init` 10 mm / 15 deg off; "
              "each command a child process.", "",
              "| stage | wall s | result |", "|---|---|---|",
              f"| recon | {t_recon:.1f} | {rec['registered']} of {a.frames} frames registered, reprojection "
-             f"{rec['reprojection_error_px']:.2f} px; trajectory after SE(3) alignment: median {np.median(pos):.2f} mm / "
-             f"{np.median(rot):.3f} deg; scale error {row['scale_error']:+.3%} (spread {rec['scale_spread']:.2%}); "
-             f"table normal {row['table_normal_deg']:.3f} deg |",
-             f"| refine ({n_obj} objects, {len(keys)} keyframes) | {t_refine:.1f} | pose errors (true frame) "
+             f"{rec['reprojection_error_px']:.2f} px; trajectory after {'Sim(3)' if a.rgb_only else 'SE(3)'} alignment: "
+             f"median {np.median(pos):.2f} mm / {np.median(rot):.3f} deg; "
+             + ("scale left free (no depth)" if a.rgb_only else
+                f"scale error {row['scale_error']:+.3%} (spread {rec['scale_spread']:.2%})")
+             + f"; table normal {row['table_normal_deg']:.3f} deg |",
+             f"| refine ({n_obj} objects, {len(keys)} keyframes) | {t_refine:.1f} | "
+             + (f"scale solved from the objects: {row['solved_scale_error']:+.3%} from the true one; " if solved else "")
+             + "label errors, worst keyframe per object: "
              f"{', '.join(f'{e[0]:.2f} mm / {e[1]:.2f} deg' for e in errs)}; verdicts {', '.join(e[2] for e in errs)} |",
              f"| export ({len(gt)} frames, COCO) | {t_export:.1f} | mask_visib against open3d ray casting at the truth: IoU "
              f"median {row['export_mask_iou_median']:.3f}, min {row['export_mask_iou_min']:.3f} (10 frames) |",
              f"| **pipeline** | **{row['pipeline_s']:.1f}** | rendering the stream itself: {t_render:.1f} s (not counted) |"]
     a.out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(a.out / "bench_pipeline.json", row)
-    write_text_atomic(a.out / "bench_pipeline.md", "\n".join(lines) + "\n")
+    name = "bench_pipeline_rgb" if a.rgb_only else "bench_pipeline"
+    write_json_atomic(a.out / f"{name}.json", row)
+    write_text_atomic(a.out / f"{name}.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

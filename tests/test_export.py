@@ -183,3 +183,32 @@ def test_bad_inputs_are_one_line_errors_and_write_nothing(ex, tmp_path):
     (scene / "depth").mkdir()
     cv2.imwrite(str(scene / "depth" / "000003.png"), np.zeros((H // 2, W // 2), np.uint16))
     assert "depth is 160x120 but the image is 320x240" in run(scene, scene / "scene_gt.json")
+
+
+def test_cameras_come_from_beside_the_labels_and_unscaled_ones_are_refused(ex, tmp_path):
+    """refine writes the cameras it corrected or scaled beside its scene_gt.json: export takes those;
+    a scene whose recon.json says its cameras have no metric scale is not exported with them."""
+    scene = tmp_path / "scene"
+    shutil.copytree(ex.scene, scene)
+    labels = tmp_path / "labels"
+    labels.mkdir()
+    shutil.copy(scene / "scene_gt.json", labels / "scene_gt.json")
+    cams = json.loads((scene / "scene_camera.json").read_text())
+    for c in cams.values():  # the scene's own cameras in an unknown unit, refine's in mm
+        c["cam_t_w2c"] = (np.asarray(c["cam_t_w2c"]) / 173.0).tolist()
+    (scene / "scene_camera.json").write_text(json.dumps(cams))
+    (scene / "recon.json").write_text(json.dumps({"metric": False}))
+
+    def run(*extra):
+        return subprocess.run([sys.executable, "-m", "autoalign.cli.main", "export", str(scene), "--labels",
+                               str(labels / "scene_gt.json"), "--models", str(ex.root / "models"), "--out",
+                               str(tmp_path / "bop"), "--quiet", *extra], capture_output=True, text=True, timeout=600)
+
+    p = run()
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1 and "no metric scale" in p.stderr, p.stderr
+    assert not (tmp_path / "bop").exists()
+    shutil.copy(ex.scene / "scene_camera.json", labels / "scene_camera.json")
+    p = run()
+    assert p.returncode == 0, p.stderr
+    assert (tmp_path / "bop" / "scene_camera.json").read_bytes() == (ex.scene / "scene_camera.json").read_bytes()
+    assert json.loads((tmp_path / "bop" / "export.json").read_text())["cameras"] == str((labels / "scene_camera.json").absolute())

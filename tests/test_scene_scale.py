@@ -1,0 +1,140 @@
+"""The scene scale of cameras known only up to scale (issue 14: RGB-only captures), solved by
+``autoalign refine`` from the objects' known size (:mod:`autoalign.scene_scale`, the 7th parameter
+of :func:`autoalign.joint_refine.refine_jointly`).
+
+Scenes: the scene benchmark's (procedural objects, 40 views of 640x480, masks ray-cast by open3d)
+with every camera translation divided by a unit that only the test knows.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from autoalign.experiments.bench_scene import make_bench_scene, symmetries
+from autoalign.experiments.metrics import pose_errors
+from autoalign.instances import read_instance_scenes, read_instances
+from autoalign.models import ModelSet
+from autoalign.scene_scale import grown_pose, rescaled, scale_from_masks, scaled_cameras
+from autoalign.se3 import make_pose, transform_points
+
+from autoalign.camera import look_at
+from autoalign.experiments.synthetic import default_K, random_rotation
+
+UNIT_MM = 173.0  # mm per unit of the cameras as written
+
+
+def unscaled_scene(root: Path, n_obj: int, seed: int = 3) -> list[np.ndarray]:
+    """A benchmark scene whose cameras' translations are in units of ``UNIT_MM``, with a
+    ``recon.json`` that says so; the true world-from-model poses (mm)."""
+    truth = make_bench_scene(root, n_obj, seed=seed)
+    path = root / "scene" / "scene_camera.json"
+    cams = json.loads(path.read_text())
+    for c in cams.values():
+        c["cam_t_w2c"] = (np.asarray(c["cam_t_w2c"]) / UNIT_MM).tolist()
+    path.write_text(json.dumps(cams))
+    (root / "scene" / "recon.json").write_text(json.dumps({"metric": False}))
+    return truth
+
+
+def test_scaled_cameras_see_a_grown_scene_as_before():
+    """Checked with OpenCV's projection: cameras moved ``f`` times as far from a point see points
+    moved ``f`` times as far from it where they saw the originals; ``grown_pose`` moves a model's
+    centre that way and keeps its orientation."""
+    rng = np.random.default_rng(0)
+    K = default_K(640, 480, 600.0)
+    cams = {i: look_at(rng.normal(0, 300, 3) + [0, 0, 600], np.zeros(3), K, 640, 480) for i in range(5)}
+    X = rng.normal(0, 50, (30, 3))
+    about = np.array([10.0, -20.0, 5.0])
+    for f in (0.3, 2.5):
+        grown = scaled_cameras(cams, f, about)
+        for i, c in cams.items():
+            before = cv2.projectPoints(X, cv2.Rodrigues(c.R_w2c)[0], c.t_w2c, c.K_opencv, None)[0]
+            g = grown[i]
+            after = cv2.projectPoints(about + f * (X - about), cv2.Rodrigues(g.R_w2c)[0], g.t_w2c, g.K_opencv, None)[0]
+            np.testing.assert_allclose(after, before, atol=1e-6)
+            np.testing.assert_allclose(g.R_w2c, c.R_w2c)
+        T = make_pose(random_rotation(rng), rng.normal(0, 100, 3))
+        centre = np.array([3.0, 4.0, 5.0])
+        G = grown_pose(T, centre, f)
+        np.testing.assert_allclose(transform_points(G, centre[None]), f * transform_points(T, centre[None]), atol=1e-9)
+        np.testing.assert_allclose(G[:3, :3], T[:3, :3])
+
+
+def test_scale_guess_from_the_masks(tmp_path):
+    """Cauchy's mean projected area gives the unit roughly (this scene's object is a 137 x 20 x
+    43 mm bar, seen from above more than edge-on: 39% off; seven other seeds' objects: within 11%);
+    the model drawn in its true orientation (which needs no scale) gives it within 3% (all eight:
+    within 1.7%)."""
+    truth = unscaled_scene(tmp_path, 1)
+    found = read_instance_scenes(tmp_path / "scene", read_instances(tmp_path / "scene"))
+    models = ModelSet.read(tmp_path / "models")
+    rough = scale_from_masks(found, models)
+    assert abs(rough.factor / UNIT_MM - 1) < 0.45, rough
+    better = scale_from_masks(rescaled(found, rough.factor), models, {0: truth[0][:3, :3]})
+    assert abs(rough.factor * better.factor / UNIT_MM - 1) < 0.03, (rough, better)
+    assert better.views == 40
+
+
+def run_refine(root: Path, *extra: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", str(root / "scene"), "--models",
+                           str(root / "models"), "--out", str(root / "out"), "--quiet", *extra],
+                          capture_output=True, text=True)
+
+
+def check_labels(root: Path, truth: list[np.ndarray], mm: float = 1.0, deg: float = 1.0) -> dict:
+    """The refined scene's scale, metric cameras and labels against the truth; refine.json."""
+    rec = json.loads((root / "out" / "refine.json").read_text())
+    assert abs(rec["scale"]["mm_per_unit"] / UNIT_MM - 1) < 0.005, rec["scale"]
+    written = json.loads((root / "out" / "scene_camera.json").read_text())
+    given = json.loads((root / "scene" / "scene_camera.json").read_text())
+    for im, c in written.items():  # the cameras written are in mm, orientation kept
+        np.testing.assert_allclose(c["cam_t_w2c"], np.asarray(given[im]["cam_t_w2c"]) * UNIT_MM, rtol=0.005, atol=1.0)
+        np.testing.assert_allclose(c["cam_R_w2c"], given[im]["cam_R_w2c"], atol=1e-9)
+    models = ModelSet.read(root / "models")
+    gt = json.loads((root / "out" / "scene_gt.json").read_text())
+    for im, entries in gt.items():  # the labels, in each camera's frame, mm
+        c = given[im]
+        T_cw = make_pose(np.reshape(c["cam_R_w2c"], (3, 3)), np.asarray(c["cam_t_w2c"]) * UNIT_MM)
+        for k, e in enumerate(entries):
+            est = make_pose(np.reshape(e["cam_R_m2c"], (3, 3)), e["cam_t_m2c"])
+            err = pose_errors(est, T_cw @ truth[k], models.mesh(e["obj_id"]).centre, None, symmetries(models, e["obj_id"]))
+            assert err.pos_err_mm < mm and err.rot_err_deg < deg, (im, k, err)
+    return rec
+
+
+def test_refine_solves_the_scale_of_one_object_scene_from_init(tmp_path):
+    """recon.json says the cameras are not metric: refine solves the scale by itself, within 0.5%,
+    writes metric cameras, and the labels are within 1 mm / 1 deg in every view."""
+    truth = unscaled_scene(tmp_path, 1)
+    proc = run_refine(tmp_path, "--init", str(tmp_path / "init_gt.json"))
+    assert proc.returncode == 0, proc.stderr
+    assert "no metric scale" in proc.stderr
+    rec = check_labels(tmp_path, truth)
+    assert rec["instances"][0]["verdict"] == "ok"
+    assert rec["scale"]["sigma_relative"] < 0.01
+
+
+def test_refine_solves_the_scale_without_a_seed(tmp_path):
+    """Two objects, no --init, --solve-scale given explicitly (no recon.json)."""
+    truth = unscaled_scene(tmp_path, 2, seed=5)
+    (tmp_path / "scene" / "recon.json").unlink()
+    proc = run_refine(tmp_path, "--solve-scale")
+    assert proc.returncode == 0, proc.stderr
+    rec = check_labels(tmp_path, truth)
+    assert [r["verdict"] for r in rec["instances"]] == ["ok", "ok"]
+
+
+def test_solve_scale_needs_models(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", str(tmp_path), "--model",
+                           str(tmp_path / "m.ply"), "--out", str(tmp_path / "out"), "--solve-scale"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0 and "--solve-scale needs --models" in proc.stderr
+    assert not (tmp_path / "out").exists()
