@@ -25,8 +25,11 @@ motion with pycolmap (SIFT features, exhaustive matching up to 120 frames and se
 incremental mapping; intrinsics given or estimated), the metric scale from depth (the median
 ratio of sensor depth to reconstructed depth at the keypoints), the table plane by RANSAC (the
 world frame gets z up and the table at z = 0), and, with depth, TSDF fusion (open3d) into a
-coloured cloud. Without depth the scale is unknown: the cameras are written in the
-reconstruction's own unit, and the command says so and exits 3."""
+coloured cloud. With depth, --propose also proposes the object instances: the fused surface above
+the table clustered (open3d DBSCAN), each cluster's visible mask in every view with the same id,
+so that no segmenter is needed. Without depth the scale is unknown: the cameras are written in
+the reconstruction's own unit, recon.json says so (then 'autoalign refine' solves the scale from
+the objects' known size), and the command exits 3."""
 
 _EPILOG = """\
 inputs:
@@ -47,6 +50,9 @@ outputs (in OUT_DIR, written all or none):
   mesh.ply                     the fused surface (with depth)
   recon.json                   frames registered, reprojection error, scale and its spread, plane
   trajectory.png               the camera path over the cloud, from above and from the side
+  mask_visib/, proposals.json  with --propose: instance k's visible mask {im_id:06d}_{k:06d}.png,
+                               and its centre and size (mm); map k to an obj_id in an instances
+                               file for 'autoalign refine --instances'
 
 examples:
   autoalign recon capture/ --intrinsics capture/intrinsics.json --depth-scale 0.1 --out scenes/000001
@@ -71,6 +77,8 @@ def add_recon_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--depth-scale", metavar="S", type=float, default=1.0, help="depth value times S is mm (default 1)")
     p.add_argument("--intrinsics", metavar="K_JSON", default=None, help="camera intrinsics (see 'inputs')")
     p.add_argument("--every", metavar="N", type=positive_int, default=1, help="keep every N-th frame (default 1)")
+    p.add_argument("--propose", action="store_true",
+                   help="with depth: propose the object instances on the table and write their masks")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     p.set_defaults(func=run_recon)
     return p
@@ -97,9 +105,12 @@ def run_recon(args: argparse.Namespace) -> int:
         raise AutoalignError(f"--out {out}: is inside the capture; choose a folder outside it")
     with tempfile.TemporaryDirectory(prefix="autoalign-recon-") as tmp:
         capture = read_capture(capture_path, Path(tmp), args.depth, args.depth_scale, args.intrinsics, args.every)
+        if args.propose and capture.depth is None:
+            raise AutoalignError(f"{capture_path}: --propose needs depth (a depth/ folder or --depth DEPTH_DIR); "
+                                 "without it, give masks from a segmenter")
         bar = ProgressBar(enabled=not args.quiet)
         try:
-            rec = reconstruct(capture, Path(tmp), progress=bar)
+            rec = reconstruct(capture, Path(tmp), progress=bar, propose=args.propose)
         finally:
             bar.close()
         files = scene_files(rec)
@@ -113,12 +124,16 @@ def run_recon(args: argparse.Namespace) -> int:
               f"{time.perf_counter() - t0:.1f} s; wrote {out}", file=sys.stdout, flush=True)
     flagged = False
     if not report["metric"]:
-        warn("no depth, so the scale is unknown: the cameras are in the reconstruction's own unit, not mm; give "
-             "--depth, or rescale scene_camera.json from an object's known size before refining")
+        warn("no depth, so the scale is unknown: the cameras are in the reconstruction's own unit, not mm; "
+             "'autoalign refine' solves it from the objects' known size (recon.json says so), or give --depth")
         flagged = True
     elif report["scale_spread"] > SCALE_SPREAD_WARN:
         warn(f"the depth and the reconstruction disagree: the scale's spread is {report['scale_spread']:.1%} "
              "(depth not registered to the colour camera, or a wrong --depth-scale?)")
+        flagged = True
+    if args.propose and not report["proposals"]:
+        warn("--propose found nothing standing on the table (clusters of fused points above it); check the "
+             "table plane in trajectory.png")
         flagged = True
     if report["registered"] < report["frames"]:
         warn(f"{report['frames'] - report['registered']} frame(s) could not be registered and were left out: "

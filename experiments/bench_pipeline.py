@@ -114,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         sim3 = rigid_alignment(ours, truth, True)
         T = sim3 if a.rgb_only else rigid_alignment(ours, truth, False)
         pos, rot = aligned_camera_errors(ours, truth, T)
-        normal = T[:3, :3] @ np.array([0.0, 0.0, 1.0])
+        normal = T[:3, :3] @ np.array([0.0, 0.0, 1.0]) / np.cbrt(np.linalg.det(T[:3, :3]))  # without Sim(3)'s scale
         # keyframe masks from the truth (the user's segmenter), in the reconstruction's scene folder
         keys = [i for i in sorted(ours) if i % KEYFRAME_EVERY == 0]
         masks = raycast_visible_masks(stream.meshes, stream.poses, [stream.cameras[i] for i in keys])
@@ -137,6 +137,13 @@ def main(argv: list[str] | None = None) -> int:
         errs = label_errors(json.loads((root / "labels" / "scene_gt.json").read_text()), truth, stream, labels)
         true_scale = float(np.cbrt(np.linalg.det(sim3[:3, :3])))  # mm per reconstruction unit
         solved = labels.get("scale", {}).get("mm_per_unit")
+        solved_one = None
+        if a.rgb_only:  # the scale from one known object alone (the others unmodelled)
+            write_json_atomic(root / "one.json", {"instances": {"0": 1}})
+            _run(cli + ["refine", str(root / "scene"), "--models", str(root / "capture" / "gt" / "models"),
+                        "--instances", str(root / "one.json"), "--init", str(root / "init.json"),
+                        "--out", str(root / "labels_one"), "--quiet"])
+            solved_one = json.loads((root / "labels_one" / "refine.json").read_text())["scale"]["mm_per_unit"]
         t_export, _ = _run(cli + ["export", str(root / "scene"), "--labels", str(root / "labels" / "scene_gt.json"),
                                   "--models", str(root / "capture" / "gt" / "models"), "--out", str(root / "bop"),
                                   "--coco", "--quiet"])
@@ -158,6 +165,7 @@ def main(argv: list[str] | None = None) -> int:
         "trajectory_median_mm": float(np.median(pos)), "trajectory_median_deg": float(np.median(rot)),
         "rgb_only": a.rgb_only, "scale_error": None if a.rgb_only else true_scale - 1.0,
         "scale_spread": rec["scale_spread"], "solved_scale_error": None if solved is None else solved / true_scale - 1.0,
+        "solved_scale_error_one_object": None if solved_one is None else solved_one / true_scale - 1.0,
         "table_normal_deg": float(np.degrees(np.arccos(np.clip(normal[2], -1, 1)))),
         "pose_err_mm": [e[0] for e in errs], "pose_err_deg": [e[1] for e in errs], "verdicts": [e[2] for e in errs],
         "export_mask_iou_min": float(min(ious)) if ious else None, "export_mask_iou_median": float(np.median(ious)) if ious else None,
@@ -176,7 +184,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"scale error {row['scale_error']:+.3%} (spread {rec['scale_spread']:.2%})")
              + f"; table normal {row['table_normal_deg']:.3f} deg |",
              f"| refine ({n_obj} objects, {len(keys)} keyframes) | {t_refine:.1f} | "
-             + (f"scale solved from the objects: {row['solved_scale_error']:+.3%} from the true one; " if solved else "")
+             + (f"scale solved from the objects: {row['solved_scale_error']:+.3%} from the true one (from object 1 "
+                f"alone: {row['solved_scale_error_one_object']:+.3%}); " if solved else "")
              + "label errors, worst keyframe per object: "
              f"{', '.join(f'{e[0]:.2f} mm / {e[1]:.2f} deg' for e in errs)}; verdicts {', '.join(e[2] for e in errs)} |",
              f"| export ({len(gt)} frames, COCO) | {t_export:.1f} | mask_visib against open3d ray casting at the truth: IoU "

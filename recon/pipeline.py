@@ -4,7 +4,8 @@ table frame, TSDF fusion (``autoalign recon``).
 Stages, each its own module: :mod:`~autoalign.recon.capture` (frames, depth, intrinsics) ->
 :mod:`~autoalign.recon.sfm` (pycolmap) -> :mod:`~autoalign.recon.scale` (median depth ratio) ->
 :mod:`~autoalign.recon.plane` (RANSAC table plane; world z up, table at z = 0) ->
-:mod:`~autoalign.recon.fusion` (open3d TSDF; with depth only).
+:mod:`~autoalign.recon.fusion` (open3d TSDF; with depth only) -> optionally
+:mod:`~autoalign.recon.proposals` (instances on the table and their masks; with depth only).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from autoalign.camera import Camera
 from autoalign.recon.capture import Capture
 from autoalign.recon.fusion import fuse_depth
 from autoalign.recon.plane import TablePlane, fit_table_plane, table_frame
+from autoalign.recon.proposals import Proposal, cluster_above_table, proposal_masks
 from autoalign.recon.scale import ScaleEstimate, scale_from_depth
 from autoalign.recon.sfm import SfmResult, run_sfm
 
@@ -33,7 +35,8 @@ Progress = Callable[[str, int, int], None]
 class Reconstruction:
     """The cameras of the registered frames in the table frame (z up, table at z = 0; mm when
     ``metric``, else the reconstruction's own unit), the scale and plane found, and a coloured
-    cloud (N, 3) in the same frame: fused depth, or the SfM points without depth."""
+    cloud (N, 3) in the same frame: fused depth, or the SfM points without depth; with ``propose``,
+    the proposed instances and their visible masks by image id."""
 
     cameras: dict[int, Camera]
     metric: bool
@@ -44,10 +47,14 @@ class Reconstruction:
     mesh: Any | None
     sfm: SfmResult
     capture: Capture
+    proposals: list[Proposal] | None = None
+    proposal_masks: dict[int, list[NDArray[np.bool_]]] | None = None
 
 
-def reconstruct(capture: Capture, workdir: Path, progress: Progress | None = None) -> Reconstruction:
-    """Run the stages on ``capture`` (intermediate files in ``workdir``)."""
+def reconstruct(capture: Capture, workdir: Path, progress: Progress | None = None,
+                propose: bool = False) -> Reconstruction:
+    """Run the stages on ``capture`` (intermediate files in ``workdir``); with ``propose`` (which
+    needs depth) also propose the instances on the table."""
     sfm = run_sfm(capture, workdir, progress)
     scale = None
     if capture.depth is not None:
@@ -73,7 +80,11 @@ def reconstruct(capture: Capture, workdir: Path, progress: Progress | None = Non
         pcd, mesh = fuse_depth(frames, T_cw, sfm.K_opencv, capture.size, capture.depth_scale, progress=progress)
         cloud = np.asarray(pcd.points, dtype=np.float64)
         colors = (np.asarray(pcd.colors) * 255).round().astype(np.uint8)
-    return Reconstruction(cams, scale is not None, scale, plane, cloud, colors, mesh, sfm, capture)
+    proposals = masks = None
+    if propose and mesh is not None:
+        proposals, labels = cluster_above_table(mesh)
+        masks = proposal_masks(mesh, labels, len(proposals), cams, progress)
+    return Reconstruction(cams, scale is not None, scale, plane, cloud, colors, mesh, sfm, capture, proposals, masks)
 
 
 def _scaled(T: NDArray[np.float64], s: float) -> NDArray[np.float64]:
@@ -107,6 +118,16 @@ def scene_files(rec: Reconstruction) -> dict[str, bytes]:
     files["cloud.ply"] = _ply_bytes(pcd)
     if rec.mesh is not None:
         files["mesh.ply"] = _ply_bytes(rec.mesh)
+    if rec.proposals is not None and rec.proposal_masks is not None:
+        for im, per in rec.proposal_masks.items():
+            for k, m in enumerate(per):
+                if m.any():
+                    files[f"mask_visib/{im:06d}_{k:06d}.png"] = cv2.imencode(".png", m.astype(np.uint8) * 255)[1].tobytes()
+        files["proposals.json"] = json.dumps({
+            "instances": {str(p.index): {"centre_mm": p.centre_mm.tolist(), "size_mm": p.size_mm.tolist(),
+                                         "points": p.points} for p in rec.proposals},
+            "note": "instance k's masks are mask_visib/{im_id:06d}_{k:06d}.png; say which object each is in an "
+                    "instances file {\"instances\": {\"k\": obj_id}} for autoalign refine --instances"}, indent=1).encode()
     files["recon.json"] = json.dumps(report(rec), indent=1).encode()
     files["trajectory.png"] = trajectory_png(rec)
     return files
@@ -144,6 +165,7 @@ def report(rec: Reconstruction) -> dict[str, Any]:
         "table": {"inliers": rec.plane.inliers, "rms": rec.plane.rms,
                   "frame": "world z up along the table normal, table at z = 0"},
         "cloud": {"points": len(rec.cloud), "from": "TSDF fusion of depth" if rec.mesh is not None else "SfM points"},
+        "proposals": None if rec.proposals is None else len(rec.proposals),
     }
 
 
