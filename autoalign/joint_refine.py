@@ -77,11 +77,12 @@ class JointRefinement:
 def refine_jointly(found: InstanceScenes, meshes: list[Mesh], poses: list[NDArray[np.float64]],
                    with_cameras: bool = False, level: Level = LEVEL, prior: CameraPrior | None = None,
                    fine_faces: int | None = 20000, robust: bool = True, with_scale: bool = False,
-                   progress: Progress | None = None) -> JointRefinement:
+                   scale_from: list[bool] | None = None, progress: Progress | None = None) -> JointRefinement:
     """Refine the poses of all instances of ``found`` together from ``poses`` (world from model,
     mm), occlusion-aware, with ``with_cameras`` a correction of every camera and with ``with_scale``
     the scene's scale (``robust``: views weighted by their fit, as in
-    :class:`~autoalign.engine.RefineOptions`)."""
+    :class:`~autoalign.engine.RefineOptions`). ``scale_from`` (per instance, default all): the
+    instances whose fit decides the scale; the others move with it but do not pull it."""
     rasts = [SoftSilhouetteRasterizer(m if fine_faces is None else m.simplified(fine_faces)) for m in meshes]
     objective = OcclusionObjective(found, rasts, robust)
     ids = objective.image_ids
@@ -118,7 +119,7 @@ def refine_jointly(found: InstanceScenes, meshes: list[Mesh], poses: list[NDArra
                     for a, inst in enumerate(f.instances):
                         if with_cameras:
                             B[6 * a:6 * a + 6, 6 * m:6 * m + 6] = camera_block(centres_w[inst], p)
-                        if with_scale:
+                        if with_scale and (scale_from is None or scale_from[inst]):
                             B[6 * a:6 * a + 3, -1] = centres_w[inst] - C_v
                     if with_cameras:
                         idx.append(6 * (n_obj + gv) + np.arange(6))

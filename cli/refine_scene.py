@@ -39,7 +39,7 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
     models = ModelSet.read(args.models, args.units)
     for inst in found.instances:
         models.mesh(inst.obj_id)  # every model present and readable before the slow part
-    from autoalign.scene_scale import cameras_up_to_scale, rescaled, scale_from_masks
+    from autoalign.scene_scale import cameras_up_to_scale, rescaled, scale_by_overlap, scale_from_masks
 
     solve_scale = args.solve_scale or cameras_up_to_scale(scene_dir)
     seeds = read_init_poses(args.init, found) if args.init is not None else {}
@@ -50,10 +50,10 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
                  "size (as --solve-scale)")
         guess = scale_from_masks(found, models)
         found = rescaled(found, guess.factor)
-        if seeds:
-            better = scale_from_masks(found, models, {k: T[:3, :3] for k, T in seeds.items()})
-            found = rescaled(found, better.factor)
-            guess = replace(better, factor=guess.factor * better.factor)
+        if seeds:  # the factor at which the coarse poses overlap their masks best
+            factor, _ = scale_by_overlap(found, models, Path(args.init))
+            found = rescaled(found, factor)
+            guess = replace(guess, factor=guess.factor * factor)
         seeds = read_init_poses(args.init, found) if args.init is not None else {}  # their positions in mm
     missing = [i.index for i in found.instances if i.index not in seeds]
     if args.init is not None and missing:

@@ -74,6 +74,31 @@ def aligned_camera_errors(ours: dict, truth: dict, T: np.ndarray) -> tuple[list[
     return pos, rot
 
 
+def recon_row(a: argparse.Namespace, rec: dict, t_render: float, t_recon: float, pos: list[float], rot: list[float],
+              sim3: np.ndarray, normal: np.ndarray) -> int:
+    """Write ``bench_recon_{frames}.md/json``: recon alone on a long stream."""
+    row = {"frames": a.frames, "size": a.size, "render_s": t_render, "recon_s": t_recon, "registered": rec["registered"],
+           "reprojection_px": rec["reprojection_error_px"], "trajectory_median_mm": float(np.median(pos)),
+           "trajectory_median_deg": float(np.median(rot)), "trajectory_max_mm": float(np.max(pos)),
+           "trajectory_max_deg": float(np.max(rot)), "scale_error": float(np.cbrt(np.linalg.det(sim3[:3, :3])) - 1.0),
+           "table_normal_deg": float(np.degrees(np.arccos(np.clip(normal[2], -1, 1))))}
+    print(json.dumps(row), flush=True)
+    lines = [f"# recon on a {a.frames}-frame stream", "",
+             f"`python -m autoalign.experiments.bench_pipeline --frames {a.frames} --size {a.size} --recon-only` on "
+             f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}: the synthetic hand-held "
+             "RGB-D stream; keyframes (every 4th frame) mapped, the other frames registered to them.", "",
+             "| frames | wall s | registered | reprojection px | median mm / deg (SE(3)) | max mm / deg | scale error | "
+             "table normal deg |", "|---|---|---|---|---|---|---|---|",
+             f"| {a.frames} | {t_recon:.1f} | {rec['registered']} | {rec['reprojection_error_px']:.2f} | "
+             f"{row['trajectory_median_mm']:.2f} / {row['trajectory_median_deg']:.3f} | {row['trajectory_max_mm']:.2f} / "
+             f"{row['trajectory_max_deg']:.3f} | {row['scale_error']:+.3%} | {row['table_normal_deg']:.3f} |"]
+    a.out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(a.out / f"bench_recon_{a.frames}.json", row)
+    write_text_atomic(a.out / f"bench_recon_{a.frames}.md", "\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return 0
+
+
 def label_errors(scene_gt: dict, truth: dict, stream: Stream, refine_json: dict) -> list[tuple[float, float, str]]:
     """Per instance of ``refine_json``: the largest position (mm) and rotation (degrees) error of its
     label (``scene_gt``: camera from model) over the images, against the true camera from the true
@@ -82,13 +107,28 @@ def label_errors(scene_gt: dict, truth: dict, stream: Stream, refine_json: dict)
     for im, entries in scene_gt.items():
         T_cw = np.eye(4)
         T_cw[:3, :3], T_cw[:3, 3] = truth[int(im)][1], truth[int(im)][2]
-        for k, e in enumerate(entries):
+        for e in entries:
+            j = e["obj_id"] - 1  # stream object j is obj_id j + 1
             est = np.eye(4)
             est[:3, :3], est[:3, 3] = np.reshape(e["cam_R_m2c"], (3, 3)), e["cam_t_m2c"]
-            err = pose_errors(est, T_cw @ stream.poses[k], stream.meshes[k].centre, None, Symmetries())
-            w = worst.setdefault(k, [0.0, 0.0])
+            err = pose_errors(est, T_cw @ stream.poses[j], stream.meshes[j].centre, None, Symmetries())
+            w = worst.setdefault(j, [0.0, 0.0])
             w[0], w[1] = max(w[0], err.pos_err_mm), max(w[1], err.rot_err_deg)
-    return [(worst[r["instance"]][0], worst[r["instance"]][1], r["verdict"]) for r in refine_json["instances"]]
+    return [(worst[r["obj_id"] - 1][0], worst[r["obj_id"] - 1][1], r["verdict"]) for r in refine_json["instances"]]
+
+
+def proposal_assignment(scene: Path, stream: Stream, T: np.ndarray) -> dict[int, int]:
+    """Which stream object each ``recon --propose`` proposal is (the user's instances file): the
+    object whose centre is nearest the proposal's (ours -> true frame by ``T``), within 30 mm."""
+    props = json.loads((scene / "proposals.json").read_text())["instances"]
+    centres = [P[:3, :3] @ m.centre + P[:3, 3] for m, P in zip(stream.meshes, stream.poses)]
+    out = {}
+    for k, v in props.items():
+        c = T[:3, :3] @ np.asarray(v["centre_mm"]) + T[:3, 3]
+        d = [float(np.linalg.norm(c - x)) for x in centres]
+        if min(d) < 30.0:
+            out[int(k)] = int(np.argmin(d))
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -96,6 +136,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames", type=int, default=200)
     p.add_argument("--size", default="640x480")
     p.add_argument("--rgb-only", action="store_true", help="withhold the depth: the scale is solved by refine")
+    p.add_argument("--recon-only", action="store_true", help="only recon (for long streams): bench_recon_N.md")
+    p.add_argument("--propose", action="store_true",
+                   help="masks from recon --propose instead of the truth (no segmenter): bench_pipeline_propose.md")
     p.add_argument("--out", type=Path, default=RESULTS)
     a = p.parse_args(argv)
     W, H = (int(x) for x in a.size.split("x"))
@@ -108,28 +151,41 @@ def main(argv: list[str] | None = None) -> int:
         if a.rgb_only:
             (root / "capture" / "depth").rename(root / "depth_withheld")
         t_recon, _ = _run(cli + ["recon", str(root / "capture"), "--intrinsics", str(root / "capture" / "intrinsics.json"),
-                                 "--depth-scale", str(DEPTH_SCALE), "--out", str(root / "scene"), "--quiet"])
+                                 "--depth-scale", str(DEPTH_SCALE), "--out", str(root / "scene"), "--quiet"]
+                          + (["--propose"] if a.propose else []))
         rec = json.loads((root / "scene" / "recon.json").read_text())
         ours, truth = read_cameras(root / "scene"), read_cameras(root / "capture" / "gt")
         sim3 = rigid_alignment(ours, truth, True)
         T = sim3 if a.rgb_only else rigid_alignment(ours, truth, False)
         pos, rot = aligned_camera_errors(ours, truth, T)
         normal = T[:3, :3] @ np.array([0.0, 0.0, 1.0]) / np.cbrt(np.linalg.det(T[:3, :3]))  # without Sim(3)'s scale
+        if a.recon_only:
+            return recon_row(a, rec, t_render, t_recon, pos, rot, sim3, normal)
         # keyframe masks from the truth (the user's segmenter), in the reconstruction's scene folder
         keys = [i for i in sorted(ours) if i % KEYFRAME_EVERY == 0]
-        masks = raycast_visible_masks(stream.meshes, stream.poses, [stream.cameras[i] for i in keys])
-        (root / "scene" / "mask_visib").mkdir()
-        for i, per in zip(keys, masks):
-            for k, m in enumerate(per):
-                if m.any():
-                    cv2.imwrite(str(root / "scene" / "mask_visib" / f"{i:06d}_{k:06d}.png"), m.astype(np.uint8) * 255)
         n_obj = len(stream.meshes)
-        write_json_atomic(root / "instances.json", {"instances": {str(k): k + 1 for k in range(n_obj)}})
+        if a.propose:  # the proposals' masks of the keyframes; the user says which object each is
+            for f in (root / "scene" / "mask_visib").iterdir():
+                if int(f.name[:6]) % KEYFRAME_EVERY:
+                    f.unlink()
+            assignment = proposal_assignment(root / "scene", stream, T)
+        else:
+            masks = raycast_visible_masks(stream.meshes, stream.poses, [stream.cameras[i] for i in keys])
+            (root / "scene" / "mask_visib").mkdir()
+            for i, per in zip(keys, masks):
+                for k, m in enumerate(per):
+                    if m.any():
+                        cv2.imwrite(str(root / "scene" / "mask_visib" / f"{i:06d}_{k:06d}.png"), m.astype(np.uint8) * 255)
+            assignment = {k: k for k in range(n_obj)}
+        write_json_atomic(root / "instances.json", {"instances": {str(k): j + 1 for k, j in assignment.items()}})
         rng = np.random.default_rng(1)
         coarse = [perturb_pose(P, 10.0, 15.0, rng, m.centre) for P, m in zip(stream.poses, stream.meshes)]
         k0 = keys[0]
         cam0 = Camera.from_opencv(*truth[k0], W, H)  # the coarse labels in the first keyframe's camera frame
-        write_json_atomic(root / "init.json", scene_gt_of([(k + 1, P) for k, P in enumerate(coarse)], [cam0], [k0]))
+        entries = scene_gt_of([(j + 1, coarse[j]) for j in range(n_obj)], [cam0], [k0])[str(k0)]
+        placeholder = {"obj_id": 0, "cam_R_m2c": np.eye(3).ravel().tolist(), "cam_t_m2c": [0.0, 0.0, 0.0]}
+        write_json_atomic(root / "init.json", {str(k0): [entries[assignment[k]] if k in assignment else placeholder
+                                                         for k in range(max(assignment) + 1)]})
         t_refine, _ = _run(cli + ["refine", str(root / "scene"), "--models", str(root / "capture" / "gt" / "models"),
                                   "--instances", str(root / "instances.json"), "--init", str(root / "init.json"),
                                   "--out", str(root / "labels"), "--quiet"])
@@ -163,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
         "recon_s": t_recon, "refine_s": t_refine, "export_s": t_export, "pipeline_s": t_recon + t_refine + t_export,
         "registered": rec["registered"], "reprojection_px": rec["reprojection_error_px"],
         "trajectory_median_mm": float(np.median(pos)), "trajectory_median_deg": float(np.median(rot)),
-        "rgb_only": a.rgb_only, "scale_error": None if a.rgb_only else true_scale - 1.0,
+        "rgb_only": a.rgb_only, "propose": a.propose, "matched_objects": len(assignment), "scale_error": None if a.rgb_only else true_scale - 1.0,
         "scale_spread": rec["scale_spread"], "solved_scale_error": None if solved is None else solved / true_scale - 1.0,
         "solved_scale_error_one_object": None if solved_one is None else solved_one / true_scale - 1.0,
         "table_normal_deg": float(np.degrees(np.arccos(np.clip(normal[2], -1, 1)))),
@@ -172,9 +228,13 @@ def main(argv: list[str] | None = None) -> int:
     }
     print(json.dumps(row), flush=True)
     lines = ["# Capture to dataset: recon -> refine -> export", "",
-             f"`python -m autoalign.experiments.bench_pipeline --frames {a.frames} --size {a.size}` on {platform.machine()}, "
+             f"`python -m autoalign.experiments.bench_pipeline --frames {a.frames} --size {a.size}"
+             f"{' --rgb-only' if a.rgb_only else ''}{' --propose' if a.propose else ''}` on {platform.machine()}, "
              f"{os.cpu_count()} cores, Python {platform.python_version()}: a synthetic hand-held RGB-D stream, {n_obj} "
-             f"objects{' (RGB only: depth withheld)' if a.rgb_only else ''}; masks of every {KEYFRAME_EVERY}th frame from the truth (the segmenter), `--init` 10 mm / 15 deg off; "
+             f"objects{' (RGB only: depth withheld)' if a.rgb_only else ''}; masks of every {KEYFRAME_EVERY}th frame "
+             + (f"from `recon --propose` (no segmenter; {len(assignment)} of {n_obj} objects have a proposal of their "
+                "own, assigned by their centres as a user would)" if a.propose else "from the truth (the segmenter)")
+             + ", `--init` 10 mm / 15 deg off; "
              "each command a child process.", "",
              "| stage | wall s | result |", "|---|---|---|",
              f"| recon | {t_recon:.1f} | {rec['registered']} of {a.frames} frames registered, reprojection "
@@ -192,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
              f"median {row['export_mask_iou_median']:.3f}, min {row['export_mask_iou_min']:.3f} (10 frames) |",
              f"| **pipeline** | **{row['pipeline_s']:.1f}** | rendering the stream itself: {t_render:.1f} s (not counted) |"]
     a.out.mkdir(parents=True, exist_ok=True)
-    name = "bench_pipeline_rgb" if a.rgb_only else "bench_pipeline"
+    name = "bench_pipeline" + ("_rgb" if a.rgb_only else "") + ("_propose" if a.propose else "")
     write_json_atomic(a.out / f"{name}.json", row)
     write_text_atomic(a.out / f"{name}.md", "\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -1,5 +1,8 @@
 """The soft edge: a band pixel's value from its signed distance to the nearest outline edge,
-and its derivatives w.r.t. the pose twist (drjit forward-mode AD).
+and its derivatives w.r.t. the pose twist, or w.r.t. the edge's two end points (drjit
+forward-mode AD). The end points' derivatives are the general ones: any parametrisation of the
+vertices (a twist, a 4x4 matrix, a deformation) follows from them by the chain rule
+(:mod:`autoalign.torch`, :mod:`autoalign.jax`).
 
 Twist convention: ``xi = (v [mm], w [rad])`` moves every world point ``X`` of the object to
 ``X + v + w x (X - c)`` to first order, ``c`` being the object centre in the world frame: the
@@ -26,8 +29,9 @@ def smoothstep_edge(z: NDArray[np.float64] | float) -> NDArray[np.float64]:
 def soft_edge_values(cams: CameraBatch, view: NDArray[np.int64], px: NDArray[np.float64], py: NDArray[np.float64],
                      sign: NDArray[np.float64], A_w: NDArray[np.float64], B_w: NDArray[np.float64],
                      t0: NDArray[np.float64], t1: NDArray[np.float64], centre_w: NDArray[np.float64], half: float,
-                     with_jacobian: bool) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Soft values of band pixels and their twist derivatives.
+                     with_jacobian: bool, wrt_endpoints: bool = False) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Soft values of band pixels and their twist derivatives (or, with ``wrt_endpoints``, their
+    derivatives w.r.t. ``A_w`` and ``B_w``).
 
     Args:
         cams: the views; ``view`` (B,) is each pixel's.
@@ -40,7 +44,8 @@ def soft_edge_values(cams: CameraBatch, view: NDArray[np.int64], px: NDArray[np.
 
     Returns:
         ``smoothstep_edge(sign * dist / half)`` (B,) and its derivatives (B, 6) (zeros without
-        ``with_jacobian``), from one fused kernel.
+        ``with_jacobian``): w.r.t. the twist ``(v, w)``, or with ``wrt_endpoints`` w.r.t.
+        ``(A_w, B_w)`` (mm), from one fused kernel. The visible interval ``t0, t1`` is held fixed.
     """
     dr, mi = drjit(), mitsuba()
     Float, UInt = mi.Float64, mi.UInt32
@@ -54,9 +59,11 @@ def soft_edge_values(cams: CameraBatch, view: NDArray[np.int64], px: NDArray[np.
             dr.enable_grad(x)
     c = [dr.opaque(Float, float(x)) for x in centre_w]  # opaque: one compiled kernel for all poses
 
-    def moved(X: NDArray[np.float64]) -> list:
-        # X + v + w x (X - c), to first order in the twist (exact derivative at xi = 0)
+    def moved(X: NDArray[np.float64], end: int) -> list:
         x = [jit_array(Float, X[:, j], np.float64) for j in range(3)]
+        if wrt_endpoints:  # end point ``end`` moved by xi[3 end : 3 end + 3]
+            return [x[j] + xi[3 * end + j] for j in range(3)]
+        # X + v + w x (X - c), to first order in the twist (exact derivative at xi = 0)
         r = [x[0] - c[0], x[1] - c[1], x[2] - c[2]]
         wx = [xi[4] * r[2] - xi[5] * r[1], xi[5] * r[0] - xi[3] * r[2], xi[3] * r[1] - xi[4] * r[0]]
         return [x[j] + xi[j] + wx[j] for j in range(3)]
@@ -69,8 +76,8 @@ def soft_edge_values(cams: CameraBatch, view: NDArray[np.int64], px: NDArray[np.
         v = (k[3] * xc[0] + k[4] * xc[1]) / xc[2] + k[5]
         return u, v
 
-    eu, ev = project(moved(A_w))
-    fu, fv = project(moved(B_w))
+    eu, ev = project(moved(A_w, 0))
+    fu, fv = project(moved(B_w, 1))
     s0, s1 = jit_array(Float, t0, np.float64), jit_array(Float, t1, np.float64)
     au, av = eu + s0 * (fu - eu), ev + s0 * (fv - ev)  # the sub-segment [t0, t1] of the edge
     bu, bv = eu + s1 * (fu - eu), ev + s1 * (fv - ev)

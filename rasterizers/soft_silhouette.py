@@ -44,9 +44,12 @@ class Silhouettes:
         hard: (P,) ray-cast hard mask at pixel centres.
         band: (B,) flat indices of the pixels whose soft value depends on the pose (grouped by
             view, increasing).
-        jac: (B, 6) derivatives of ``soft[band]`` w.r.t. the twist ``(v [mm], w [rad])``.
+        jac: (B, 6) derivatives of ``soft[band]`` w.r.t. the twist ``(v [mm], w [rad])``, or
+            (``render(..., wrt="vertices")``) w.r.t. the world positions (mm) of the two mesh
+            vertices ``edge_vertices`` of the band pixel's outline edge.
         view_of_band: (B,) view index of each band pixel.
         n_outline: (N,) outline segments found per view (diagnostics).
+        edge_vertices: (B, 2) mesh vertex indices of each band pixel's outline edge.
     """
 
     crops: NDArray[np.int64]
@@ -57,6 +60,7 @@ class Silhouettes:
     jac: NDArray[np.float64]
     view_of_band: NDArray[np.int64]
     n_outline: NDArray[np.int64]
+    edge_vertices: NDArray[np.int64] | None = None
 
     @property
     def n_views(self) -> int:
@@ -72,7 +76,8 @@ class Silhouettes:
         soft[ignored] = 0.0
         hard[ignored] = False
         return replace(self, soft=soft, hard=hard, band=self.band[keep], jac=self.jac[keep],
-                       view_of_band=self.view_of_band[keep])
+                       view_of_band=self.view_of_band[keep],
+                       edge_vertices=None if self.edge_vertices is None else self.edge_vertices[keep])
 
     def view_of_pixel(self) -> NDArray[np.int64]:
         """(P,) view index of every flat pixel."""
@@ -148,7 +153,7 @@ class SoftSilhouetteRasterizer:
         return [np.flatnonzero(flip[:, i]) for i in range(len(cameras))]
 
     def render(self, T_wm: NDArray[np.float64], cameras: list[Camera], sigma: float = 1.0,
-               with_jacobian: bool = True) -> Silhouettes:
+               with_jacobian: bool = True, wrt: str = "twist") -> Silhouettes:
         """Soft silhouettes (and twist derivatives) of the object at pose ``T_wm`` in all ``cameras``.
 
         Args:
@@ -156,7 +161,11 @@ class SoftSilhouetteRasterizer:
             cameras: the views (already scaled to the working resolution).
             sigma: edge softness in pixels of these cameras; the profile spans ``+-2 sigma``.
             with_jacobian: also compute ``jac`` (6 forward AD passes over the band pixels).
+            wrt: ``"twist"`` (about the object centre) or ``"vertices"`` (the band pixels'
+                outline edge end points, world, mm; see :class:`Silhouettes`).
         """
+        if wrt not in ("twist", "vertices"):
+            raise ValueError(f"wrt={wrt!r}: 'twist' or 'vertices'")
         half = 2.0 * float(sigma)
         band_r = half + 1.5
         cams = CameraBatch.of(cameras)
@@ -170,7 +179,8 @@ class SoftSilhouetteRasterizer:
         view_of_band = np.searchsorted(offsets, pixels, side="right") - 1
         n_out = outline.per_view(len(cameras))
         if len(pixels) == 0:
-            return Silhouettes(crops, offsets, soft, hard, pixels, np.zeros((0, 6)), view_of_band, n_out)
+            return Silhouettes(crops, offsets, soft, hard, pixels, np.zeros((0, 6)), view_of_band, n_out,
+                               np.zeros((0, 2), dtype=np.int64))
         local = pixels - offsets[view_of_band]
         w_b = crops[view_of_band, 2]
         px = crops[view_of_band, 0] + local % w_b + 0.5
@@ -180,9 +190,10 @@ class SoftSilhouetteRasterizer:
                                       transform_points(T_wm, self.mesh.vertices[ends[:, 0]]),
                                       transform_points(T_wm, self.mesh.vertices[ends[:, 1]]),
                                       outline.t0[band.segment], outline.t1[band.segment],
-                                      transform_points(T_wm, self.mesh.centre[None])[0], half, with_jacobian)
+                                      transform_points(T_wm, self.mesh.centre[None])[0], half, with_jacobian,
+                                      wrt == "vertices")
         soft[pixels] = value
-        return Silhouettes(crops, offsets, soft, hard, pixels, jac, view_of_band, n_out)
+        return Silhouettes(crops, offsets, soft, hard, pixels, jac, view_of_band, n_out, ends)
 
 
 def _crop_pixel_centres(crop: NDArray[np.int64]) -> NDArray[np.float64]:

@@ -1,0 +1,193 @@
+"""autoalign's soft-silhouette renderer as a PyTorch op (``pip install 'autoalign[torch]'``).
+
+:func:`silhouettes` renders the soft silhouettes of posed meshes in calibrated views, like
+:meth:`autoalign.rasterizers.soft_silhouette.SoftSilhouetteRasterizer.render`, as a
+``torch.autograd.Function``: the forward pass is autoalign's CPU renderer (drjit/mitsuba), and the
+backward pass multiplies the incoming gradient by the renderer's own derivatives of each band
+pixel w.r.t. the two end points of its outline edge (drjit forward-mode AD), chained to the pose
+matrix. No finite differences, and no autograd through the rasterizer.
+
+Poses are world-from-model 4x4 matrices (mm; ``(4, 4)`` or ``(N, 4, 4)``, float32 or float64) or
+kornia ``Se3`` objects (``kornia.geometry.liegroup``), whose ``matrix()`` is differentiable in its
+quaternion and translation. The gradient w.r.t. a matrix is exact for any change of its top three
+rows (rotation, translation, and the affine directions a rigid pose never takes), with the outline
+and the hard mask held fixed, as in autoalign's own Gauss-Newton steps; the bottom row gets zero.
+Each object is rendered alone: objects do not hide each other here (the occlusion-aware loss is
+:mod:`autoalign.occlusion`).
+
+The loss follows kornia's style: a functional op (:func:`silhouette_loss`) and a thin
+``nn.Module`` (:class:`SilhouetteLoss`). Example (a pose fitted with ``torch.optim``)::
+
+    import torch
+    from kornia.geometry.liegroup import Se3
+    from autoalign.torch import SilhouetteLoss
+
+    loss_fn = SilhouetteLoss(mesh, cameras, targets, sigma=1.0)   # targets: (V, H, W) masks
+    xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)  # a twist applied to T0
+    opt = torch.optim.Adam([xi], lr=1e-2)
+    for _ in range(200):
+        opt.zero_grad()
+        loss = loss_fn(Se3.exp(xi).matrix() @ T0)
+        loss.backward()
+        opt.step()
+
+Importing :mod:`autoalign` does not import this module (nor torch).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+from autoalign.camera import Camera
+from autoalign.mesh import Mesh
+from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+
+Renderers = Mesh | SoftSilhouetteRasterizer | Sequence[Mesh | SoftSilhouetteRasterizer]
+
+
+def renderers_for(meshes: Renderers, n: int) -> list[SoftSilhouetteRasterizer]:
+    """One renderer per pose: ``meshes`` is one mesh or renderer for all ``n`` poses, or one each."""
+    items = list(meshes) if isinstance(meshes, Sequence) else [meshes] * n
+    if len(items) != n:
+        raise ValueError(f"{len(items)} meshes for {n} poses: give one mesh for all, or one per pose")
+    return [m if isinstance(m, SoftSilhouetteRasterizer) else SoftSilhouetteRasterizer(m) for m in items]
+
+
+def image_size(cameras: Sequence[Camera]) -> tuple[int, int]:
+    """``(H, W)`` shared by all ``cameras`` (the op stacks their images)."""
+    sizes = {(c.height, c.width) for c in cameras}
+    if len(sizes) != 1:
+        raise ValueError(f"the cameras have different image sizes {sorted(sizes)}; render each size separately")
+    return sizes.pop()
+
+
+class _Rendered:
+    """What the backward pass needs of one object's forward pass: the flat indices of its band
+    pixels in the (V, H, W) images, their derivatives w.r.t. their edges' world end points
+    (B, 6), and those end points in the model frame (B, 2, 3)."""
+
+    def __init__(self, index: NDArray[np.int64], jac: NDArray[np.float64], ends_m: NDArray[np.float64]) -> None:
+        self.index, self.jac, self.ends_m = index, jac, ends_m
+
+    def matrix_gradient(self, grad_images: NDArray[np.float64]) -> NDArray[np.float64]:
+        """dL/dT (4, 4) from dL/d(images) (V*H*W,): the end points are ``T[:3, :3] x + T[:3, 3]``."""
+        g = grad_images[self.index]
+        gA, gB = g[:, None] * self.jac[:, :3], g[:, None] * self.jac[:, 3:]
+        out = np.zeros((4, 4))
+        out[:3, :3] = gA.T @ self.ends_m[:, 0] + gB.T @ self.ends_m[:, 1]
+        out[:3, 3] = gA.sum(0) + gB.sum(0)
+        return out
+
+
+def render_with_vertex_jacobian(rast: SoftSilhouetteRasterizer, T_wm: NDArray[np.float64], cameras: Sequence[Camera],
+                                sigma: float) -> tuple[NDArray[np.float64], _Rendered]:
+    """Full soft silhouettes (V, H, W) of one object and what its backward pass needs."""
+    H, W = image_size(cameras)
+    sil = rast.render(np.asarray(T_wm, dtype=np.float64), list(cameras), sigma, wrt="vertices")
+    images = np.zeros((len(cameras), H, W))
+    for i in range(len(cameras)):
+        x0, y0, w, h = (int(v) for v in sil.crops[i])
+        crop = sil.soft[sil.offsets[i]:sil.offsets[i + 1]].reshape(h, w)
+        ys, xs = slice(max(y0, 0), min(y0 + h, H)), slice(max(x0, 0), min(x0 + w, W))
+        images[i, ys, xs] = crop[ys.start - y0:ys.stop - y0, xs.start - x0:xs.stop - x0]
+    v = sil.view_of_band
+    local = sil.band - sil.offsets[v]
+    w_b = sil.crops[v, 2]
+    row, col = sil.crops[v, 1] + local // w_b, sil.crops[v, 0] + local % w_b
+    inside = (row >= 0) & (row < H) & (col >= 0) & (col < W)
+    index = (v * H + row) * W + col
+    ends = rast.mesh.vertices[sil.edge_vertices[inside]] if sil.edge_vertices is not None else np.zeros((0, 2, 3))
+    return images, _Rendered(index[inside], sil.jac[inside], ends)
+
+
+class _SilhouettesFn(torch.autograd.Function):
+    """poses (N, 4, 4) -> soft silhouettes (N, V, H, W); see :func:`silhouettes`."""
+
+    @staticmethod
+    def forward(ctx: Any, poses: torch.Tensor, rasts: list[SoftSilhouetteRasterizer], cameras: list[Camera],
+                sigma: float) -> torch.Tensor:
+        T = poses.detach().cpu().double().numpy()
+        images, saved = [], []
+        for r, T_n in zip(rasts, T):
+            img, rendered = render_with_vertex_jacobian(r, T_n, cameras, sigma)
+            images.append(img)
+            saved.append(rendered)
+        ctx.rendered = saved
+        return torch.as_tensor(np.stack(images), dtype=poses.dtype, device=poses.device)
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor, None, None, None]:
+        g = grad.detach().cpu().double().numpy().reshape(len(ctx.rendered), -1)
+        out = np.stack([r.matrix_gradient(g_n) for r, g_n in zip(ctx.rendered, g)])
+        return torch.as_tensor(out, dtype=grad.dtype, device=grad.device), None, None, None
+
+
+def as_matrices(poses: Any) -> tuple[torch.Tensor, bool]:
+    """``(N, 4, 4)`` matrices from a tensor ``(4, 4)`` / ``(N, 4, 4)`` or a kornia ``Se3``, and
+    whether a single pose was given."""
+    if not isinstance(poses, torch.Tensor) and hasattr(poses, "matrix"):  # kornia.geometry.liegroup.Se3
+        poses = poses.matrix()
+    if not isinstance(poses, torch.Tensor) or poses.shape[-2:] != (4, 4) or poses.dim() not in (2, 3):
+        raise ValueError(f"poses must be (4, 4) or (N, 4, 4) tensors or a kornia Se3, not {type(poses).__name__} "
+                         f"{tuple(getattr(poses, 'shape', ()))}")
+    if not poses.dtype.is_floating_point:
+        raise ValueError(f"poses must be float32 or float64, not {poses.dtype}")
+    return (poses[None], True) if poses.dim() == 2 else (poses, False)
+
+
+def silhouettes(meshes: Renderers, poses: Any, cameras: Sequence[Camera], sigma: float = 1.0) -> torch.Tensor:
+    """Soft silhouettes of posed meshes, differentiable w.r.t. the poses.
+
+    Args:
+        meshes: one :class:`~autoalign.mesh.Mesh` (or its renderer) for all poses, or one per pose
+            (build renderers once and pass them again: they cache the mesh's ray-casting scene).
+        poses: world-from-model (mm): ``(4, 4)``, ``(N, 4, 4)`` or a kornia ``Se3``.
+        cameras: the views (one image size), world frame, mm.
+        sigma: edge softness in pixels; the edge profile spans ``+-2 sigma``.
+
+    Returns:
+        ``(V, H, W)`` for one pose, ``(N, V, H, W)`` for ``N``: values in [0, 1], the poses' dtype.
+    """
+    T, single = as_matrices(poses)
+    if not cameras:
+        raise ValueError("no cameras given")
+    image_size(cameras)
+    out = _SilhouettesFn.apply(T, renderers_for(meshes, len(T)), list(cameras), float(sigma))
+    return out[0] if single else out
+
+
+def silhouette_loss(rendered: torch.Tensor, targets: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """The multi-view L2 silhouette loss: ``0.5 * sum_v w_v * mean_pixels (rendered - target)^2``
+    summed over objects (``rendered``: (..., V, H, W); ``targets`` broadcastable to it, in [0, 1];
+    ``weights`` (V,), default 1), as autoalign's own ``l2`` loss per view."""
+    if rendered.shape[-3:] != targets.shape[-3:]:
+        raise ValueError(f"targets {tuple(targets.shape)} do not match the silhouettes {tuple(rendered.shape)}")
+    per_view = 0.5 * ((rendered - targets.to(rendered.dtype)) ** 2).mean(dim=(-2, -1))
+    if weights is not None:
+        per_view = per_view * weights.to(rendered.dtype)
+    return per_view.sum()
+
+
+class SilhouetteLoss(torch.nn.Module):
+    """:func:`silhouette_loss` of :func:`silhouettes` for fixed meshes, cameras and target masks:
+    ``module(poses)`` is the loss of the poses (one pose, ``N``, or a kornia ``Se3``)."""
+
+    def __init__(self, meshes: Renderers, cameras: Sequence[Camera], targets: Any, sigma: float = 1.0,
+                 weights: Any = None) -> None:
+        super().__init__()
+        self.cameras, self.sigma = list(cameras), float(sigma)
+        H, W = image_size(self.cameras)
+        t = torch.as_tensor(np.asarray(targets, dtype=np.float64))
+        if t.shape[-3:] != (len(self.cameras), H, W):
+            raise ValueError(f"targets {tuple(t.shape)}: expected (V, H, W) = ({len(self.cameras)}, {H}, {W})")
+        self.register_buffer("targets", t)
+        self.register_buffer("weights", None if weights is None else torch.as_tensor(np.asarray(weights, np.float64)))
+        self.meshes = renderers_for(meshes, len(meshes)) if isinstance(meshes, Sequence) else renderers_for(meshes, 1)[0]
+
+    def forward(self, poses: Any) -> torch.Tensor:
+        return silhouette_loss(silhouettes(self.meshes, poses, self.cameras, self.sigma), self.targets, self.weights)
