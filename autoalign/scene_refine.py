@@ -99,7 +99,8 @@ class SceneRefinement:
     """What :func:`refine_scene` found: every instance's result (after the joint stage), the joint
     stage itself, the joint stage with camera corrections if they were asked for (``joint`` when
     they were kept), the scenes (through the cameras used at the end), and with ``solve_scale``
-    the factor by which the given cameras' translations were scaled, with its relative sigma."""
+    the factor by which the given cameras' translations were scaled, its relative sigma, and
+    whether it settled (if not, every instance is at least ``check``)."""
 
     results: list[InstanceResult]
     joint: JointRefinement | None
@@ -107,6 +108,7 @@ class SceneRefinement:
     found: InstanceScenes
     scale: float = 1.0
     scale_sigma: float = 0.0
+    scale_settled: bool = True
 
     @property
     def cameras_accepted(self) -> bool:
@@ -128,7 +130,7 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
     scaled by a first guess (:func:`~autoalign.scene_scale.scale_from_masks`); the scale is solved
     with the poses (see module doc)."""
     opts = options or RefineOptions()
-    scale, scale_sigma = 1.0, 0.0
+    scale, scale_sigma, settled = 1.0, 0.0, not solve_scale
     rounds = SCALE_ROUNDS if solve_scale else 1
     for round_ in range(rounds):
         alone = refine_instances(found, models, seeds, opts, progress)
@@ -158,6 +160,7 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
             scale, scale_sigma = scale * joint.scale, joint.scale_sigma
             seeds = {r.instance.index: T for r, T in zip(alone, joint.poses)}  # already grown with the scene
             if abs(joint.scale - 1.0) < SCALE_SETTLED:
+                settled = True
                 break
         elif joint is attempt:
             found = found.through(joint.cameras)
@@ -176,5 +179,10 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
     results = [InstanceResult(r.instance, replace(res, timings={**res.timings, "joint": seconds}),
                               verdict_of(res, found.scenes[k].empty, models, r.instance.obj_id), r.seconds + seconds)
                for k, (r, res) in enumerate(zip(alone, after))]
-    return SceneRefinement(results, joint, attempt, found, scale, scale_sigma)
+    if not settled:  # every label's depth in its camera follows the scale: none can be trusted
+        reason = (f"the scene's scale did not settle in {rounds} rounds: the objects' masks and their fit disagree "
+                  "on it")
+        results = [replace(r, verdict=replace(r.verdict, status="failed" if r.verdict.status == "failed" else "check",
+                                              reasons=r.verdict.reasons + [reason])) for r in results]
+    return SceneRefinement(results, joint, attempt, found, scale, scale_sigma, settled)
 

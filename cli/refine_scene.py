@@ -129,7 +129,8 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
              "so the masks, not the cameras, are what is off; the given cameras are kept")
     if guess is not None:
         mm_per_unit = guess.factor * refined.scale
-        report["scale"] = {"solved": True, "mm_per_unit": mm_per_unit, "sigma_relative": refined.scale_sigma,
+        report["scale"] = {"solved": True, "settled": refined.scale_settled, "mm_per_unit": mm_per_unit,
+                           "sigma_relative": refined.scale_sigma,
                            "guess_mm_per_unit": guess.factor, "guess_spread": guess.spread,
                            "file": "scene_camera.json"}
         if refined.scale_sigma > SCALE_SIGMA_WARN:

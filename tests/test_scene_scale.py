@@ -138,3 +138,24 @@ def test_solve_scale_needs_models(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "--solve-scale needs --models" in proc.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_a_scale_that_does_not_settle_flags_every_instance(tmp_path, monkeypatch):
+    """With one round allowed, a scene started 10% off cannot settle (the joint stage moves the
+    scale by more than SCALE_SETTLED): every label's depth follows the scale, so every instance is
+    flagged; with the default rounds the same start settles and stays ok."""
+    from autoalign import scene_refine
+    from autoalign.instances import read_init_poses
+
+    unscaled_scene(tmp_path, 1)
+    found = read_instance_scenes(tmp_path / "scene", read_instances(tmp_path / "scene"))
+    found = rescaled(found, UNIT_MM * 1.1)
+    models = ModelSet.read(tmp_path / "models")
+    seeds = read_init_poses(tmp_path / "init_gt.json", found)
+    done = scene_refine.refine_scene(found, models, seeds, solve_scale=True)
+    assert done.scale_settled and abs(done.scale * 1.1 - 1) < 0.005 and done.results[0].verdict.status == "ok"
+    monkeypatch.setattr(scene_refine, "SCALE_ROUNDS", 1)
+    undone = scene_refine.refine_scene(found, models, seeds, solve_scale=True)
+    assert not undone.scale_settled
+    assert undone.results[0].verdict.status in ("check", "failed")
+    assert any("scale did not settle" in r for r in undone.results[0].verdict.reasons)
