@@ -144,8 +144,9 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "refine", help="refine the pose of an object from multi-view masks (writes scene_gt.json, refine.json, overlay.png)",
         description=_REFINE_DESCRIPTION, epilog=_REFINE_EPILOG, formatter_class=HelpFormatter)
-    p.add_argument("scene", metavar="SCENE_DIR",
-                   help="BOP scene folder with scene_camera.json and mask_visib/ (see 'input scene' below)")
+    p.add_argument("scene", metavar="SCENE_DIR", nargs="?",
+                   help="BOP scene folder with scene_camera.json and mask_visib/ (see 'input scene' below); "
+                        "or --batch LIST")
     req = p.add_argument_group("required")
     what = req.add_mutually_exclusive_group(required=True)
     what.add_argument("--model", metavar="MESH",
@@ -202,6 +203,16 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
     alg.add_argument("--no-robust", action="store_true",
                      help="weigh all views equally; by default views whose mask disagrees with the others "
                           "(occlusion, bad segmentation) are down-weighted (Cauchy weights on 1 - IoU)")
+    many = p.add_argument_group("many scenes")
+    many.add_argument("--batch", metavar="LIST",
+                      help="instead of SCENE_DIR: a text file with one scene folder per line (relative to the "
+                           "file, # comments), optionally followed by that scene's own options (e.g. --init "
+                           "FILE); each scene is refined with the other options into OUT_DIR/<folder name>; "
+                           "OUT_DIR/batch.jsonl records the finished ones, so a run started again skips them")
+    many.add_argument("--workers", metavar="N", type=positive_int, default=1,
+                      help="with --batch: scenes refined at once in separate processes (default 1)")
+    many.add_argument("--scheduler", metavar="ADDRESS",
+                      help="with --batch: run the scenes on the Dask cluster at tcp://HOST:PORT")
     out = p.add_argument_group("output")
     out.add_argument("--quiet", action="store_true",
                      help="no progress bar and no summary; only warnings and errors, on stderr")
@@ -493,6 +504,44 @@ def _all_cameras(scene: Any) -> tuple[list[Any], list[int]]:
     return [Camera.from_opencv(K, R, t, W, H) for K, R, t in cams.values()], list(cams)
 
 
+BATCH_SHARED = ("models", "model", "units", "obj_id", "instance", "instances", "loss", "optimizer")
+"""Options of ``refine`` passed on to every scene of a batch (with the flags below)."""
+BATCH_FLAGS = ("refine_cameras", "solve_scale", "no_robust")
+
+
+def run_refine_batch(args: argparse.Namespace) -> int:
+    """``autoalign refine --batch LIST``: every listed scene, resumable (:mod:`autoalign.batch`)."""
+    if args.scene is not None:
+        raise UsageError("give either SCENE_DIR or --batch LIST, not both")
+    if args.init is not None or args.click is not None:
+        raise UsageError("--init and --click are one scene's: put them after that scene's folder in the --batch list")
+    from autoalign.batch import read_scene_list, refine_many
+
+    shared: list[str] = []
+    for name in BATCH_SHARED:
+        value = getattr(args, name, None)
+        if value is not None:
+            shared += ["--" + name.replace("_", "-"), str(value)]
+    shared += ["--" + f.replace("_", "-") for f in BATCH_FLAGS if getattr(args, f, False)]
+    scenes = read_scene_list(args.batch)
+    summary = refine_many([s for s, _ in scenes], shared, args.out, args.workers, args.scheduler, not args.quiet,
+                          extra={str(s): e for s, e in scenes})
+    if not args.quiet:
+        print(f"{summary.done} scene(s) refined, {summary.skipped} already done, {summary.failed} failed, "
+              f"{summary.seconds:.1f} s; records in {Path(args.out) / 'batch.jsonl'}", flush=True)
+    if summary.failed:
+        warn(f"{summary.failed} scene(s) failed: see {Path(args.out) / 'errors.jsonl'}; fix them and run the same "
+             "command again (finished scenes are skipped)")
+        return 2
+    from autoalign.batch import BATCH_RECORDS, read_records
+
+    flagged = [r for r in read_records(Path(args.out) / BATCH_RECORDS) if r.get("status") == EXIT_FLAGGED]
+    if flagged:
+        warn(f"{len(flagged)} scene(s) have doubtful labels (exit 3): " + ", ".join(Path(r["scene"]).name for r in flagged[:10]))
+        return EXIT_FLAGGED
+    return 0
+
+
 def check_outputs_spare_inputs(out: Path, scene_dir: Path, inputs: list[Path]) -> None:
     """Refuse an ``--out`` that is the scene folder, or where an output would replace an input file."""
     fix = "choose another folder with --out"
@@ -506,6 +555,12 @@ def check_outputs_spare_inputs(out: Path, scene_dir: Path, inputs: list[Path]) -
 
 def run_refine(args: argparse.Namespace) -> int:
     """``autoalign refine``: see ``autoalign refine --help``."""
+    if args.batch is not None:
+        return run_refine_batch(args)
+    if args.scene is None:
+        raise UsageError("give a SCENE_DIR, or --batch LIST for many scenes")
+    if args.workers != 1 or args.scheduler is not None:
+        raise UsageError("--workers and --scheduler go with --batch LIST")
     t_start = time.perf_counter()
     preload("numpy", "cv2", "scipy.spatial", "trimesh")  # extension modules, with Ctrl-C deferred
     click = None

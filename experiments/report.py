@@ -488,7 +488,7 @@ PLOTS: dict[str, Callable[[list[dict[str, Any]], Path], None]] = {
 
 def write_reports(out_dir: str | Path) -> dict[str, Path]:
     """Write ``trials.csv``, ``results.md`` and ``plots/*.png`` from ``OUT/trials.jsonl``."""
-    from autoalign.experiments.runner import read_records
+    from autoalign.batch import read_records
 
     out = Path(out_dir)
     records = read_records(out / "trials.jsonl")

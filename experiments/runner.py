@@ -4,36 +4,25 @@
   method); a task is a plain JSON-able dict whose ``id`` is unique and stable.
 * :func:`run_task` runs one task in the current process and returns its record (errors in mm
   and degrees, iterations, renders, wall time, the error trajectory).
-* :func:`run_study` runs the tasks not yet in ``OUT/trials.jsonl``: in-process (``workers=1``), on a
-  ``ProcessPoolExecutor`` (``workers > 1``) or on a Dask cluster (``scheduler``), appending each
-  finished record as one JSON line (flushed and fsynced) so an interrupted run resumes where it
-  stopped. Failed trials go to ``OUT/errors.jsonl`` and are retried on the next run.
-
-Why Dask (``dask.distributed``) for the cluster path rather than Ray: it is pure Python and
-pip-installable with no compiled core, a ``LocalCluster`` (even in-process, ``processes=False``)
-starts in a second inside a test, and a cluster is just ``dask scheduler`` plus ``dask worker
-ADDRESS`` on any machines - no head node with its own object store and dashboard services to
-run. The study only needs "run this function on that dict somewhere and give me the result",
-which ``Client.submit`` / ``as_completed`` is.
+* :func:`run_study` runs the tasks not yet in ``OUT/trials.jsonl`` with :func:`autoalign.batch.run_tasks`
+  (in-process, across processes or on a Dask cluster; resumable), the engine ``autoalign refine
+  --batch`` runs on too.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import time
-import traceback
 from collections.abc import Callable, Iterable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field, replace
 from functools import lru_cache
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from autoalign.atomic_files import write_bytes_atomic, write_json_atomic
+from autoalign.atomic_files import write_json_atomic
+from autoalign.batch import RunSummary, run_tasks
 from autoalign.errors import AutoalignError
 from autoalign.experiments.metrics import CRITERIA, PoseErrors, Symmetries, pose_errors, success
 from autoalign.experiments.paper_method import PaperOptions
@@ -355,89 +344,9 @@ def run_task(task: dict[str, Any]) -> dict[str, Any]:
     return rec
 
 
-def _safe_task(task: dict[str, Any], fn: Callable[[dict[str, Any]], dict[str, Any]] | None = None) -> dict[str, Any]:
-    """Run ``fn(task)``; an exception becomes ``{"id", "error", "traceback"}`` instead of killing the run."""
-    try:
-        return (fn or run_task)(task)
-    except Exception as exc:  # noqa: BLE001 - reported per trial, retried on resume
-        return {"id": task["id"], "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
-
-
-def _init_worker(threads: int) -> None:
-    """Give each worker process its share of the cores (drjit defaults to all of them)."""
-    os.environ.setdefault("OMP_NUM_THREADS", str(threads))
-    try:
-        from autoalign.backend import drjit
-
-        drjit().set_thread_count(max(1, threads))
-    except Exception:  # pragma: no cover - reported by the first trial instead
-        pass
-
-
 # ----------------------------------------------------------------------------------------------
 # Records on disk
 # ----------------------------------------------------------------------------------------------
-
-def read_records(path: str | Path) -> list[dict[str, Any]]:
-    """Complete JSON lines of ``trials.jsonl`` (a half-written last line is ignored)."""
-    path = Path(path)
-    out = []
-    if not path.is_file():
-        return out
-    with open(path) as f:
-        for line in f:
-            line = line.strip()
-            if not line:
-                continue
-            try:
-                rec = json.loads(line)
-            except json.JSONDecodeError:
-                continue
-            if isinstance(rec, dict) and "id" in rec:
-                out.append(rec)
-    return out
-
-
-def repair_jsonl(path: str | Path) -> int:
-    """Drop incomplete or invalid lines (a kill during a write) by rewriting the file atomically.
-
-    Returns the number of lines dropped. A file that is already clean is not touched.
-    """
-    path = Path(path)
-    if not path.is_file():
-        return 0
-    raw = path.read_bytes()
-    lines = raw.split(b"\n")
-    good, bad = [], 0
-    for i, line in enumerate(lines):
-        if not line.strip():
-            continue
-        try:
-            json.loads(line)
-            good.append(line)
-        except (json.JSONDecodeError, UnicodeDecodeError):
-            bad += 1
-    if bad == 0 and (not raw or raw.endswith(b"\n")):
-        return 0
-    write_bytes_atomic(path, b"".join(x + b"\n" for x in good))
-    return bad
-
-
-class RecordWriter:
-    """Appends one JSON line per finished trial and fsyncs it (crash-safe resume)."""
-
-    def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
-        self._f = open(self.path, "a")
-
-    def write(self, rec: dict[str, Any]) -> None:
-        self._f.write(json.dumps(rec, separators=(",", ":")) + "\n")
-        self._f.flush()
-        os.fsync(self._f.fileno())
-
-    def close(self) -> None:
-        self._f.close()
-
 
 def _check_config(out: Path, cfg: StudyConfig) -> None:
     p = out / "config.json"
@@ -457,17 +366,6 @@ def _check_config(out: Path, cfg: StudyConfig) -> None:
                                                           "paper": asdict(cfg.paper)}})
 
 
-@dataclass
-class RunSummary:
-    """Counts of one :func:`run_study` call."""
-
-    total: int
-    skipped: int
-    done: int
-    failed: int
-    seconds: float
-
-
 def run_study(cfg: StudyConfig, out_dir: str | Path, workers: int = 1, scheduler: str | None = None,
               progress: bool = True, task_fn: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
               tasks: list[dict[str, Any]] | None = None) -> RunSummary:
@@ -483,84 +381,9 @@ def run_study(cfg: StudyConfig, out_dir: str | Path, workers: int = 1, scheduler
             worker processes when ``workers > 1``).
         tasks: an explicit task list instead of ``build_tasks(cfg)``.
     """
-    from tqdm import tqdm
-
-    t_start = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     _check_config(out, cfg)
-    trials_path = out / "trials.jsonl"
-    repair_jsonl(trials_path)
-    done_ids = {r["id"] for r in read_records(trials_path)}
     all_tasks = tasks if tasks is not None else build_tasks(cfg)
-    pending = [t for t in all_tasks if t["id"] not in done_ids]
-    summary = RunSummary(len(all_tasks), len(all_tasks) - len(pending), 0, 0, 0.0)
-    if not pending:
-        summary.seconds = time.perf_counter() - t_start
-        return summary
-    writer = RecordWriter(trials_path)
-    err_writer = RecordWriter(out / "errors.jsonl")
-    bar = tqdm(total=len(pending), desc="simulate", unit="trial", disable=not progress, dynamic_ncols=True)
-
-    def handle(rec: dict[str, Any]) -> None:
-        if "error" in rec:
-            err_writer.write(rec)
-            summary.failed += 1
-            bar.write(f"trial {rec['id']} failed: {rec['error']}")
-        else:
-            writer.write(rec)
-            summary.done += 1
-        bar.update(1)
-
-    try:
-        if scheduler is not None:
-            _run_dask(pending, scheduler, handle, task_fn)
-        elif workers <= 1:
-            for t in pending:
-                handle(_safe_task(t, task_fn))
-        else:
-            threads = max(1, (os.cpu_count() or 1) // workers)
-            ex = ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
-                                     initializer=_init_worker, initargs=(threads,))
-            try:
-                futs = [ex.submit(_safe_task, t, task_fn) for t in pending]
-                for fut in as_completed(futs):
-                    handle(fut.result())
-            except BaseException:
-                ex.shutdown(wait=False, cancel_futures=True)
-                raise
-            ex.shutdown(wait=True)
-    finally:
-        bar.close()
-        writer.close()
-        err_writer.close()
-        summary.seconds = time.perf_counter() - t_start
-    return summary
-
-
-def _run_dask(pending: list[dict[str, Any]], scheduler: Any, handle: Callable[[dict[str, Any]], None],
-              task_fn: Callable[[dict[str, Any]], dict[str, Any]] | None) -> None:
-    try:
-        from dask.distributed import Client
-        from dask.distributed import as_completed as dask_completed
-    except ImportError:
-        raise AutoalignError("--scheduler needs dask.distributed; install it with "
-                             "`pip install 'dask[distributed]'` (or autoalign[distributed])") from None
-    own = not isinstance(scheduler, Client)
-    try:
-        client = Client(scheduler, timeout="20s") if own else scheduler
-    except (OSError, TimeoutError) as exc:
-        raise AutoalignError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({exc}); "
-                             "start one with `dask scheduler` and pass its tcp://HOST:PORT") from None
-    try:
-        futs = [client.submit(_safe_task, t, task_fn, pure=False, key=f"simulate-{i}-{abs(hash(t['id']))}")
-                for i, t in enumerate(pending)]
-        try:
-            for fut in dask_completed(futs):
-                handle(fut.result())
-        except BaseException:
-            client.cancel(futs)
-            raise
-    finally:
-        if own:
-            client.close()
+    return run_tasks(all_tasks, task_fn or run_task, out, workers=workers, scheduler=scheduler, progress=progress,
+                     desc="simulate", unit="trial")

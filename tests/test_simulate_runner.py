@@ -16,9 +16,8 @@ import pytest
 
 from autoalign.errors import AutoalignError
 from autoalign.experiments.protocol import ImageSetup
-from autoalign.experiments.runner import (
-    ALL_METHODS, StudyConfig, build_tasks, read_records, repair_jsonl, run_study,
-)
+from autoalign.batch import read_records, repair_jsonl
+from autoalign.experiments.runner import ALL_METHODS, StudyConfig, build_tasks, run_study
 from autoalign.experiments.simulate import main as simulate_main
 
 TINY = ["--width", "160", "--height", "120", "--focal", "150", "--views", "8", "--trials", "1", "--no-progress"]
