@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,6 +24,9 @@ from numpy.typing import NDArray
 from autoalign.errors import AutoalignError
 from autoalign.recon.capture import Capture
 from autoalign.se3 import make_pose
+
+if TYPE_CHECKING:
+    import pycolmap
 
 EXHAUSTIVE_MAX = 120
 SEQUENTIAL_OVERLAP = 10
@@ -158,7 +161,7 @@ def run_sfm(capture: Capture, workdir: Path, progress: Progress | None = None) -
                      len(names))
 
 
-def _register_to_keyframes(rec: "pycolmap.Reconstruction", db_path: Path, names: list[str],
+def _register_to_keyframes(rec: pycolmap.Reconstruction, db_path: Path, names: list[str],
                            progress: Progress | None = None) -> dict[str, tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]]:
     """Per frame name not in ``rec``: its camera-from-world pose, and the keypoints (COLMAP pixel
     convention) and point ids of its PnP inliers, from its verified matches with the registered

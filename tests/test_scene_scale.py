@@ -15,7 +15,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pytest
 
 from autoalign.experiments.bench_scene import make_bench_scene, symmetries
 from autoalign.experiments.metrics import pose_errors

@@ -17,7 +17,7 @@ from autoalign.experiments.procedural_models import procedural_models  # noqa: E
 from autoalign.experiments.synthetic import default_K, random_rotation, ring_cameras  # noqa: E402
 from autoalign.mesh import mesh_from_trimesh  # noqa: E402
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer  # noqa: E402
-from autoalign.se3 import hat3, make_pose  # noqa: E402
+from autoalign.se3 import make_pose  # noqa: E402
 from autoalign.torch import SilhouetteLoss, silhouette_loss, silhouettes  # noqa: E402
 
 POOL = {pm.name: pm for pm in procedural_models()}
