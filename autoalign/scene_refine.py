@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,9 +42,6 @@ from autoalign.models import ModelSet
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 from autoalign.scene_scale import grown_pose, rescaled, scale_from_masks, scaled_cameras
 from autoalign.verdict import Verdict, judge
-
-if TYPE_CHECKING:
-    from autoalign.camera import Camera
 
 Progress = Callable[[str, int, int], None]
 

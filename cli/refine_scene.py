@@ -44,13 +44,13 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
     solve_scale = args.solve_scale or cameras_up_to_scale(scene_dir)
     seeds = read_init_poses(args.init, found) if args.init is not None else {}
     guess = None
-    if solve_scale:  # a first guess, then one from the seeds' orientations (which need no scale)
+    if solve_scale:  # a first guess from the masks' areas, then the one at which the seeds overlap their masks best
         if not args.solve_scale:
             warn(f"{scene_dir / 'recon.json'} says the cameras have no metric scale: solving it from the objects' "
                  "size (as --solve-scale)")
         guess = scale_from_masks(found, models)
         found = rescaled(found, guess.factor)
-        if seeds:  # the factor at which the coarse poses overlap their masks best
+        if seeds:
             factor, _ = scale_by_overlap(found, models, Path(args.init))
             found = rescaled(found, factor)
             guess = replace(guess, factor=guess.factor * factor)
@@ -139,7 +139,7 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
     if attempt is not None or guess is not None:
         from autoalign.bop import read_cameras
 
-        final = dict(zip(found.image_ids, found.cameras))
+        final = found.camera_by_id
         corrected = {}
         for im, (K, R, t) in read_cameras(scene_dir).items():
             T_cw = final[im].T_cw if im in final else np.vstack([np.column_stack([R, t]), [0, 0, 0, 1]])

@@ -17,20 +17,24 @@ def python_blocks(marker: str) -> list[str]:
     return [b for b in blocks if marker in b]
 
 
+def run_block(marker: str) -> dict:
+    """Execute the one README block containing ``marker``; its variables."""
+    (block,) = python_blocks(marker)
+    scope: dict = {}
+    exec(compile(block, str(README), "exec"), scope)  # noqa: S102 - the README's own example
+    return scope
+
+
 def test_pytorch_loop_reaches_1mm_1deg():
     pytest.importorskip("torch")
     pytest.importorskip("kornia")
-    (block,) = python_blocks("from autoalign.torch import")
-    scope: dict = {}
-    exec(compile(block, str(README), "exec"), scope)  # noqa: S102 - the README's own example
+    scope = run_block("from autoalign.torch import")
     assert scope["err_mm"] < 1.0 and scope["err_deg"] < 1.0, (scope["err_mm"], scope["err_deg"])
 
 
 def test_jax_solve_reaches_1mm_1deg():
     pytest.importorskip("jax")
     pytest.importorskip("optimistix")
-    (block,) = python_blocks("import autoalign.jax as aj")
-    scope: dict = {}
-    exec(compile(block, str(README), "exec"), scope)  # noqa: S102 - the README's own example
+    scope = run_block("import autoalign.jax as aj")
     assert scope["grad"].shape == (4, 4) and float(abs(scope["grad"]).sum()) > 0
     assert scope["err_mm"] < 1.0 and scope["err_deg"] < 1.0, (scope["err_mm"], scope["err_deg"])
