@@ -154,8 +154,8 @@ def twist_pose(xi: jax.Array, T0: jax.Array, centre_w: jax.Array) -> jax.Array:
 
 @dataclass
 class JaxRefinement:
-    """What :func:`refine` found: the pose (4x4 world from model, mm), the solver's steps and
-    result code (``optimistix.RESULTS``), and the final loss (``0.5 sum r^2``)."""
+    """What :func:`refine` found: the pose (4x4 world from model, mm), the solver's steps, whether
+    it converged (``"successful"``, or it ran out of steps), and the final loss (``0.5 sum r^2``)."""
 
     T_wm: NDArray[np.float64]
     steps: int
@@ -183,27 +183,27 @@ def refine(scene: Scene, mesh: Mesh, T_init: NDArray[np.float64], sigma: float =
     if not jax.config.jax_enable_x64:
         raise ValueError('autoalign.jax.refine needs double precision: call jax.config.update("jax_enable_x64", True) '
                          "first (single precision cannot hold poses to 0.01 mm)")
-    if True:
-        cams = [c.scaled(resolution) for c in scene.cameras] if resolution != 1.0 else list(scene.cameras)
-        op = SilhouetteOp.of(mesh, cams, sigma)
-        V, H, W = op.shape
-        targets = np.stack([cv2.resize(m.astype(np.float32), (W, H), interpolation=cv2.INTER_AREA) > 0.5
-                            for m in scene.masks]).astype(np.float64)
-        kernel = np.ones((2 * CONTOUR_PX + 1,) * 2, np.uint8)
-        near = np.stack([cv2.dilate(t.astype(np.uint8), kernel) > cv2.erode(t.astype(np.uint8), kernel) for t in targets])
-        pixels = Pixels(np.flatnonzero(near.ravel()))
-        target = jnp.asarray(targets.ravel()[pixels.array])
-        # each view's residuals over the square root of its mask's area, as autoalign's l2 loss
-        per_view = np.repeat(1.0 / np.sqrt(np.maximum(targets.sum((1, 2)), 1.0)), H * W)[pixels.array]
-        scale = jnp.asarray(per_view)
-        T0 = jnp.asarray(np.asarray(T_init, dtype=np.float64))
-        centre = T0[:3, :3] @ jnp.asarray(mesh.centre) + T0[:3, 3]
+    cams = [c.scaled(resolution) for c in scene.cameras] if resolution != 1.0 else list(scene.cameras)
+    op = SilhouetteOp.of(mesh, cams, sigma)
+    V, H, W = op.shape
+    targets = np.stack([cv2.resize(m.astype(np.float32), (W, H), interpolation=cv2.INTER_AREA) > 0.5
+                        for m in scene.masks]).astype(np.float64)
+    kernel = np.ones((2 * CONTOUR_PX + 1,) * 2, np.uint8)
+    near = np.stack([cv2.dilate(t.astype(np.uint8), kernel) > cv2.erode(t.astype(np.uint8), kernel) for t in targets])
+    pixels = Pixels(np.flatnonzero(near.ravel()))
+    target = jnp.asarray(targets.ravel()[pixels.array])
+    # each view's residuals over the square root of its mask's area, as autoalign's l2 loss
+    per_view = np.repeat(1.0 / np.sqrt(np.maximum(targets.sum((1, 2)), 1.0)), H * W)[pixels.array]
+    scale = jnp.asarray(per_view)
+    T0 = jnp.asarray(np.asarray(T_init, dtype=np.float64))
+    centre = T0[:3, :3] @ jnp.asarray(mesh.centre) + T0[:3, 3]
 
-        def residuals(xi: jax.Array, args: Any) -> jax.Array:
-            return (pixel_silhouettes(op, pixels, twist_pose(xi, T0, centre)) - target) * scale
+    def residuals(xi: jax.Array, args: Any) -> jax.Array:
+        return (pixel_silhouettes(op, pixels, twist_pose(xi, T0, centre)) - target) * scale
 
-        solver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
-        sol = optx.least_squares(residuals, solver, jnp.zeros(6), max_steps=max_steps, throw=False)
-        T = np.asarray(twist_pose(sol.value, T0, centre))
-        r = np.asarray(residuals(sol.value, None))
-        return JaxRefinement(T, int(sol.stats["num_steps"]), str(sol.result), float(0.5 * r @ r))
+    solver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
+    sol = optx.least_squares(residuals, solver, jnp.zeros(6), max_steps=max_steps, throw=False)
+    T = np.asarray(twist_pose(sol.value, T0, centre))
+    r = np.asarray(residuals(sol.value, None))
+    result = "successful" if bool(sol.result == optx.RESULTS.successful) else "stopped before converging"
+    return JaxRefinement(T, int(sol.stats["num_steps"]), result, float(0.5 * r @ r))
