@@ -253,7 +253,8 @@ def read_scene_list(path: str | Path) -> list[tuple[Path, list[str]]]:
             raise AutoalignError(f"{path}: line {n}: {exc}; quote paths with spaces") from None
         p = Path(first) if Path(first).is_absolute() else path.parent / first
         if not p.is_dir():
-            raise AutoalignError(f"{path}: line {n}: {first} is not a folder; list existing scene folders, one per line")
+            raise AutoalignError(f"{path}: line {n}: {first} is not a folder; list existing scene folders, "
+                                 "one per line")
         scenes.append((p, extra))
     if not scenes:
         raise AutoalignError(f"{path}: no scene folders listed; write one scene folder per line")

@@ -72,7 +72,8 @@ def scale_from_masks(found: InstanceScenes, models: ModelSet,
         views = [(cam, m > 0.5) for cam, m in zip(scene.cameras, scene.masks) if (m > 0.5).any()]
         if len(views) < 2:
             continue
-        rays = np.array([cam.ray_directions(np.argwhere(m)[:, ::-1].mean(0, keepdims=True) + 0.5)[0] for cam, m in views])
+        centroids = [np.argwhere(m)[:, ::-1].mean(0, keepdims=True) + 0.5 for _, m in views]  # pixel centres
+        rays = np.array([cam.ray_directions(c)[0] for (cam, _), c in zip(views, centroids)])
         X = closest_point_to_rays(np.array([cam.centre for cam, _ in views]), rays)
         areas = np.array([m.sum() for _, m in views], dtype=np.float64)
         R = None if rotations is None else rotations.get(inst.index)

@@ -46,6 +46,7 @@ from autoalign.camera import Camera
 from autoalign.rasterizers.pose_jacobian import Renderers, image_size, render_with_vertex_jacobian, renderers_for
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
+
 class _SilhouettesFn(torch.autograd.Function):
     """poses (N, 4, 4) -> soft silhouettes (N, V, H, W); see :func:`silhouettes`."""
 
@@ -128,7 +129,8 @@ class SilhouetteLoss(torch.nn.Module):
             raise ValueError(f"targets {tuple(t.shape)}: expected (V, H, W) = ({len(self.cameras)}, {H}, {W})")
         self.register_buffer("targets", t)
         self.register_buffer("weights", None if weights is None else torch.as_tensor(np.asarray(weights, np.float64)))
-        self.meshes = renderers_for(meshes, len(meshes)) if isinstance(meshes, Sequence) else renderers_for(meshes, 1)[0]
+        many = isinstance(meshes, Sequence)
+        self.meshes = renderers_for(meshes, len(meshes)) if many else renderers_for(meshes, 1)[0]
 
     def forward(self, poses: Any) -> torch.Tensor:
         return silhouette_loss(silhouettes(self.meshes, poses, self.cameras, self.sigma), self.targets, self.weights)

@@ -61,7 +61,8 @@ class RenderedPose:
         dA = self.ends_m[:, 0] @ dT[:3, :3].T + dT[:3, 3]
         dB = self.ends_m[:, 1] @ dT[:3, :3].T + dT[:3, 3]
         out = np.zeros(size)
-        np.add.at(out, self.index, np.einsum("bi,bi->b", self.jac[:, :3], dA) + np.einsum("bi,bi->b", self.jac[:, 3:], dB))
+        change = np.einsum("bi,bi->b", self.jac[:, :3], dA) + np.einsum("bi,bi->b", self.jac[:, 3:], dB)
+        np.add.at(out, self.index, change)
         return out
 
 

@@ -1,14 +1,15 @@
-"""Object instances proposed from a fused RGB-D reconstruction (``autoalign recon --propose``):
-what stands on the table, clustered, and its visible mask in every view, with ids that agree
-across views, so that a user with depth and meshes needs no segmenter.
+"""Object instances proposed from a fused RGB-D reconstruction (``autoalign recon --propose``): what
+stands on the table, clustered, and its visible mask in every view, with ids that agree across
+views, so that a user with depth and meshes needs no segmenter.
 
 The fused surface (:mod:`autoalign.recon.fusion`, world frame with the table at z = 0, z up) above
 :data:`ABOVE_TABLE_MM` is clustered with open3d's DBSCAN (:data:`EPS_MM`: the fusion's voxels are
 3 mm, so the points of one surface are closer than that; objects a few centimetres apart stay
 apart; objects that touch are one cluster). Clusters of fewer than :data:`MIN_POINTS` points
-(specks, fusion noise) or wider than :data:`MAX_EXTENT_MM` (a wall, an arm) are dropped. Each view's mask of proposal ``k`` is where
-a ray through the pixel centre first hits one of its triangles (one with a vertex of the cluster
-and none of another; open3d ray casting of the whole fused surface, so what another proposal or the table hides is not in it).
+(specks, fusion noise) or wider than :data:`MAX_EXTENT_MM` (a wall, an arm) are dropped. Each
+view's mask of proposal ``k`` is where a ray through the pixel centre first hits one of its
+triangles (one with a vertex of the cluster and none of another; open3d ray casting of the whole
+fused surface, so what another proposal or the table hides is not in it).
 """
 
 from __future__ import annotations
