@@ -100,6 +100,18 @@ def read_json_file(path: Path, what: str) -> Any:
         raise AutoalignError(f"{path}: not valid JSON ({exc.msg if hasattr(exc, 'msg') else exc}); fix or regenerate the file") from None
 
 
+def read_depth_png(path: Path, size: tuple[int, int], frame: str = "the image is") -> NDArray[Any]:
+    """The raw values of the single-channel depth PNG ``path`` (times the scene's ``depth_scale`` =
+    mm), which must be ``size = (W, H)`` like its colour image (``frame`` names that in the error)."""
+    d = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if d is None or d.ndim != 2:
+        raise AutoalignError(f"{path}: not a single-channel depth image; write 16-bit PNG depth (times depth_scale = mm)")
+    if (d.shape[1], d.shape[0]) != tuple(size):
+        raise AutoalignError(f"{path}: depth is {d.shape[1]}x{d.shape[0]} but {frame} {size[0]}x{size[1]}; "
+                             "register the depth to the colour camera at its resolution")
+    return d
+
+
 def json_floats(entry: dict[str, Any], key: str, n: int, path: Path, where: str, fix: str) -> NDArray[np.float64]:
     if key not in entry:
         raise AutoalignError(f"{path}: {where} has no '{key}'; {fix}")

@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.bop import Label, photo_path, read_camera_file, read_json_file
+from autoalign.bop import Label, photo_path, read_camera_file, read_depth_png, read_json_file
 from autoalign.camera import Camera
 from autoalign.errors import AutoalignError
 from autoalign.models import ModelSet
@@ -185,13 +185,7 @@ def read_depth(scene_dir: Path, image_id: int, depth_scale: float, size: tuple[i
     p = scene_dir / "depth" / f"{image_id:06d}.png"
     if not p.is_file():
         return None
-    d = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-    if d is None or d.ndim != 2:
-        raise AutoalignError(f"{p}: not a single-channel depth image; write 16-bit PNG depth (times depth_scale = mm)")
-    if (d.shape[1], d.shape[0]) != size:
-        raise AutoalignError(f"{p}: depth is {d.shape[1]}x{d.shape[0]} but the image is {size[0]}x{size[1]}; "
-                             "register the depth to the colour camera at its resolution")
-    return d.astype(np.float64) * depth_scale
+    return read_depth_png(p, size).astype(np.float64) * depth_scale
 
 
 def depth_scales(scene_dir: Path) -> dict[int, float]:

@@ -20,7 +20,6 @@ strayed onto it. Its silhouette is compared with its own mask everywhere else.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -28,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.bop import MAX_IMAGE_PIXELS, Scene, check_masks_have_cameras, check_scene_dir, mask_files, read_cameras, \
-    read_masks, scene_cameras
+    read_json_file, read_masks, scene_cameras
 from autoalign.camera import Camera
 from autoalign.errors import AutoalignError
 
@@ -81,10 +80,7 @@ def read_instances(scene_dir: Path, instances_file: Path | None = None) -> list[
     if not path.is_file():
         raise AutoalignError(f"{path}: not found, and no --instances file was given; say which object each "
                              f"instance is ({INSTANCES_FIX}), or add the scene's scene_gt.json")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError):
-        raise AutoalignError(f"{path}: not valid JSON; fix it or pass an --instances file") from None
+    data = read_json_file(path, "pass an --instances file")
     seen: dict[int, tuple[int, str]] = {}
     if not isinstance(data, dict):
         raise AutoalignError(f"{path}: expected image ids mapping to lists of {{\"obj_id\", ...}}; fix the file")
@@ -104,12 +100,7 @@ def read_instances(scene_dir: Path, instances_file: Path | None = None) -> list[
 
 
 def _from_instances_file(path: Path) -> list[Instance]:
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise AutoalignError(f"{path}: instances file not found; {INSTANCES_FIX}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError):
-        raise AutoalignError(f"{path}: not valid JSON; {INSTANCES_FIX}") from None
+    data = read_json_file(path, f"pass an existing instances file ({INSTANCES_FIX})")
     table = data.get("instances") if isinstance(data, dict) else None
     if not isinstance(table, dict) or not table:
         raise AutoalignError(f"{path}: no \"instances\" table; {INSTANCES_FIX}")

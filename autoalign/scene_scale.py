@@ -22,7 +22,6 @@ orientations are right).
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -30,6 +29,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from autoalign.bop import read_json_file
 from autoalign.camera import Camera
 from autoalign.errors import AutoalignError
 from autoalign.instances import InstanceScenes
@@ -160,11 +160,11 @@ def cameras_up_to_scale(scene_dir: Path) -> bool:
     path = Path(scene_dir) / "recon.json"
     if not path.is_file():
         return False
-    try:
-        return json.loads(path.read_text()).get("metric") is False
-    except (OSError, ValueError, AttributeError):
-        raise AutoalignError(f"{path}: unreadable; write it again with autoalign recon, or remove it if the "
-                             "cameras are in mm") from None
+    fix = "write it again with autoalign recon, or remove it if the cameras are in mm"
+    data = read_json_file(path, fix)
+    if not isinstance(data, dict):
+        raise AutoalignError(f"{path}: not the report of autoalign recon; {fix}")
+    return data.get("metric") is False
 
 
 def rescaled(found: InstanceScenes, factor: float) -> InstanceScenes:

@@ -32,9 +32,10 @@ from autoalign.atomic_files import write_json_atomic, write_text_atomic
 from autoalign.bop import Scene
 from autoalign.experiments.procedural_models import procedural_models
 from autoalign.experiments.synthetic import default_K, perturb_pose, random_rotation, raycast_masks, ring_cameras
+from autoalign.experiments.metrics import Symmetries, pose_errors
 from autoalign.experiments.mitsuba_baseline import SPP
 from autoalign.mesh import Mesh, mesh_from_trimesh
-from autoalign.se3 import make_pose, rotation_angle_deg
+from autoalign.se3 import make_pose
 
 RESULTS = Path(__file__).resolve().parent / "results"
 MITSUBA_LR, MITSUBA_STEPS = 0.1, 60
@@ -49,8 +50,9 @@ reach 1 mm / 1 deg in about 30 steps; not tuned further."""
 
 
 def errors(T: np.ndarray, T_true: np.ndarray, mesh: Mesh) -> tuple[float, float]:
-    c = lambda P: P[:3, :3] @ mesh.centre + P[:3, 3]  # noqa: E731
-    return float(np.linalg.norm(c(T) - c(T_true))), rotation_angle_deg(T[:3, :3], T_true[:3, :3])
+    """Centre distance (mm) and rotation error (degrees) of ``T`` against ``T_true``."""
+    e = pose_errors(T, T_true, mesh.centre, None, Symmetries())
+    return e.pos_err_mm, e.rot_err_deg
 
 
 def run_torch(scene: Scene, mesh: Mesh, T0: np.ndarray, T_true: np.ndarray) -> dict:

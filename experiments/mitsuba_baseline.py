@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 from autoalign.backend import drjit, mitsuba
 from autoalign.bop import Scene
 from autoalign.mesh import Mesh
-from autoalign.se3 import rotation_angle_deg
+from autoalign.experiments.metrics import Symmetries, pose_errors
 
 SPP = 4
 """Samples per pixel of the forward render (the projective pass samples the edges itself)."""
@@ -81,8 +81,8 @@ def fit(scene: Scene, mesh: Mesh, T0: NDArray[np.float64], T_true: NDArray[np.fl
         return T
 
     def close(T: NDArray[np.float64]) -> bool:
-        c = lambda P: P[:3, :3] @ mesh.centre + P[:3, 3]  # noqa: E731
-        return bool(np.linalg.norm(c(T) - c(T_true)) < 1.0 and rotation_angle_deg(T[:3, :3], T_true[:3, :3]) < 1.0)
+        e = pose_errors(T, T_true, mesh.centre, None, Symmetries())
+        return e.pos_err_mm < 1.0 and e.rot_err_deg < 1.0
 
     t0, reached = time.perf_counter(), None
     for it in range(steps):

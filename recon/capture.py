@@ -3,7 +3,6 @@ and optional intrinsics, validated with errors that name the file and the fix.""
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,6 +11,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from autoalign.bop import read_depth_png, read_json_file
 from autoalign.errors import AutoalignError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
@@ -42,12 +42,7 @@ class Capture:
 
 def read_intrinsics(path: Path) -> NDArray[np.float64]:
     """``K`` (3x3, OpenCV convention) from an intrinsics JSON file (see :data:`INTRINSICS_FIX`)."""
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise AutoalignError(f"{path}: intrinsics file not found; {INTRINSICS_FIX}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError):
-        raise AutoalignError(f"{path}: not valid JSON; {INTRINSICS_FIX}") from None
+    data = read_json_file(path, f"pass an existing intrinsics file ({INTRINSICS_FIX})")
     try:
         if isinstance(data, dict) and "cam_K" in data:
             K = np.asarray(data["cam_K"], dtype=np.float64).reshape(3, 3)
@@ -126,12 +121,7 @@ def read_capture(capture: str | Path, workdir: Path, depth_dir: str | Path | Non
             if not d.is_file():
                 raise AutoalignError(f"{d}: no depth for frame {p.name}; give every frame a depth PNG of the same name "
                                      "or leave out --depth")
-            img = cv2.imread(str(d), cv2.IMREAD_UNCHANGED)
-            if img is None or img.ndim != 2:
-                raise AutoalignError(f"{d}: not a single-channel depth image; write 16-bit PNG depth")
-            if (img.shape[1], img.shape[0]) != size:
-                raise AutoalignError(f"{d}: depth is {img.shape[1]}x{img.shape[0]} but the frames are {size[0]}x{size[1]}; "
-                                     "register the depth to the colour camera at its resolution")
+            read_depth_png(d, size, "the frames are")
             depth.append(d)
     K = read_intrinsics(Path(intrinsics)) if intrinsics is not None else None
     return Capture(frames, ids, size, depth, float(depth_scale), K)
