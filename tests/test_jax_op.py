@@ -8,8 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-jax = pytest.importorskip("jax")
-pytest.importorskip("optimistix")
+import jax  # noqa: E402 - the test command installs every extra: a missing one must fail, not skip
+import optimistix  # noqa: E402,F401 - autoalign.jax.refine needs it
+
 jax.config.update("jax_enable_x64", True)  # noqa: E402 - the solve needs double precision (see autoalign.jax.refine)
 
 import jax.numpy as jnp  # noqa: E402
