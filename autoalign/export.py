@@ -268,3 +268,67 @@ def coco_annotations(frames: list[FrameExport], scene_dir: Path) -> dict[str, An
     return {"info": {"description": f"autoalign export of {scene_dir.name}"}, "licenses": [],
             "categories": [{"id": c, "name": str(c), "supercategory": "object"} for c in sorted(categories)],
             "images": images, "annotations": annotations}
+
+
+def cameras_to_export(scene: Path, labels_path: Path, given: Path | None) -> Path:
+    """The ``scene_camera.json`` to export: ``given``, else the one beside the labels (refine writes
+    the cameras it corrected or scaled there), else the scene's. Cameras without a metric scale
+    (the scene's ``recon.json`` says so) are refused: a BOP scene's translations are in mm."""
+    from autoalign.scene_scale import cameras_up_to_scale
+
+    beside = labels_path.parent / "scene_camera.json"
+    path = given or (beside if beside.is_file() else scene / "scene_camera.json")
+    if not path.is_file():
+        raise AutoalignError(f"--cameras {path}: not found; pass a BOP scene_camera.json")
+    if path.resolve() == (scene / "scene_camera.json").resolve() and cameras_up_to_scale(scene):
+        raise AutoalignError(f"{scene / 'recon.json'}: the scene's cameras have no metric scale; export with the "
+                             "scene_camera.json that 'autoalign refine' wrote beside its scene_gt.json (it solves "
+                             "the scale), or give metric cameras with --cameras")
+    return path
+
+
+@dataclass
+class ExportedDataset:
+    """What :func:`export_dataset` made: every file of the BOP scene folder (name relative to it ->
+    bytes; nothing written yet) and the counts in ``export.json``."""
+
+    files: dict[str, bytes]
+    images: int
+    entries: int
+    dropped: int
+
+
+def export_dataset(scene_dir: Path, labels_path: Path, models: ModelSet, cameras_path: Path, coco: bool = False,
+                   progress: Progress | None = None) -> ExportedDataset:
+    """The files of a complete BOP scene folder for the labels in ``labels_path`` (a BOP
+    ``scene_gt.json``): poses, masks, boxes (:func:`bop_files`), COCO annotations if ``coco``, the
+    cameras of ``cameras_path`` (see :func:`cameras_to_export`), copies of the labelled images'
+    ``rgb/`` and ``depth/``, and ``export.json``. This is ``autoalign export`` and the label page's
+    "Export"; the caller writes the files (atomically)."""
+    import statistics
+    import time
+
+    from autoalign import __version__
+    from autoalign.bop import read_labels
+
+    t0 = time.perf_counter()
+    labels = read_labels(labels_path)
+    frames = export_frames(scene_dir, labels, models, labels_path, progress=progress, cameras_path=cameras_path)
+    files = bop_files(frames)
+    if coco:
+        files["scene_gt_coco.json"] = json.dumps(coco_annotations(frames, scene_dir)).encode()
+    files["scene_camera.json"] = cameras_path.read_bytes()
+    for sub in ("rgb", "depth"):
+        if (scene_dir / sub).is_dir():
+            for f in sorted((scene_dir / sub).iterdir()):
+                if f.is_file() and f.stem.isdigit() and int(f.stem) in labels:
+                    files[f"{sub}/{f.name}"] = f.read_bytes()
+    entries = sum(len(f.labels) for f in frames)
+    dropped = sum(f.out_of_view for f in frames)
+    summary = {"images": len(frames), "entries": entries, "out_of_view_dropped": dropped,
+               "visib_fract_median": statistics.median([i.visib_fract for f in frames for i in f.info] or [0.0]),
+               "labels": str(labels_path.absolute()), "models": str(models.folder.absolute()),
+               "scene_dir": str(scene_dir.absolute()), "cameras": str(cameras_path.absolute()), "coco": bool(coco),
+               "time_s": time.perf_counter() - t0}
+    files["export.json"] = json.dumps({"autoalign_version": __version__, **summary}, indent=1).encode()
+    return ExportedDataset(files, len(frames), entries, dropped)

@@ -8,8 +8,6 @@ that module registers this one.
 from __future__ import annotations
 
 import argparse
-import json
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -83,9 +81,8 @@ def run_export(args: argparse.Namespace) -> int:
     from autoalign.interrupts import preload
 
     preload("numpy", "cv2", "trimesh")  # extension modules, with Ctrl-C deferred
-    from autoalign.bop import read_labels
     from autoalign.cli.main import ProgressBar, write_folder
-    from autoalign.export import bop_files, coco_annotations, export_frames
+    from autoalign.export import cameras_to_export, export_dataset
     from autoalign.models import ModelSet
 
     t0 = time.perf_counter()
@@ -97,52 +94,15 @@ def run_export(args: argparse.Namespace) -> int:
     if labels_path.resolve().parent == out.resolve() and labels_path.name in OUTPUT_NAMES:
         raise AutoalignError(f"--out {out}: would replace the input {labels_path}; choose another folder with --out")
     cameras = cameras_to_export(scene, labels_path, Path(args.cameras) if args.cameras else None)
-    labels = read_labels(labels_path)
     models = ModelSet.read(args.models, args.units)
     bar = ProgressBar(enabled=not args.quiet)
     try:
-        frames = export_frames(scene, labels, models, labels_path, progress=bar, cameras_path=cameras)
+        dataset = export_dataset(scene, labels_path, models, cameras, args.coco, progress=bar)
     finally:
         bar.close()
-    files = bop_files(frames)
-    if args.coco:
-        files["scene_gt_coco.json"] = json.dumps(coco_annotations(frames, scene)).encode()
-    files["scene_camera.json"] = cameras.read_bytes()
-    for sub in ("rgb", "depth"):
-        if (scene / sub).is_dir():
-            ids = set(labels)
-            for f in sorted((scene / sub).iterdir()):
-                if f.is_file() and f.stem.isdigit() and int(f.stem) in ids:
-                    files[f"{sub}/{f.name}"] = f.read_bytes()
-    entries = sum(len(f.labels) for f in frames)
-    dropped = sum(f.out_of_view for f in frames)
-    summary = {"images": len(frames), "entries": entries, "out_of_view_dropped": dropped,
-               "visib_fract_median": statistics.median([i.visib_fract for f in frames for i in f.info] or [0.0]),
-               "labels": str(labels_path.absolute()), "models": str(Path(args.models).absolute()),
-               "scene_dir": str(scene.absolute()), "cameras": str(cameras.absolute()), "coco": bool(args.coco), "time_s": time.perf_counter() - t0}
-    from autoalign import __version__
-
-    files["export.json"] = json.dumps({"autoalign_version": __version__, **summary}, indent=1).encode()
+    files = dataset.files
     write_folder(out, files)
     if not args.quiet:
-        print(f"{len(frames)} image(s), {entries} entries ({dropped} out of view left out), "
+        print(f"{dataset.images} image(s), {dataset.entries} entries ({dataset.dropped} out of view left out), "
               f"{time.perf_counter() - t0:.1f} s; wrote {len(files)} files to {out}", file=sys.stdout, flush=True)
     return 0
-
-
-
-def cameras_to_export(scene: Path, labels_path: Path, given: Path | None) -> Path:
-    """The ``scene_camera.json`` to export: ``given``, else the one beside the labels (refine writes
-    the cameras it corrected or scaled there), else the scene's. Cameras without a metric scale
-    (the scene's ``recon.json`` says so) are refused: a BOP scene's translations are in mm."""
-    from autoalign.scene_scale import cameras_up_to_scale
-
-    beside = labels_path.parent / "scene_camera.json"
-    path = given or (beside if beside.is_file() else scene / "scene_camera.json")
-    if not path.is_file():
-        raise AutoalignError(f"--cameras {path}: not found; pass a BOP scene_camera.json")
-    if path.resolve() == (scene / "scene_camera.json").resolve() and cameras_up_to_scale(scene):
-        raise AutoalignError(f"{scene / 'recon.json'}: the scene's cameras have no metric scale; export with the "
-                             "scene_camera.json that 'autoalign refine' wrote beside its scene_gt.json (it solves "
-                             "the scale), or give metric cameras with --cameras")
-    return path
