@@ -18,6 +18,7 @@ import importlib
 import os
 import signal
 import sys
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -53,9 +54,10 @@ class Interrupts:
         C++ extension modules run Python code while they initialise (drjit imports its submodules
         from its module init); an exception raised there ends in ``std::terminate``: the process
         aborted or crashed in about one run in ten interrupted during drjit's import. Outside the
-        command (another SIGINT handler installed) this does nothing.
+        command (another SIGINT handler installed), and in any thread but the main one (only it
+        receives signals; ``autoalign label`` refines on a worker thread), this does nothing.
         """
-        if signal.getsignal(signal.SIGINT) != cls.handler:
+        if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) != cls.handler:
             yield
             return
         signal.signal(signal.SIGINT, cls.remember)

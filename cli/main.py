@@ -232,11 +232,13 @@ def build_parser() -> argparse.ArgumentParser:
     add_refine_parser(sub)
     from autoalign.cli.check import add_check_parser
     from autoalign.cli.export import add_export_parser
+    from autoalign.cli.label import add_label_parser
     from autoalign.cli.recon import add_recon_parser
 
     add_recon_parser(sub)
     add_check_parser(sub)
     add_export_parser(sub)
+    add_label_parser(sub)
     try:
         from autoalign.experiments import simulate
     except ImportError:

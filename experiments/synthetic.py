@@ -329,20 +329,52 @@ def raycast_visible_masks(meshes: Sequence[Mesh], poses: Sequence[ArrayLike],
                           cameras: Sequence[Camera]) -> list[list[NDArray[np.bool_]]]:
     """Visible masks ``[view][instance]`` of several meshes placed by ``poses``: open3d casts one
     ray per pixel centre against all of them, and a pixel belongs to the nearest surface hit."""
+    scene, ids = _objects_scene(meshes, poses)
+    out = []
+    for cam in cameras:
+        hit = _cast_pixels(scene, cam)
+        geom = hit["geometry_ids"].numpy().reshape(cam.height, cam.width)
+        hit_any = np.isfinite(hit["t_hit"].numpy()).reshape(cam.height, cam.width)
+        out.append([hit_any & (geom == g) for g in ids])
+    return out
+
+
+def _objects_scene(meshes: Sequence[Mesh], poses: Sequence[ArrayLike]) -> tuple[o3d.t.geometry.RaycastingScene, list[int]]:
     scene = o3d.t.geometry.RaycastingScene()
     ids = [scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(transform_points(T, m.vertices), np.float32)),
                                o3d.core.Tensor(np.ascontiguousarray(m.faces, np.uint32)))
            for m, T in zip(meshes, poses)]
+    return scene, ids
+
+
+def _cast_pixels(scene: o3d.t.geometry.RaycastingScene, cam: Camera) -> dict[str, o3d.core.Tensor]:
+    o, d = pixel_rays(cam)
+    rays = np.empty((len(d), 6), dtype=np.float32)
+    rays[:, :3] = o
+    rays[:, 3:] = d
+    return scene.cast_rays(o3d.core.Tensor(rays))
+
+
+def shaded_photos(meshes: Sequence[Mesh], poses: Sequence[ArrayLike], cameras: Sequence[Camera],
+                  colours_bgr: Sequence[tuple[int, int, int]]) -> list[NDArray[np.uint8]]:
+    """Stand-in photos (BGR, H x W x 3) of the meshes placed by ``poses``: each object in its colour,
+    shaded by the cosine between its surface normal and the pixel's ray (open3d ray casting), on
+    a grey floor gradient; for pages and figures, not for measuring anything."""
+    scene, ids = _objects_scene(meshes, poses)
     out = []
     for cam in cameras:
-        o, d = pixel_rays(cam)
-        rays = np.empty((len(d), 6), dtype=np.float32)
-        rays[:, :3] = o
-        rays[:, 3:] = d
-        hit = scene.cast_rays(o3d.core.Tensor(rays))
-        geom = hit["geometry_ids"].numpy().reshape(cam.height, cam.width)
-        hit_any = np.isfinite(hit["t_hit"].numpy()).reshape(cam.height, cam.width)
-        out.append([hit_any & (geom == g) for g in ids])
+        hit = _cast_pixels(scene, cam)
+        _, d = pixel_rays(cam)
+        n = hit["primitive_normals"].numpy()
+        cosine = np.abs((n * d).sum(1)) / np.linalg.norm(d, axis=1)
+        geom = hit["geometry_ids"].numpy()
+        hit_any = np.isfinite(hit["t_hit"].numpy())
+        img = np.repeat(np.linspace(70, 110, cam.height)[:, None, None], cam.width, 1).repeat(3, 2)
+        flat = img.reshape(-1, 3)
+        for g, colour in zip(ids, colours_bgr):
+            sel = hit_any & (geom == g)
+            flat[sel] = (0.25 + 0.75 * cosine[sel, None]) * np.asarray(colour, np.float64)
+        out.append(np.clip(img, 0, 255).astype(np.uint8))
     return out
 
 

@@ -1,0 +1,151 @@
+"""The 3D view of ``autoalign label``, with viser: the cameras as frustums (with their photos), the
+fused cloud ``recon`` made (``SCENE_DIR/cloud.ply``), every placed object at its pose, and a
+transform gizmo to drag or turn the chosen one (the page then shows its new outlines).
+
+viser is what 3D-vision tools use for this (meshes, frustums, point clouds, images and gizmos in
+the browser, from Python, through its own websocket server); the page embeds it. It listens on
+127.0.0.1 only. viser works in metres: everything is drawn at 1/1000 of the scene's millimetres.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.label_session import LabelSession
+
+MM_PER_UNIT = 1000.0
+MAX_CLOUD_POINTS = 200_000
+THUMB_WIDTH = 160
+
+
+def _hex_rgb(colour: str) -> tuple[int, int, int]:
+    return int(colour[1:3], 16), int(colour[3:5], 16), int(colour[5:7], 16)
+
+
+class SceneViewer:
+    """A viser server showing ``session``, kept up to date by a thread that follows its revisions."""
+
+    def __init__(self, session: LabelSession) -> None:
+        import viser
+
+        from autoalign.cli.label_http import HOST
+
+        self.session = session
+        self.server = viser.ViserServer(host=HOST, port=0, verbose=False)
+        self.server.scene.set_up_direction("+z")
+        self._shown: dict[int, tuple[int | None, int]] = {}  # instance -> (obj_id, pose_revision) drawn
+        self._handles: dict[int, object] = {}
+        self._stop = threading.Event()
+        self._add_cameras()
+        self._add_cloud()
+        options = [str(k) for k in session.instances]
+        self.choice = self.server.gui.add_dropdown("instance to move", options, initial_value=options[0])
+        self.gizmo = self.server.scene.add_transform_controls("/gizmo", scale=0.08, visible=False)
+        self.choice.on_update(lambda _: self._place_gizmo())
+        self.gizmo.on_drag_end(lambda _: self._dragged())
+        self._thread = threading.Thread(target=self._follow, name="autoalign-3d", daemon=True)
+        self._thread.start()
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.server.get_host()}:{self.server.get_port()}/"
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.server.stop()
+
+    # ------------------------------------------------------------------ what is drawn
+
+    def _add_cameras(self) -> None:
+        import viser.transforms as tf
+
+        from autoalign.overlay import photo_at
+
+        s = self.session
+        for im, cam in zip(s.image_ids, s.views):
+            photo = photo_at(s.scene_dir, im, THUMB_WIDTH, max(1, round(THUMB_WIDTH * cam.height / cam.width)))
+            self.server.scene.add_camera_frustum(
+                f"/cameras/{im}", fov=float(2 * np.arctan(cam.height / (2 * cam.K[1, 1]))),
+                aspect=cam.width / cam.height, scale=0.03,
+                image=None if photo is None else photo[:, :, ::-1].copy(),
+                wxyz=tf.SO3.from_matrix(cam.R_w2c.T).wxyz, position=cam.centre / MM_PER_UNIT)
+
+    def _add_cloud(self) -> None:
+        path = self.session.scene_dir / "cloud.ply"
+        if not path.is_file():
+            return
+        import open3d as o3d
+
+        pcd = o3d.io.read_point_cloud(str(path))
+        pts = np.asarray(pcd.points)
+        if len(pts) == 0:
+            return
+        keep = np.random.default_rng(0).choice(len(pts), min(len(pts), MAX_CLOUD_POINTS), replace=False)
+        colours = (np.asarray(pcd.colors)[keep] * 255).astype(np.uint8) if pcd.has_colors() else (180, 180, 180)
+        self.server.scene.add_point_cloud("/cloud", pts[keep] / MM_PER_UNIT, colours, point_size=0.002)
+
+    def _colour(self, index: int) -> tuple[int, int, int]:
+        from autoalign.cli.label_http import INSTANCE_COLOURS_RGB
+
+        order = list(self.session.instances)
+        return _hex_rgb(INSTANCE_COLOURS_RGB[order.index(index) % len(INSTANCE_COLOURS_RGB)])
+
+    def _follow(self) -> None:
+        revision = -1
+        while not self._stop.is_set():
+            revision = self.session.wait(revision, 1.0)
+            try:
+                self._update()
+            except Exception:  # the viewer is closing; the page and the session go on
+                if self._stop.is_set():
+                    return
+                raise
+
+    def _update(self) -> None:
+        import viser.transforms as tf
+
+        for k, inst in list(self.session.instances.items()):
+            key = (inst.obj_id, inst.pose_revision)
+            if not inst.placed or self._shown.get(k) == key:
+                continue
+            if k not in self._handles or self._shown[k][0] != inst.obj_id:
+                mesh = self.session.models.mesh(inst.obj_id)
+                self._handles[k] = self.server.scene.add_mesh_simple(
+                    f"/objects/{k}", mesh.vertices / MM_PER_UNIT, mesh.faces, color=self._colour(k))
+            handle = self._handles[k]
+            handle.wxyz = tf.SO3.from_matrix(inst.T_wm[:3, :3]).wxyz
+            handle.position = inst.T_wm[:3, 3] / MM_PER_UNIT
+            self._shown[k] = key
+            if str(k) == self.choice.value:
+                self._place_gizmo()
+
+    def _place_gizmo(self) -> None:
+        import viser.transforms as tf
+
+        inst = self.session.instances[int(self.choice.value)]
+        if not inst.placed:
+            self.gizmo.visible = False
+            return
+        centre = inst.T_wm[:3, :3] @ self.session.models.mesh(inst.obj_id).centre + inst.T_wm[:3, 3]
+        self.gizmo.wxyz = tf.SO3.from_matrix(inst.T_wm[:3, :3]).wxyz
+        self.gizmo.position = centre / MM_PER_UNIT
+        self.gizmo.visible = True
+
+    def gizmo_pose(self, index: int) -> NDArray[np.float64]:
+        """The world-from-model pose (mm) the gizmo now gives instance ``index``."""
+        import viser.transforms as tf
+
+        inst = self.session.instances[index]
+        R = tf.SO3(np.asarray(self.gizmo.wxyz)).as_matrix()
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = np.asarray(self.gizmo.position) * MM_PER_UNIT - R @ self.session.models.mesh(inst.obj_id).centre
+        return T
+
+    def _dragged(self) -> None:
+        index = int(self.choice.value)
+        if self.session.instances[index].placed:
+            self.session.set_pose(index, self.gizmo_pose(index), source="3d")

@@ -1,0 +1,246 @@
+"""The web server of ``autoalign label``: the page, the views' images, and a small JSON API over a
+:class:`~autoalign.label_session.LabelSession`.
+
+Standard library ``http.server`` (threaded): one local user, a handful of requests a second, no
+dependency to keep up to date; the 3D view is viser's own server (:mod:`autoalign.cli.label_3d`).
+
+It listens on 127.0.0.1 only, answers only requests whose ``Host`` is that address or
+``localhost`` (a web page elsewhere cannot reach it through DNS rebinding), and serves files
+only from inside the scene folder, the models folder and the page's own folder (403 otherwise).
+
+API (JSON; pixel coordinates are OpenCV's, in the views' resolution; errors are
+``{"error": one line}`` with status 400, or 409 while another job runs):
+
+* ``GET /api/state?since=R``: the session (:meth:`LabelSession.snapshot`), as soon as its
+  revision passes ``R`` (at most :data:`POLL_S` later); ``viewer_url`` is the 3D view.
+* ``GET /api/contours/K``: instance K's silhouette outline per view, ``{pose_revision, contours}``.
+* ``GET /api/view/IM.jpg``, ``/api/tint/IM.png``: a view's photo (dark grey without one) and its
+  masks tinted in the instances' colours (transparent elsewhere).
+* ``GET /files/scene/PATH``, ``/files/models/PATH``: files of those folders.
+* ``POST /api/place`` ``{obj_id, image_id, u, v}``; ``/api/refine`` ``{instance}``;
+  ``/api/export``: start the job (202); its progress is in the state's ``job``.
+* ``POST /api/nudge`` ``{instance, image_id, move_mm: [3], turn_deg: [3]}`` (camera axes);
+  ``/api/decide`` ``{instance, decision}``; ``/api/symmetric`` ``{instance, symmetric}``.
+"""
+
+from __future__ import annotations
+
+import json
+import mimetypes
+import threading
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from typing import Any
+from urllib.parse import parse_qs, unquote, urlsplit
+
+import cv2
+import numpy as np
+
+from autoalign.errors import AutoalignError
+from autoalign.label_session import LabelSession, Progress
+
+HOST = "127.0.0.1"
+POLL_S = 10.0
+"""Longest wait of a ``/api/state?since=R`` request before it answers unchanged."""
+PAGE_DIR = Path(__file__).resolve().parent / "label_page"
+TINT_ALPHA = 0.35
+INSTANCE_COLOURS_RGB = ("#ffb43c", "#3c78ff", "#50dc50", "#dc50dc", "#e6e63c", "#50c8ff", "#ff7878", "#78ffc8",
+                        "#ff50a0", "#a0a050")
+"""Instance ``k``'s colour on the page (by its position among the scene's instances, cycled)."""
+
+
+def inside(root: Path, relative: str) -> Path | None:
+    """``root / relative`` if that names an existing file inside ``root`` (links resolved), else ``None``."""
+    try:
+        path = (root / relative).resolve(strict=True)
+    except (OSError, RuntimeError):
+        return None
+    return path if path.is_file() and path.is_relative_to(root.resolve()) else None
+
+
+class LabelServer(ThreadingHTTPServer):
+    """The HTTP server of one session (port 0: a free one)."""
+
+    daemon_threads = True
+
+    def __init__(self, session: LabelSession, port: int = 0, viewer_url: str | None = None) -> None:
+        super().__init__((HOST, port), LabelHandler)
+        self.session = session
+        self.viewer_url = viewer_url
+        self.roots = {"scene": session.scene_dir, "models": session.models.folder}
+        self._images: dict[str, bytes] = {}
+        self._images_lock = threading.Lock()
+
+    @property
+    def url(self) -> str:
+        return f"http://{HOST}:{self.server_address[1]}/"
+
+    def image(self, key: str, make: Any) -> bytes:
+        """The encoded image ``key``, made once by ``make()``."""
+        with self._images_lock:
+            if key not in self._images:
+                self._images[key] = make()
+            return self._images[key]
+
+    def view_photo(self, image_id: int) -> bytes:
+        from autoalign.overlay import photo_at
+
+        s = self.session
+        cam = s.views[s.image_ids.index(image_id)]
+        photo = photo_at(s.scene_dir, image_id, cam.width, cam.height)
+        img = photo if photo is not None else np.full((cam.height, cam.width, 3), 40, np.uint8)
+        return cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
+
+    def view_tint(self, image_id: int) -> bytes:
+        s = self.session
+        cam = s.views[s.image_ids.index(image_id)]
+        rgba = np.zeros((cam.height, cam.width, 4), np.uint8)
+        order = list(s.instances)
+        for k, m in s.masks_in_view(image_id).items():
+            hexa = INSTANCE_COLOURS_RGB[order.index(k) % len(INSTANCE_COLOURS_RGB)]
+            rgb = [int(hexa[i:i + 2], 16) for i in (1, 3, 5)]
+            rgba[m] = [rgb[2], rgb[1], rgb[0], int(255 * TINT_ALPHA)]  # BGRA for OpenCV
+        return cv2.imencode(".png", rgba)[1].tobytes()
+
+
+class LabelHandler(BaseHTTPRequestHandler):
+    """One request (see module doc)."""
+
+    server: LabelServer
+    protocol_version = "HTTP/1.1"
+
+    def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - the base class's name
+        pass  # the terminal shows the session's progress, not every request
+
+    # ------------------------------------------------------------------ replies
+
+    def _send(self, status: int, body: bytes, content_type: str, cache: bool = False) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", content_type)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "max-age=3600" if cache else "no-store")
+        self.end_headers()
+        self.wfile.write(body)
+
+    def _json(self, data: Any, status: int = 200) -> None:
+        self._send(status, json.dumps(data, allow_nan=False).encode(), "application/json")
+
+    def _error(self, status: int, message: str) -> None:
+        self._json({"error": " ".join(message.split())}, status)
+
+    def _host_ok(self) -> bool:
+        host = (self.headers.get("Host") or "").rsplit(":", 1)[0]
+        if host in (HOST, "localhost"):
+            return True
+        self._error(HTTPStatus.FORBIDDEN, f"host {host!r} refused: autoalign label answers {HOST} only")
+        return False
+
+    # ------------------------------------------------------------------ GET
+
+    def do_GET(self) -> None:  # noqa: N802 - http.server's name
+        if not self._host_ok():
+            return
+        url = urlsplit(self.path)
+        path = unquote(url.path)
+        try:
+            self._get(path, parse_qs(url.query))
+        except AutoalignError as exc:
+            self._error(HTTPStatus.BAD_REQUEST, str(exc))
+        except (ValueError, KeyError, IndexError):
+            self._error(HTTPStatus.NOT_FOUND, f"{path}: no such thing here")
+
+    def _get(self, path: str, query: dict[str, list[str]]) -> None:
+        s = self.server.session
+        if path in ("/", "/index.html"):
+            return self._file(PAGE_DIR, "index.html")
+        if path.startswith("/static/"):
+            return self._file(PAGE_DIR, path[len("/static/"):])
+        if path.startswith("/files/"):
+            root, _, rel = path[len("/files/"):].partition("/")
+            if root not in self.server.roots:
+                return self._error(HTTPStatus.NOT_FOUND, f"{path}: only /files/scene/ and /files/models/ are served")
+            return self._file(self.server.roots[root], rel)
+        if path == "/api/state":
+            since = int(query.get("since", ["-1"])[0])
+            s.wait(since, POLL_S)
+            return self._json({**s.snapshot(), "viewer_url": self.server.viewer_url,
+                               "colours": INSTANCE_COLOURS_RGB})
+        if path.startswith("/api/contours/"):
+            rev, polys = s.contours(int(path.rsplit("/", 1)[1]))
+            return self._json({"pose_revision": rev, "contours": {str(k): v for k, v in polys.items()}})
+        if path.startswith("/api/view/") and path.endswith(".jpg"):
+            im = int(path[len("/api/view/"):-4])
+            return self._send(200, self.server.image(f"v{im}", lambda: self.server.view_photo(im)), "image/jpeg", True)
+        if path.startswith("/api/tint/") and path.endswith(".png"):
+            im = int(path[len("/api/tint/"):-4])
+            return self._send(200, self.server.image(f"t{im}", lambda: self.server.view_tint(im)), "image/png", True)
+        self._error(HTTPStatus.NOT_FOUND, f"{path}: no such thing here")
+
+    def _file(self, root: Path, relative: str) -> None:
+        found = inside(root, relative)
+        if found is None:
+            return self._error(HTTPStatus.FORBIDDEN, f"{relative}: not a file inside {root}; only the scene's, the "
+                                                     "models' and the page's own files are served")
+        kind = mimetypes.guess_type(found.name)[0] or "application/octet-stream"
+        self._send(200, found.read_bytes(), kind)
+
+    # ------------------------------------------------------------------ POST
+
+    def do_POST(self) -> None:  # noqa: N802 - http.server's name
+        if not self._host_ok():
+            return
+        try:
+            n = int(self.headers.get("Content-Length") or 0)
+            body = json.loads(self.rfile.read(n) or b"{}") if n <= 1 << 20 else None
+            if not isinstance(body, dict):
+                raise ValueError
+        except ValueError:
+            return self._error(HTTPStatus.BAD_REQUEST, "the request body must be a JSON object")
+        try:
+            self._post(urlsplit(self.path).path, body)
+        except AutoalignError as exc:
+            self._error(HTTPStatus.BAD_REQUEST, str(exc))
+        except (KeyError, TypeError, ValueError) as exc:
+            self._error(HTTPStatus.BAD_REQUEST, f"{self.path}: bad or missing field ({exc})")
+
+    def _post(self, path: str, body: dict[str, Any]) -> None:
+        s = self.server.session
+        if path == "/api/place":
+            obj, im, u, v = int(body["obj_id"]), int(body["image_id"]), float(body["u"]), float(body["v"])
+            index = s.instance_at(im, u, v)  # a click off every mask is answered at once
+
+            def place(progress: Progress) -> None:
+                s.place(obj, im, u, v, progress)
+
+            return self._job("place", index, place)
+        if path == "/api/refine":
+            index = int(body["instance"])
+
+            def polish(progress: Progress) -> None:
+                s.refine_from_here(index, progress)
+
+            return self._job("refine", index, polish)
+        if path == "/api/export":
+            from autoalign.cli.label import export_session
+
+            def export(progress: Progress) -> None:
+                export_session(s, progress)
+
+            return self._job("export", None, export)
+        if path == "/api/nudge":
+            s.nudge(int(body["instance"]), int(body["image_id"]), list(body.get("move_mm", [0, 0, 0])),
+                    list(body.get("turn_deg", [0, 0, 0])))
+        elif path == "/api/decide":
+            s.decide(int(body["instance"]), str(body["decision"]))
+        elif path == "/api/symmetric":
+            s.mark_symmetric(int(body["instance"]), bool(body["symmetric"]))
+        else:
+            return self._error(HTTPStatus.NOT_FOUND, f"{path}: no such action")
+        self._json({"revision": s.revision})
+
+    def _job(self, kind: str, index: int | None, work: Any) -> None:
+        s = self.server.session
+        if not s.start_job(kind, index, work):
+            return self._error(HTTPStatus.CONFLICT, f"busy with {s.job.kind}; wait for it to finish")
+        self._json({"job": s.job.number}, HTTPStatus.ACCEPTED)

@@ -1,0 +1,281 @@
+"""``autoalign label``: the page driven in a real headless Chromium (Debian's ``chromium`` through
+Playwright), the server in a child process, on a synthetic scene whose masks open3d ray-cast.
+
+Screenshots of each step go to ``$AUTOALIGN_LABEL_SCREENSHOTS`` if set (the README's come from
+``AUTOALIGN_LABEL_SCREENSHOTS=experiments/results/label_page pytest tests/test_label_page.py``),
+else to the test's temporary folder.
+"""
+
+from __future__ import annotations
+
+import http.client
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from playwright.sync_api import sync_playwright
+
+from autoalign.experiments.bench_scene import make_bench_scene
+from autoalign.experiments.label_page_driver import (LabelServerProcess, click_view, launch_browser, mask_pixel,
+                                                     open_page, wait_drawn, wait_job_done)
+from autoalign.experiments.synthetic import shaded_photos
+from autoalign.instances import Instance, read_instance_scenes
+from autoalign.models import ModelSet
+from autoalign.se3 import rotation_angle_deg
+
+N_VIEWS = 12
+W, H = 640, 480
+
+
+@dataclass
+class LabelScene:
+    root: Path
+    scene: Path
+    models: Path
+    truth: list[np.ndarray]
+
+
+@pytest.fixture(scope="module")
+def labelled(tmp_path_factory) -> LabelScene:
+    """Two objects that hide each other in 12 views, with shaded stand-in photos in rgb/."""
+    root = tmp_path_factory.mktemp("label")
+    truth = make_bench_scene(root, 2, views=N_VIEWS)
+    (root / "scene" / "scene_gt.json").unlink()  # a fresh capture: the page is told nothing of the objects
+    models = ModelSet.read(root / "models")
+    found = read_instance_scenes(root / "scene", [Instance(0, 1)])
+    (root / "scene" / "rgb").mkdir()
+    for im, img in zip(found.image_ids, shaded_photos([models.mesh(1), models.mesh(2)], truth, found.cameras,
+                                           [(150, 165, 180), (110, 150, 120)])):
+        cv2.imwrite(str(root / "scene" / "rgb" / f"{im:06d}.png"), img)
+    return LabelScene(root, root / "scene", root / "models", truth)
+
+
+def shots_dir(tmp_path: Path) -> Path:
+    d = Path(os.environ.get("AUTOALIGN_LABEL_SCREENSHOTS") or tmp_path / "shots")
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def session_instance(out: Path, index: int) -> dict:
+    data = json.loads((out / "session.json").read_text())
+    return next(i for i in data["instances"] if i["index"] == index)
+
+
+def pose_error(T: np.ndarray, T_true: np.ndarray, centre_m: np.ndarray) -> tuple[float, float]:
+    """(mm between the model centres, degrees between the orientations)."""
+    c = T[:3, :3] @ centre_m + T[:3, 3]
+    c_true = T_true[:3, :3] @ centre_m + T_true[:3, 3]
+    return float(np.linalg.norm(c - c_true)), rotation_angle_deg(T[:3, :3], T_true[:3, :3])
+
+
+def mask_of(scene: Path, im: int, k: int) -> np.ndarray:
+    return cv2.imread(str(scene / "mask_visib" / f"{im:06d}_{k:06d}.png"), cv2.IMREAD_GRAYSCALE) > 0
+
+
+def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
+    shots = shots_dir(tmp_path)
+    out = tmp_path / "session"
+    models = ModelSet.read(labelled.models)
+    centre = models.mesh(1).centre
+    with LabelServerProcess(labelled.scene, labelled.models, out) as server, sync_playwright() as pw:
+        browser = launch_browser(pw)
+        page = open_page(browser, server.url, N_VIEWS)
+        page.wait_for_function("[...document.querySelectorAll('.view img.photo')].every(i => i.complete)")
+        page.screenshot(path=str(shots / "1-opened.png"))
+
+        # choose object 1 and click instance 0 in view 0: placed, refined, outlined in every view
+        page.select_option("#object", "1")
+        col, row = mask_pixel(mask_of(labelled.scene, 0, 0))
+        click_view(page, 0, col, row, W, H)
+        rev = wait_drawn(page, 0)
+        state = wait_job_done(page)
+        assert state["job"]["error"] is None
+        n_outlined = page.evaluate("document.querySelectorAll('.view polyline[data-instance=\"0\"]').length")
+        assert n_outlined >= N_VIEWS  # at least one outline per view (the object is in all of them)
+        page.wait_for_function("document.body.dataset.clickToContoursMs !== undefined")
+        page.screenshot(path=str(shots / "2-placed.png"))
+        placed = session_instance(out, 0)
+        assert placed["obj_id"] == 1 and placed["source"] == "click" and placed["verdict"] == "ok"
+        mm, deg = pose_error(np.array(placed["T_wm"]), labelled.truth[0], centre)
+        assert mm < 1.0 and deg < 1.0, (mm, deg)
+        assert page.locator('.instance[data-index="0"] .verdict').inner_text() == "ok"
+
+        # nudge: three times right in view 0's axes (the keys act on the view under the mouse)
+        page.hover('.view[data-image-id="0"] img.tint')
+        for _ in range(3):
+            page.keyboard.press("ArrowRight")
+        page.wait_for_function("fetch('/api/state').then(r => r.json()).then(s => "
+                               f"s.instances.find(i => i.index === 0).pose_revision >= {rev + 3})", polling=200)
+        rev = wait_drawn(page, 0, rev + 2)
+        nudged = session_instance(out, 0)
+        T0, T1 = np.array(placed["T_wm"]), np.array(nudged["T_wm"])
+        from autoalign.bop import read_cameras
+
+        _, R_w2c, _ = read_cameras(labelled.scene)[0]
+        np.testing.assert_allclose(T1[:3, 3] - T0[:3, 3], R_w2c.T @ [3.0, 0.0, 0.0], atol=1e-6)
+        np.testing.assert_allclose(T1[:3, :3], T0[:3, :3], atol=1e-9)
+        assert nudged["verdict"] is None and nudged["source"] == "nudge"
+        page.screenshot(path=str(shots / "3-nudged.png"))
+
+        # refine from here (key r): back on the object
+        page.keyboard.press("r")
+        wait_drawn(page, 0, rev)
+        state = wait_job_done(page)
+        assert state["job"]["kind"] == "refine" and state["job"]["error"] is None
+        refined = session_instance(out, 0)
+        mm, deg = pose_error(np.array(refined["T_wm"]), labelled.truth[0], centre)
+        assert mm < 1.0 and deg < 1.0 and refined["verdict"] == "ok", (mm, deg)
+        page.screenshot(path=str(shots / "4-refined.png"))
+
+        # accept it; place instance 1 and reject it: only instance 0 is exported
+        page.click('.instance[data-index="0"] button[data-act="accept"]')
+        page.wait_for_selector('.instance[data-index="0"][data-decision="accepted"]')
+        page.select_option("#object", "2")
+        col, row = mask_pixel(mask_of(labelled.scene, 3, 1))
+        click_view(page, 3, col, row, W, H)
+        wait_drawn(page, 1)
+        wait_job_done(page)
+        page.click('.instance[data-index="1"] button[data-act="reject"]')
+        page.wait_for_selector('.instance[data-index="1"][data-decision="rejected"]')
+        assert session_instance(out, 0)["decision"] == "accepted"
+        page.screenshot(path=str(shots / "5-accepted.png"))
+
+        page.click("#export")
+        state = wait_job_done(page)
+        assert state["job"]["kind"] == "export" and state["job"]["error"] is None, state["job"]
+        page.wait_for_function("document.querySelector('#status').textContent.startsWith('exported')")
+        page.screenshot(path=str(shots / "6-exported.png"))
+        browser.close()
+        assert server.stop() == 130  # Ctrl-C stops it
+
+    # the page's export is 'autoalign export' of the labels it wrote
+    labels = json.loads((out / "scene_gt.json").read_text())
+    assert all([e["obj_id"] for e in entries] == [1] for entries in labels.values())
+    ref = tmp_path / "reference"
+    subprocess.run([sys.executable, "-m", "autoalign.cli.main", "export", str(labelled.scene), "--labels",
+                    str(out / "scene_gt.json"), "--models", str(labelled.models), "--out", str(ref), "--quiet"],
+                   check=True)
+    ours = {p.relative_to(out / "bop") for p in (out / "bop").rglob("*") if p.is_file()}
+    theirs = {p.relative_to(ref) for p in ref.rglob("*") if p.is_file()}
+    assert ours == theirs and len(ours) > 3 * N_VIEWS
+    for rel in sorted(ours - {Path("export.json")}):
+        assert (out / "bop" / rel).read_bytes() == (ref / rel).read_bytes(), rel
+    a, b = json.loads((out / "bop/export.json").read_text()), json.loads((ref / "export.json").read_text())
+    assert {k: a[k] for k in ("images", "entries")} == {k: b[k] for k in ("images", "entries")} == \
+        {"images": N_VIEWS, "entries": N_VIEWS}
+
+
+def _listening_address(port: int) -> str:
+    """The local address a TCP socket listens on at ``port``, from /proc/net/tcp (the kernel's own view)."""
+    for line in Path("/proc/net/tcp").read_text().splitlines()[1:]:
+        local, state = line.split()[1], line.split()[3]
+        addr, p = local.split(":")
+        if int(p, 16) == port and state == "0A":  # LISTEN
+            return socket.inet_ntoa(bytes.fromhex(addr)[::-1])
+    raise AssertionError(f"nothing listens on port {port}")
+
+
+def _get(port: int, path: str, host: str = "127.0.0.1") -> tuple[int, bytes]:
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+    conn.putrequest("GET", path, skip_host=True)  # the path exactly as given: no client-side normalising
+    conn.putheader("Host", f"{host}:{port}")
+    conn.endheaders()
+    r = conn.getresponse()
+    return r.status, r.read()
+
+
+def test_restart_two_tabs_binding_and_paths(labelled, tmp_path):
+    out = tmp_path / "session"
+    (labelled.scene / "escape").symlink_to("/etc/hostname")
+    try:
+        with LabelServerProcess(labelled.scene, labelled.models, out) as server, sync_playwright() as pw:
+            # listens on 127.0.0.1 only, the page and the 3D view alike
+            assert _listening_address(server.port) == "127.0.0.1"
+            viewer_url = json.loads(_get(server.port, "/api/state")[1])["viewer_url"]
+            assert viewer_url.startswith("http://127.0.0.1:")
+            assert _listening_address(int(viewer_url.rstrip("/").rsplit(":", 1)[1])) == "127.0.0.1"
+            # files: the scene's and the models' yes, anything else no (dot-dot, encoded, a link out)
+            assert _get(server.port, "/files/scene/scene_camera.json")[0] == 200
+            assert _get(server.port, "/files/models/obj_000001.ply")[0] == 200
+            for path in ("/files/scene/../../../../etc/passwd", "/files/scene/%2e%2e/%2e%2e/etc/passwd",
+                         "/files/models/..%2f..%2fscene/scene_camera.json", "/files/scene/escape",
+                         "/files/scene//etc/passwd", "/static/../../../etc/passwd"):
+                status, body = _get(server.port, path)
+                assert status in (403, 404) and b"root:" not in body and b"cam_K" not in body, path
+            assert _get(server.port, "/api/state", host="attacker.example")[0] == 403
+
+            # two tabs: each places one instance, then both nudge at once; no change is lost
+            browser = launch_browser(pw)
+            tab_a, tab_b = open_page(browser, server.url, N_VIEWS), open_page(browser, server.url, N_VIEWS)
+            for tab, k, obj, im in ((tab_a, 0, "1", 0), (tab_b, 1, "2", 5)):
+                tab.select_option("#object", obj)
+                col, row = mask_pixel(mask_of(labelled.scene, im, k))
+                click_view(tab, im, col, row, W, H)
+                wait_drawn(tab, k)
+                wait_job_done(tab)
+            before = {k: np.array(session_instance(out, k)["T_wm"]) for k in (0, 1)}
+            nudges = "Promise.all([...Array(10)].map(() => fetch('/api/nudge', {method: 'POST', body: " \
+                     "JSON.stringify({instance: %d, image_id: 0, move_mm: [0, 0, 1], turn_deg: [0, 0, 0]})})))"
+            tab_a.evaluate(f"window.sent = {nudges % 0}")
+            tab_b.evaluate(f"window.sent = {nudges % 1}")
+            tab_a.evaluate("window.sent.then(rs => rs.every(r => r.ok))")
+            tab_b.evaluate("window.sent.then(rs => rs.every(r => r.ok))")
+            from autoalign.bop import read_cameras
+
+            _, R_w2c, _ = read_cameras(labelled.scene)[0]
+            for k in (0, 1):
+                after = np.array(session_instance(out, k)["T_wm"])
+                np.testing.assert_allclose(after[:3, 3] - before[k][:3, 3], R_w2c.T @ [0.0, 0.0, 10.0], atol=1e-6)
+            for tab in (tab_a, tab_b):  # both tabs see the same state
+                tab.wait_for_function("fetch('/api/state').then(r => r.json()).then(s => "
+                                      "s.instances.every(i => i.pose_revision === 11))", polling=200)
+                wait_drawn(tab, 0, 10)
+                wait_drawn(tab, 1, 10)
+            tab_a.click('.instance[data-index="0"] button[data-act="accept"]')
+            tab_b.click('.instance[data-index="1"] button[data-act="accept"]')
+            tab_b.wait_for_selector('.instance[data-index="0"][data-decision="accepted"]')
+            tab_a.wait_for_selector('.instance[data-index="1"][data-decision="accepted"]')
+            saved = json.loads((out / "session.json").read_text())
+            browser.close()
+            assert server.stop(signal.SIGKILL) == -signal.SIGKILL  # pulled the plug: no chance to save anything
+
+        # restart on the same session: everything accepted is there, at the same poses
+        with LabelServerProcess(labelled.scene, labelled.models, out, ("--no-3d",)) as server, \
+                sync_playwright() as pw:
+            browser = launch_browser(pw)
+            page = open_page(browser, server.url, N_VIEWS)
+            page.wait_for_selector('.instance[data-index="0"][data-decision="accepted"]')
+            page.wait_for_selector('.instance[data-index="1"][data-decision="accepted"]')
+            wait_drawn(page, 0, 10)
+            wait_drawn(page, 1, 10)
+            state = page.evaluate("fetch('/api/state').then(r => r.json())")
+            for inst in saved["instances"]:
+                again = next(i for i in state["instances"] if i["index"] == inst["index"])
+                assert again["T_wm"] == inst["T_wm"] and again["decision"] == inst["decision"] == "accepted"
+            browser.close()
+    finally:
+        (labelled.scene / "escape").unlink()
+
+
+def test_label_input_errors_are_one_line(labelled, tmp_path):
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "autoalign.cli.main", "label", *map(str, args), "--no-browser"],
+                              capture_output=True, text=True, timeout=120)
+
+    r = run(labelled.scene, "--models", tmp_path / "nowhere")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "models folder not found" in r.stderr
+    r = run(labelled.scene, "--models", labelled.models, "--out", labelled.scene)
+    assert r.returncode == 2 and "is the scene folder itself" in r.stderr
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "session.json").write_text("{not json")
+    r = run(labelled.scene, "--models", labelled.models, "--out", bad)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "session.json" in r.stderr, r.stderr
