@@ -38,14 +38,17 @@ class SceneViewer:
         self.server.scene.set_up_direction("+z")
         self._shown: dict[int, tuple[int | None, int]] = {}  # instance -> (obj_id, pose_revision) drawn
         self._handles: dict[int, object] = {}
+        self.frustums: dict[int, object] = {}  # image id -> its frustum
         self._stop = threading.Event()
         self._add_cameras()
         self._add_cloud()
+        self._add_origin()
+        self._frame_view()
         options = [str(k) for k in session.instances]
         self.choice = self.server.gui.add_dropdown("instance to move", options, initial_value=options[0])
         self.gizmo = self.server.scene.add_transform_controls("/gizmo", scale=0.08, visible=False)
         self.choice.on_update(lambda _: self._place_gizmo())
-        self.gizmo.on_drag_end(lambda _: self._dragged())
+        self.gizmo.on_update(lambda event: self._dragged() if event.phase == "end" else None)  # on release
         self._thread = threading.Thread(target=self._follow, name="autoalign-3d", daemon=True)
         self._thread.start()
 
@@ -67,9 +70,9 @@ class SceneViewer:
         s = self.session
         for im, cam in zip(s.image_ids, s.views):
             photo = photo_at(s.scene_dir, im, THUMB_WIDTH, max(1, round(THUMB_WIDTH * cam.height / cam.width)))
-            self.server.scene.add_camera_frustum(
+            self.frustums[im] = self.server.scene.add_camera_frustum(
                 f"/cameras/{im}", fov=float(2 * np.arctan(cam.height / (2 * cam.K[1, 1]))),
-                aspect=cam.width / cam.height, scale=0.03,
+                aspect=cam.width / cam.height, scale=0.03, thickness=0.0015, color=(90, 110, 140),
                 image=None if photo is None else photo[:, :, ::-1].copy(),
                 wxyz=tf.SO3.from_matrix(cam.R_w2c.T).wxyz, position=cam.centre / MM_PER_UNIT)
 
@@ -86,6 +89,27 @@ class SceneViewer:
         keep = np.random.default_rng(0).choice(len(pts), min(len(pts), MAX_CLOUD_POINTS), replace=False)
         colours = (np.asarray(pcd.colors)[keep] * 255).astype(np.uint8) if pcd.has_colors() else (180, 180, 180)
         self.server.scene.add_point_cloud("/cloud", pts[keep] / MM_PER_UNIT, colours, point_size=0.002)
+
+    def _frame_view(self) -> None:
+        """Start the browser's camera above the ring of views, looking at where they look."""
+        from autoalign.seeding import closest_point_to_rays
+
+        s = self.session
+        centres = np.array([c.centre for c in s.views]) / MM_PER_UNIT
+        target = closest_point_to_rays(centres, np.array([c.R_w2c[2] for c in s.views]))
+        spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max()) or 0.5
+        up = np.array([0.0, 0.0, 1.0])
+        self.server.initial_camera.look_at = target
+        self.server.initial_camera.position = target + up * spread + np.array([spread, -spread, 0.0])
+        self.server.initial_camera.up = up
+
+    def _add_origin(self) -> None:
+        """A small sphere at the world origin, drawn like the objects: the browser prepares its
+        shaders when the view opens rather than at the first placed object (seconds in software WebGL)."""
+        import trimesh
+
+        ball = trimesh.creation.icosphere(subdivisions=2, radius=4.0)
+        self.server.scene.add_mesh_simple("/origin", ball.vertices / MM_PER_UNIT, ball.faces, color=(200, 200, 200))
 
     def _colour(self, index: int) -> tuple[int, int, int]:
         from autoalign.cli.label_http import INSTANCE_COLOURS_RGB

@@ -102,7 +102,8 @@ def open_page(browser: Any, url: str, n_views: int) -> Any:
     page = browser.new_page(viewport={"width": 1600, "height": 1000})
     page.goto(url)
     page.wait_for_function(f"document.querySelectorAll('.view').length === {n_views} && "
-                           "document.querySelectorAll('.instance').length > 0")
+                           "document.querySelectorAll('.instance').length > 0 && "
+                           "[...document.querySelectorAll('.view img')].every(i => i.complete && i.naturalWidth > 0)")
     return page
 
 

@@ -38,6 +38,7 @@ function buildViews() {
     const div = document.createElement("div");
     div.className = "view";
     div.dataset.imageId = v.image_id;
+    div.style.aspectRatio = `${v.width} / ${v.height}`;   // laid out before the photo arrives
     div.innerHTML = `<img class="photo" alt="view ${v.image_id}" src="/api/view/${v.image_id}.jpg">` +
       `<img class="tint" alt="" src="/api/tint/${v.image_id}.png">` +
       `<svg viewBox="-0.5 -0.5 ${v.width} ${v.height}" preserveAspectRatio="none"></svg>` +
