@@ -39,6 +39,7 @@ class SceneViewer:
         self._shown: dict[int, tuple[int | None, int]] = {}  # instance -> (obj_id, pose_revision) drawn
         self._handles: dict[int, object] = {}
         self.frustums: dict[int, object] = {}  # image id -> its frustum
+        self.cloud: object | None = None
         self._stop = threading.Event()
         self._add_cameras()
         self._add_cloud()
@@ -58,6 +59,7 @@ class SceneViewer:
 
     def stop(self) -> None:
         self._stop.set()
+        self._thread.join(timeout=5.0)  # it waits at most a second for the session
         self.server.stop()
 
     # ------------------------------------------------------------------ what is drawn
@@ -88,7 +90,7 @@ class SceneViewer:
             return
         keep = np.random.default_rng(0).choice(len(pts), min(len(pts), MAX_CLOUD_POINTS), replace=False)
         colours = (np.asarray(pcd.colors)[keep] * 255).astype(np.uint8) if pcd.has_colors() else (180, 180, 180)
-        self.server.scene.add_point_cloud("/cloud", pts[keep] / MM_PER_UNIT, colours, point_size=0.002)
+        self.cloud = self.server.scene.add_point_cloud("/cloud", pts[keep] / MM_PER_UNIT, colours, point_size=0.002)
 
     def _frame_view(self) -> None:
         """Start the browser's camera above the ring of views, looking at where they look."""

@@ -153,6 +153,14 @@ def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
         assert state["job"]["kind"] == "export" and state["job"]["error"] is None, state["job"]
         page.wait_for_function("document.querySelector('#status').textContent.startsWith('exported')")
         page.screenshot(path=str(shots / "6-exported.png"))
+
+        # the 3D view (viser, in the page): it connects and draws
+        page.click("#viewer-box summary")
+        viewer = page.frame_locator("#viewer")
+        viewer.locator("canvas").first.wait_for(timeout=60_000)
+        viewer.get_by_text("Connected").first.wait_for(timeout=60_000)
+        page.locator("#viewer").scroll_into_view_if_needed()
+        page.screenshot(path=str(shots / "7-3d-view.png"))
         browser.close()
         assert server.stop() == 130  # Ctrl-C stops it
 
@@ -311,10 +319,19 @@ def test_3d_view_draws_the_session_and_its_gizmo_moves_the_object(labelled, tmp_
     from autoalign.cli.label_3d import SceneViewer
     from autoalign.label_session import LabelSession
 
+    import open3d as o3d
+
     models = ModelSet.read(labelled.models)
     session = LabelSession(labelled.scene, models, tmp_path / "session")
-    viewer = SceneViewer(session)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.random.default_rng(0).normal(size=(500, 3)) * 50))
+    o3d.io.write_point_cloud(str(labelled.scene / "cloud.ply"), cloud)  # as 'autoalign recon' leaves it
     try:
+        viewer = SceneViewer(session)
+    finally:
+        (labelled.scene / "cloud.ply").unlink()
+    try:
+        np.testing.assert_allclose(np.sort(viewer.cloud.points[:, 0]), np.sort(np.asarray(cloud.points)[:, 0]) / 1000,
+                                   atol=1e-3)  # the cloud, in metres (stored as float16 by viser)
         cam = session.views[0]
         frustum = viewer.frustums[session.image_ids[0]]
         np.testing.assert_allclose(frustum.position, cam.centre / 1000.0, atol=1e-9)
