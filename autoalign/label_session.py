@@ -454,6 +454,13 @@ class LabelSession:
             raise AutoalignError("no instance is accepted yet; accept the labels to export first")
         return scene_gt_of(chosen, self.views, self.image_ids)
 
+    def decisions(self) -> dict[str, Any]:
+        """Every placed instance's record and the accepted ones' numbers (``labels.json`` of the export)."""
+        with self._lock:
+            return {"instances": [i.record() for i in self.instances.values() if i.placed],
+                    "accepted": [i.index for i in self.instances.values() if i.decision == "accepted" and i.placed],
+                    "labels": "scene_gt.json lists the accepted instances, in this order"}
+
     # ------------------------------------------------------------------ the slow job
 
     def start_job(self, kind: str, instance: int | None, work: Callable[[Progress], None]) -> bool:

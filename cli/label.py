@@ -128,12 +128,9 @@ def export_session(session: Any, progress: Any = None) -> Path:
 
     out = session.out_dir
     labels_path = out / "scene_gt.json"
-    decisions = {"instances": [i.record() for i in session.instances.values() if i.placed],
-                 "labels": "scene_gt.json lists the accepted instances, in this order",
-                 "accepted": [i.index for i in session.instances.values() if i.decision == "accepted"]}
     out.mkdir(parents=True, exist_ok=True)
     write_files_atomic({labels_path: json.dumps(session.accepted_labels(), indent=1).encode(),
-                        out / "labels.json": json.dumps(decisions, indent=1).encode()})
+                        out / "labels.json": json.dumps(session.decisions(), indent=1).encode()})
     cameras = cameras_to_export(session.scene_dir, labels_path, None)
     dataset = export_dataset(session.scene_dir, labels_path, session.models, cameras, progress=progress)
     write_folder(out / "bop", dataset.files)

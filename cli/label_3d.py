@@ -14,6 +14,7 @@ import threading
 import numpy as np
 from numpy.typing import NDArray
 
+from autoalign.cli.label_http import HOST, instance_rgb
 from autoalign.label_session import LabelSession
 
 MM_PER_UNIT = 1000.0
@@ -21,17 +22,11 @@ MAX_CLOUD_POINTS = 200_000
 THUMB_WIDTH = 160
 
 
-def _hex_rgb(colour: str) -> tuple[int, int, int]:
-    return int(colour[1:3], 16), int(colour[3:5], 16), int(colour[5:7], 16)
-
-
 class SceneViewer:
     """A viser server showing ``session``, kept up to date by a thread that follows its revisions."""
 
     def __init__(self, session: LabelSession) -> None:
         import viser
-
-        from autoalign.cli.label_http import HOST
 
         self.session = session
         self.server = viser.ViserServer(host=HOST, port=0, verbose=False)
@@ -113,12 +108,6 @@ class SceneViewer:
         ball = trimesh.creation.icosphere(subdivisions=2, radius=4.0)
         self.server.scene.add_mesh_simple("/origin", ball.vertices / MM_PER_UNIT, ball.faces, color=(200, 200, 200))
 
-    def _colour(self, index: int) -> tuple[int, int, int]:
-        from autoalign.cli.label_http import INSTANCE_COLOURS_RGB
-
-        order = list(self.session.instances)
-        return _hex_rgb(INSTANCE_COLOURS_RGB[order.index(index) % len(INSTANCE_COLOURS_RGB)])
-
     def _follow(self) -> None:
         revision = -1
         while not self._stop.is_set():
@@ -140,7 +129,7 @@ class SceneViewer:
             if k not in self._handles or self._shown[k][0] != inst.obj_id:
                 mesh = self.session.models.mesh(inst.obj_id)
                 self._handles[k] = self.server.scene.add_mesh_simple(
-                    f"/objects/{k}", mesh.vertices / MM_PER_UNIT, mesh.faces, color=self._colour(k))
+                    f"/objects/{k}", mesh.vertices / MM_PER_UNIT, mesh.faces, color=instance_rgb(self.session, k))
             handle = self._handles[k]
             handle.wxyz = tf.SO3.from_matrix(inst.T_wm[:3, :3]).wxyz
             handle.position = inst.T_wm[:3, 3] / MM_PER_UNIT

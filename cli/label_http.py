@@ -50,6 +50,12 @@ INSTANCE_COLOURS_RGB = ("#ffb43c", "#3c78ff", "#50dc50", "#dc50dc", "#e6e63c", "
 """Instance ``k``'s colour on the page (by its position among the scene's instances, cycled)."""
 
 
+def instance_rgb(session: LabelSession, index: int) -> tuple[int, int, int]:
+    """Instance ``index``'s colour (0-255 RGB): by its position among the scene's instances, as the page does."""
+    hexa = INSTANCE_COLOURS_RGB[list(session.instances).index(index) % len(INSTANCE_COLOURS_RGB)]
+    return int(hexa[1:3], 16), int(hexa[3:5], 16), int(hexa[5:7], 16)
+
+
 def inside(root: Path, relative: str) -> Path | None:
     """``root / relative`` if that names an existing file inside ``root`` (links resolved), else ``None``."""
     try:
@@ -96,11 +102,9 @@ class LabelServer(ThreadingHTTPServer):
         s = self.session
         cam = s.views[s.image_ids.index(image_id)]
         rgba = np.zeros((cam.height, cam.width, 4), np.uint8)
-        order = list(s.instances)
         for k, m in s.masks_in_view(image_id).items():
-            hexa = INSTANCE_COLOURS_RGB[order.index(k) % len(INSTANCE_COLOURS_RGB)]
-            rgb = [int(hexa[i:i + 2], 16) for i in (1, 3, 5)]
-            rgba[m] = [rgb[2], rgb[1], rgb[0], int(255 * TINT_ALPHA)]  # BGRA for OpenCV
+            r, g, b = instance_rgb(s, k)
+            rgba[m] = [b, g, r, int(255 * TINT_ALPHA)]  # BGRA for OpenCV
         return cv2.imencode(".png", rgba)[1].tobytes()
 
 
