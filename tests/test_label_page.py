@@ -91,6 +91,12 @@ def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
         page.wait_for_function("[...document.querySelectorAll('.view img.photo')].every(i => i.complete)")
         page.screenshot(path=str(shots / "1-opened.png"))
 
+        # a click on the background: a one-line message on the page, nothing placed
+        click_view(page, 0, 5, 5, W, H)
+        page.wait_for_function("document.querySelector('#status').classList.contains('error')")
+        assert "no instance mask under pixel 5,5 of image 0" in page.inner_text("#status")
+        assert not (out / "session.json").exists()
+
         # choose object 1 and click instance 0 in view 0: placed, refined, outlined in every view
         page.select_option("#object", "1")
         col, row = mask_pixel(mask_of(labelled.scene, 0, 0))
@@ -219,6 +225,13 @@ def test_restart_two_tabs_binding_and_paths(labelled, tmp_path):
                 status, body = _get(server.port, path)
                 assert status in (403, 404) and b"root:" not in body and b"cam_K" not in body, path
             assert _get(server.port, "/api/state", host="attacker.example")[0] == 403
+            conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=10)
+            conn.request("POST", "/api/decide", body=b"{not json", headers={"Content-Type": "application/json"})
+            r = conn.getresponse()
+            assert r.status == 400 and "JSON object" in json.loads(r.read())["error"]
+            conn.request("POST", "/api/decide", body=json.dumps({"instance": 0, "decision": "accepted"}))
+            r = conn.getresponse()  # nothing placed yet: refused, with the fix
+            assert r.status == 400 and "click it in a view" in json.loads(r.read())["error"]
 
             # two tabs: each places one instance, then both nudge at once; no change is lost
             browser = launch_browser(pw)

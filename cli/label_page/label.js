@@ -12,6 +12,7 @@ let activeView = null;        // image id whose camera axes the keys use
 const drawn = {};             // instance -> pose_revision drawn
 let clickedAt = null;         // {instance, t0} of the last click, to time click -> outlines on screen
 let shownJob = 0;
+let pressedAt = null;         // where the last click began: pointer events have sub-pixel positions, clicks not
 
 function status(text, error = false) {
   const el = $("#status");
@@ -44,7 +45,9 @@ function buildViews() {
       `<svg viewBox="-0.5 -0.5 ${v.width} ${v.height}" preserveAspectRatio="none"></svg>` +
       `<span class="name">im ${v.image_id}</span>`;
     div.addEventListener("mouseenter", () => setActive(v.image_id));
-    div.querySelector("img.tint").addEventListener("click", (e) => clickView(e, v));
+    const tint = div.querySelector("img.tint");
+    tint.addEventListener("pointerdown", (e) => { pressedAt = [e.clientX, e.clientY]; });
+    tint.addEventListener("click", (e) => clickView(e, v));
     grid.appendChild(div);
   }
   const sel = $("#object");
@@ -68,8 +71,9 @@ function setActive(imageId) {
 
 async function clickView(e, v) {
   const r = e.target.getBoundingClientRect();
-  const u = (e.clientX - r.left) * v.width / r.width - 0.5;   // OpenCV: pixel centres at integers
-  const y = (e.clientY - r.top) * v.height / r.height - 0.5;
+  const [cx, cy] = pressedAt || [e.clientX, e.clientY];
+  const u = (cx - r.left) * v.width / r.width - 0.5;   // OpenCV: pixel centres at integers
+  const y = (cy - r.top) * v.height / r.height - 0.5;
   setActive(v.image_id);
   const obj = +$("#object").value;
   const t0 = performance.now();
