@@ -185,6 +185,7 @@ class LabelSession:
             raise AutoalignError(f"{models.folder}: no obj_XXXXXX.ply; pass a BOP models folder to --models")
         self.instances = {k: LabelledInstance(k) for k in indices}
         self.revision = 0
+        self.focus: int | None = None  # the instance last selected on a page (the 3D view's gizmo goes to it)
         self.job = JobState()
         self._lock = threading.RLock()
         self._changed = threading.Condition(self._lock)
@@ -268,7 +269,7 @@ class LabelSession:
                     "instances": [{**i.record(), "suggested_obj_id": self.suggested.get(i.index),
                                    "views": self.scene_of(i.index).image_ids}
                                   for i in self.instances.values()],
-                    "job": self.job.record()}
+                    "focus": self.focus, "job": self.job.record()}
 
     def scene_of(self, index: int) -> Scene:
         """The views and masks of instance ``index`` (other masks' pixels ignored)."""
@@ -421,6 +422,14 @@ class LabelSession:
             inst = self._placed(index) if decision == "accepted" else self._known(index)
             self.instances[index] = replace(inst, decision=decision)
             self._changed_now()
+
+    def focus_on(self, index: int) -> None:
+        """Note the instance a person selected on a page (not saved: it is where they look, not a label)."""
+        with self._lock:
+            self._known(index)
+            if self.focus != index:
+                self.focus = index
+                self._changed_now(save=False)
 
     def mark_symmetric(self, index: int, symmetric: bool) -> None:
         with self._lock:

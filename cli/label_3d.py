@@ -43,7 +43,7 @@ class SceneViewer:
         options = [str(k) for k in session.instances]
         self.choice = self.server.gui.add_dropdown("instance to move", options, initial_value=options[0])
         self.gizmo = self.server.scene.add_transform_controls("/gizmo", scale=0.08, visible=False)
-        self.choice.on_update(lambda _: self._place_gizmo())
+        self.choice.on_update(lambda _: self._chosen())
         self.gizmo.on_update(lambda event: self._dragged() if event.phase == "end" else None)  # on release
         self._thread = threading.Thread(target=self._follow, name="autoalign-3d", daemon=True)
         self._thread.start()
@@ -122,6 +122,10 @@ class SceneViewer:
     def _update(self) -> None:
         import viser.transforms as tf
 
+        focus = self.session.focus
+        if focus is not None and str(focus) != self.choice.value:
+            self.choice.value = str(focus)
+            self._place_gizmo()
         for k, inst in list(self.session.instances.items()):
             key = (inst.obj_id, inst.pose_revision)
             if not inst.placed or self._shown.get(k) == key:
@@ -136,6 +140,12 @@ class SceneViewer:
             self._shown[k] = key
             if str(k) == self.choice.value:
                 self._place_gizmo()
+
+    def _chosen(self) -> None:
+        """An instance chosen in the 3D view's panel: the gizmo goes to it, and it is the session's focus
+        (else the next change would send the panel back to the page's selection)."""
+        self.session.focus_on(int(self.choice.value))
+        self._place_gizmo()
 
     def _place_gizmo(self) -> None:
         import viser.transforms as tf

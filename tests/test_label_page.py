@@ -359,6 +359,13 @@ def test_3d_view_draws_the_session_and_its_gizmo_moves_the_object(labelled, tmp_
         np.testing.assert_allclose(mesh.position, T[:3, 3] / 1000.0, atol=1e-9)
         np.testing.assert_allclose(Rotation.from_quat(np.roll(mesh.wxyz, -1)).as_matrix(), T[:3, :3], atol=1e-9)
         centre = T[:3, :3] @ models.mesh(1).centre + T[:3, 3]
+        # the gizmo goes to the instance selected on the page (hidden while that one is not placed)
+        for index, visible in ((1, False), (0, True)):
+            session.focus_on(index)
+            t0 = time.monotonic()
+            while (viewer.choice.value != str(index) or viewer.gizmo.visible != visible) and time.monotonic() - t0 < 10:
+                time.sleep(0.05)
+            assert viewer.choice.value == str(index) and viewer.gizmo.visible == visible
         np.testing.assert_allclose(viewer.gizmo.position, centre / 1000.0, atol=1e-9)
         # a drag: 2 mm along world x and 10 degrees about world z, about the object's centre
         turn = Rotation.from_rotvec([0.0, 0.0, np.radians(10.0)])

@@ -131,6 +131,7 @@ function renderInstances() {
 }
 
 function select(index) {
+  if (selected !== index) post("/api/focus", {instance: index});   // the 3D view's gizmo follows
   selected = index;
   for (const d of document.querySelectorAll(".instance")) d.classList.toggle("selected", +d.dataset.index === index);
 }
