@@ -227,6 +227,9 @@ class LabelSession:
         try:
             for rec in data["instances"]:
                 inst = LabelledInstance.from_record(rec)
+                if inst.obj_id is not None and inst.obj_id not in self.object_ids:
+                    raise AutoalignError(f"{path}: instance {inst.index} is object {inst.obj_id}, which has no model "
+                                         f"in {self.models.folder}; pass the models the session was made with")
                 if inst.index in self.instances and inst.decision in DECISIONS:
                     self.instances[inst.index] = inst
             self.revision = int(data.get("revision", 0))
@@ -250,9 +253,12 @@ class LabelSession:
         self._changed.notify_all()
 
     def wait(self, since: int, timeout_s: float) -> int:
-        """Block until the revision passes ``since`` or ``timeout_s`` passed; the revision."""
+        """Block until the revision differs from ``since`` or ``timeout_s`` passed; the revision.
+
+        A ``since`` above the revision comes from a page that saw this session before the server
+        restarted (progress counts revisions that are not saved): it is answered at once."""
         with self._changed:
-            self._changed.wait_for(lambda: self.revision > since, timeout=timeout_s)
+            self._changed.wait_for(lambda: self.revision != since, timeout=timeout_s)
             return self.revision
 
     # ------------------------------------------------------------------ what the page shows

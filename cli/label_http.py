@@ -12,7 +12,7 @@ API (JSON; pixel coordinates are OpenCV's, in the views' resolution; errors are
 ``{"error": one line}`` with status 400, or 409 while another job runs):
 
 * ``GET /api/state?since=R``: the session (:meth:`LabelSession.snapshot`), as soon as its
-  revision passes ``R`` (at most :data:`POLL_S` later); ``viewer_url`` is the 3D view.
+  revision differs from ``R`` (at most :data:`POLL_S` later); ``viewer_url`` is the 3D view.
 * ``GET /api/contours/K``: instance K's silhouette outline per view, ``{pose_revision, contours}``.
 * ``GET /api/view/IM.jpg``, ``/api/tint/IM.png``: a view's photo (dark grey without one) and its
   masks tinted in the instances' colours (transparent elsewhere).

@@ -209,8 +209,12 @@ def _get(port: int, path: str, host: str = "127.0.0.1") -> tuple[int, bytes]:
 def test_restart_two_tabs_binding_and_paths(labelled, tmp_path):
     out = tmp_path / "session"
     (labelled.scene / "escape").symlink_to("/etc/hostname")
+    with socket.socket() as probe:  # a free port, so that the restarted server is where the open tab looks
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
     try:
-        with LabelServerProcess(labelled.scene, labelled.models, out) as server, sync_playwright() as pw:
+        with LabelServerProcess(labelled.scene, labelled.models, out, ("--port", str(port))) as server, \
+                sync_playwright() as pw:
             # listens on 127.0.0.1 only, the page and the 3D view alike
             assert _listening_address(server.port) == "127.0.0.1"
             viewer_url = json.loads(_get(server.port, "/api/state")[1])["viewer_url"]
@@ -265,22 +269,23 @@ def test_restart_two_tabs_binding_and_paths(labelled, tmp_path):
             tab_b.wait_for_selector('.instance[data-index="0"][data-decision="accepted"]')
             tab_a.wait_for_selector('.instance[data-index="1"][data-decision="accepted"]')
             saved = json.loads((out / "session.json").read_text())
-            browser.close()
             assert server.stop(signal.SIGKILL) == -signal.SIGKILL  # pulled the plug: no chance to save anything
+            tab_a.wait_for_function("document.querySelector('#status').textContent.startsWith('lost the server')")
 
-        # restart on the same session: everything accepted is there, at the same poses
-        with LabelServerProcess(labelled.scene, labelled.models, out, ("--no-3d",)) as server, \
-                sync_playwright() as pw:
-            browser = launch_browser(pw)
-            page = open_page(browser, server.url, N_VIEWS)
-            page.wait_for_selector('.instance[data-index="0"][data-decision="accepted"]')
-            page.wait_for_selector('.instance[data-index="1"][data-decision="accepted"]')
-            wait_drawn(page, 0, 10)
-            wait_drawn(page, 1, 10)
-            state = page.evaluate("fetch('/api/state').then(r => r.json())")
-            for inst in saved["instances"]:
-                again = next(i for i in state["instances"] if i["index"] == inst["index"])
-                assert again["T_wm"] == inst["T_wm"] and again["decision"] == inst["decision"] == "accepted"
+            # restart on the same session and port: the open tab finds it again, and a new one too;
+            # everything accepted is there, at the same poses
+            with LabelServerProcess(labelled.scene, labelled.models, out, ("--port", str(port), "--no-3d")):
+                tab_a.wait_for_function("!document.querySelector('#status').textContent.startsWith('lost')")
+                page = open_page(browser, f"http://127.0.0.1:{port}/", N_VIEWS)
+                for tab in (tab_a, page):
+                    tab.wait_for_selector('.instance[data-index="0"][data-decision="accepted"]')
+                    tab.wait_for_selector('.instance[data-index="1"][data-decision="accepted"]')
+                wait_drawn(page, 0, 10)
+                wait_drawn(page, 1, 10)
+                state = page.evaluate("fetch('/api/state').then(r => r.json())")
+                for inst in saved["instances"]:
+                    again = next(i for i in state["instances"] if i["index"] == inst["index"])
+                    assert again["T_wm"] == inst["T_wm"] and again["decision"] == inst["decision"] == "accepted"
             browser.close()
     finally:
         (labelled.scene / "escape").unlink()
