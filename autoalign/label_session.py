@@ -50,6 +50,7 @@ DECISIONS = ("open", "accepted", "rejected")
 CONTOUR_EPS_PX = 0.5
 """Contours are simplified (Douglas-Peucker) to within this many pixels before they go to the page."""
 WORST_VIEWS = 3
+UNDO_STEPS = 50
 SESSION_KIND = "autoalign label session"
 
 
@@ -192,6 +193,7 @@ class LabelSession:
         self._render = threading.Lock()
         self._rasterizers: dict[int, SoftSilhouetteRasterizer] = {}
         self._contours: dict[int, tuple[int, dict[int, list[list[list[float]]]]]] = {}
+        self._undo: dict[int, list[LabelledInstance]] = {}  # per instance, its states before its last moves
         self._load()
 
     # ------------------------------------------------------------------ reading and saving
@@ -365,9 +367,26 @@ class LabelSession:
                                weakly_observed=[] if u is None else list(u.weak))
             if source == "click":
                 changes["decision"] = "open"
+            if inst.placed:
+                self._undo.setdefault(index, []).append(inst)
+                del self._undo[index][:-UNDO_STEPS]
             self.instances[index] = replace(inst, **changes)
             self._contours[index] = (inst.pose_revision + 1, polys)
             self._changed_now()
+
+    def undo(self, index: int) -> None:
+        """Put instance ``index`` back where it was before its last move (with what autoalign said of
+        it there); its decision stays. Kept for the last :data:`UNDO_STEPS` moves while the server runs."""
+        with self._render:
+            with self._lock:
+                if not self._undo.get(index):
+                    raise AutoalignError(f"instance {index}: nothing to undo")
+                before = self._undo[index].pop()
+                now = self._known(index)
+                self.instances[index] = replace(before, decision=now.decision, symmetric=now.symmetric,
+                                                pose_revision=now.pose_revision + 1)
+                self._contours.pop(index, None)
+                self._changed_now()
 
     def _verdict(self, index: int, obj_id: int, result: RefineResult) -> Any:
         from autoalign.scene_refine import verdict_of

@@ -40,7 +40,8 @@ outputs (OUT_DIR, default SCENE_DIR/label_session):
 
 keys on the page (the selected instance, in the axes of the view last clicked or hovered):
   arrows move 1 mm in the image plane, PageUp/PageDown along the view, q/e w/s a/d turn 1 degree
-  about the view's z / x / y axis; with Shift 5x; r refine from here, Enter accept, Delete reject
+  about the view's z / x / y axis; with Shift 5x; r refine from here, Ctrl+Z undo the last move,
+  Enter accept, Delete reject
 
 The server listens on 127.0.0.1 only (a free port unless --port) and serves files from the scene
 and models folders only. Stop it with Ctrl-C (exit status 130); nothing accepted is lost."""

@@ -20,7 +20,8 @@ API (JSON; pixel coordinates are OpenCV's, in the views' resolution; errors are
 * ``POST /api/place`` ``{obj_id, image_id, u, v}``; ``/api/refine`` ``{instance}``;
   ``/api/export``: start the job (202); its progress is in the state's ``job``.
 * ``POST /api/nudge`` ``{instance, image_id, move_mm: [3], turn_deg: [3]}`` (camera axes);
-  ``/api/decide`` ``{instance, decision}``; ``/api/symmetric`` ``{instance, symmetric}``;
+  ``/api/undo`` ``{instance}`` (back to before its last move); ``/api/decide`` ``{instance, decision}``;
+  ``/api/symmetric`` ``{instance, symmetric}``;
   ``/api/focus`` ``{instance}`` (the instance selected on the page: the 3D view's gizmo goes to it).
 """
 
@@ -238,6 +239,8 @@ class LabelHandler(BaseHTTPRequestHandler):
                     list(body.get("turn_deg", [0, 0, 0])))
         elif path == "/api/decide":
             s.decide(int(body["instance"]), str(body["decision"]))
+        elif path == "/api/undo":
+            s.undo(int(body["instance"]))
         elif path == "/api/focus":
             s.focus_on(int(body["instance"]))
         elif path == "/api/symmetric":

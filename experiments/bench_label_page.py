@@ -71,7 +71,8 @@ def measure(root: Path, n_obj: int, n_views: int, open_3d: bool, truth: list[np.
             err = pose_errors(np.array(inst["T_wm"]), truth[k], models.mesh(k + 1).centre, None,
                               symmetries(models, k + 1))
             rows.append({"object": k + 1, "view": im, "click_to_outlines_s": ms / 1000.0,
-                         "server_job_s": state["job"]["seconds"], "verdict": inst["verdict"], "reasons": inst["reasons"],
+                         "server_job_s": state["job"]["seconds"], "verdict": inst["verdict"],
+                         "reasons": inst["reasons"],
                          "error_mm": err.pos_err_mm, "error_deg": err.rot_err_deg,
                          "outlined_views": page.evaluate(
                              f"new Set([...document.querySelectorAll('polyline[data-instance=\"{k}\"]')]"

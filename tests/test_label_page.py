@@ -131,6 +131,12 @@ def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
         assert nudged["verdict"] is None and nudged["source"] == "nudge"
         page.screenshot(path=str(shots / "3-nudged.png"))
 
+        # Ctrl+Z undoes the last nudge
+        page.keyboard.press("Control+z")
+        rev = wait_drawn(page, 0, rev)
+        undone = session_instance(out, 0)
+        np.testing.assert_allclose(np.array(undone["T_wm"])[:3, 3] - T0[:3, 3], R_w2c.T @ [2.0, 0.0, 0.0], atol=1e-6)
+
         # refine from here (key r): back on the object
         page.keyboard.press("r")
         wait_drawn(page, 0, rev)

@@ -230,6 +230,7 @@ document.addEventListener("keydown", async (e) => {
   if (selected === null || e.target.tagName === "SELECT" || e.target.tagName === "INPUT") return;
   const key = e.key.length === 1 ? e.key.toLowerCase() : e.key;
   if (key === "r") { e.preventDefault(); return act(selected, "refine"); }
+  if (key === "z" && (e.ctrlKey || e.metaKey)) { e.preventDefault(); return post("/api/undo", {instance: selected}); }
   if (key === "Enter") { e.preventDefault(); return act(selected, "accept"); }
   if (key === "Delete") { e.preventDefault(); return act(selected, "reject"); }
   const m = KEY_MOVES[key];
