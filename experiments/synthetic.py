@@ -339,7 +339,8 @@ def raycast_visible_masks(meshes: Sequence[Mesh], poses: Sequence[ArrayLike],
     return out
 
 
-def _objects_scene(meshes: Sequence[Mesh], poses: Sequence[ArrayLike]) -> tuple[o3d.t.geometry.RaycastingScene, list[int]]:
+def _objects_scene(meshes: Sequence[Mesh],
+                   poses: Sequence[ArrayLike]) -> tuple[o3d.t.geometry.RaycastingScene, list[int]]:
     scene = o3d.t.geometry.RaycastingScene()
     ids = [scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(transform_points(T, m.vertices), np.float32)),
                                o3d.core.Tensor(np.ascontiguousarray(m.faces, np.uint32)))
