@@ -30,6 +30,8 @@ def test_wheel_holds_only_the_autoalign_namespace(tmp_path: Path) -> None:
     for sub in SUBPACKAGES:
         assert f"autoalign/{sub}/__init__.py" in names
     assert "autoalign/data/example/scene/scene_camera.json" in names
+    for page in ("index.html", "label.js", "label.css"):  # autoalign label's page
+        assert f"autoalign/cli/label_page/{page}" in names
     entry = next(n for n in names if n.endswith("entry_points.txt"))
     assert "autoalign = autoalign.cli.main:entry" in zipfile.ZipFile(whl).read(entry).decode()
 
