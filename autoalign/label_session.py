@@ -42,6 +42,8 @@ from autoalign.models import ModelSet
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 from autoalign.se3 import make_pose, so3_exp
 from autoalign.seeding import Click
+from autoalign.uncertainty import Uncertainty
+from autoalign.verdict import Verdict, judge
 
 Progress = Callable[[str, int, int], None]
 
@@ -345,22 +347,21 @@ class LabelSession:
         return {im: float(x) for im, x in zip(scene.image_ids, hard_ious(rast, scene, T_wm))}
 
     def _store_pose(self, index: int, obj_id: int, T_wm: NDArray[np.float64], source: str,
-                    result: RefineResult | None = None) -> None:
-        """Set the pose (and, after a refinement, its verdict), render its contours, save."""
+                    judged: tuple[Verdict, Uncertainty | None] | None = None) -> None:
+        """Set the pose (and, after a refinement, its verdict and uncertainty), render its contours, save."""
         T_wm = np.asarray(T_wm, dtype=np.float64)
         ious = self._fit(index, obj_id, T_wm)
         polys = self._render_contours(obj_id, T_wm)
-        verdict = None if result is None else self._verdict(index, obj_id, result)
         with self._lock:
             inst = self.instances[index]
             changes: dict[str, Any] = {"obj_id": obj_id, "T_wm": T_wm, "source": source, "ious": ious,
                                        "pose_revision": inst.pose_revision + 1}
-            if result is None:  # what the last refinement said no longer holds for this pose
+            if judged is None:  # what the last refinement said no longer holds for this pose
                 changes.update(verdict=None, reasons=["moved by hand since the last refinement: refine from here "
                                                       "to judge it"], sigma_mm=None, sigma_deg=None,
                                weakly_observed=[])
             else:
-                u = result.uncertainty
+                verdict, u = judged
                 changes.update(verdict=verdict.status, reasons=list(verdict.reasons),
                                sigma_mm=None if u is None else [float(x) for x in u.sigma_mm],
                                sigma_deg=None if u is None else [float(x) for x in u.sigma_deg],
@@ -388,10 +389,11 @@ class LabelSession:
                 self._contours.pop(index, None)
                 self._changed_now()
 
-    def _verdict(self, index: int, obj_id: int, result: RefineResult) -> Any:
+    def _judged(self, index: int, obj_id: int, result: RefineResult) -> tuple[Verdict, Uncertainty | None]:
+        """The verdict on a refinement of instance ``index`` (as ``refine`` gives it) and its uncertainty."""
         from autoalign.scene_refine import verdict_of
 
-        return verdict_of(result, self.scene_of(index).empty, self.models, obj_id)
+        return verdict_of(result, self.scene_of(index).empty, self.models, obj_id), result.uncertainty
 
     # ------------------------------------------------------------------ what a person does
 
@@ -405,7 +407,7 @@ class LabelSession:
         with self._render:
             result = refine(self.scene_of(index), self.models.mesh(obj_id), Click(image_id, float(iu), float(iv)),
                             self.options, progress=progress)
-            self._store_pose(index, obj_id, result.T_wm, "click", result)
+            self._store_pose(index, obj_id, result.T_wm, "click", self._judged(index, obj_id, result))
         return index
 
     def refine_from_here(self, index: int, progress: Progress | None = None) -> None:
@@ -414,7 +416,30 @@ class LabelSession:
             inst = self._placed(index)
             result = refine(self.scene_of(index), self.models.mesh(inst.obj_id), inst.T_wm.copy(), self.options,
                             progress=progress)
-            self._store_pose(index, inst.obj_id, result.T_wm, "refine", result)
+            self._store_pose(index, inst.obj_id, result.T_wm, "refine", self._judged(index, inst.obj_id, result))
+
+    def refine_together(self, progress: Progress | None = None) -> None:
+        """Refine every placed instance that is not rejected together, occlusion-aware
+        (:func:`~autoalign.joint_refine.refine_jointly`: in each view a pixel belongs to the nearest
+        of their surfaces, so the contour between two objects moves with both), and judge each."""
+        from autoalign.joint_refine import refine_jointly
+
+        with self._render:
+            with self._lock:
+                chosen = [i for i in self.instances.values() if i.placed and i.decision != "rejected"]
+            if len(chosen) < 2:
+                raise AutoalignError("refining together needs two or more placed instances that are not rejected; "
+                                     "place more, or refine the one from where it is")
+            scenes = [self.scene_of(i.index) for i in chosen]
+            together = replace(self.found, instances=[Instance(i.index, i.obj_id) for i in chosen], scenes=scenes)
+            joint = refine_jointly(together, [self.models.mesh(i.obj_id) for i in chosen], [i.T_wm for i in chosen],
+                                   robust=self.options.robust, progress=progress)
+            for k, (inst, scene) in enumerate(zip(chosen, scenes)):
+                unc = joint.uncertainties[k]
+                verdict = judge(joint.evaluation.hard_iou(k), joint.evaluation.weights[k], scene.image_ids,
+                                scene.empty, False, self.models.symmetric(inst.obj_id), unc,
+                                self.models.continuous_axes(inst.obj_id), None)
+                self._store_pose(inst.index, inst.obj_id, joint.poses[k], "together", (verdict, unc))
 
     def nudge(self, index: int, image_id: int, move_mm: list[float], turn_deg: list[float]) -> None:
         """Move instance ``index`` by ``move_mm`` and turn it by ``turn_deg`` (rotation vector) about

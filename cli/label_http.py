@@ -17,8 +17,9 @@ API (JSON; pixel coordinates are OpenCV's, in the views' resolution; errors are
 * ``GET /api/view/IM.jpg``, ``/api/tint/IM.png``: a view's photo (dark grey without one) and its
   masks tinted in the instances' colours (transparent elsewhere).
 * ``GET /files/scene/PATH``, ``/files/models/PATH``: files of those folders.
-* ``POST /api/place`` ``{obj_id, image_id, u, v}``; ``/api/refine`` ``{instance}``;
-  ``/api/export``: start the job (202); its progress is in the state's ``job``.
+* ``POST /api/place`` ``{obj_id, image_id, u, v}``; ``/api/refine`` ``{instance}``; ``/api/refine_all``
+  (every placed instance not rejected, together, occlusion-aware); ``/api/export``: start the job
+  (202); its progress is in the state's ``job``.
 * ``POST /api/nudge`` ``{instance, image_id, move_mm: [3], turn_deg: [3]}`` (camera axes);
   ``/api/undo`` ``{instance}`` (back to before its last move); ``/api/decide`` ``{instance, decision}``;
   ``/api/symmetric`` ``{instance, symmetric}``;
@@ -227,6 +228,8 @@ class LabelHandler(BaseHTTPRequestHandler):
                 s.refine_from_here(index, progress)
 
             return self._job("refine", index, polish)
+        if path == "/api/refine_all":
+            return self._job("refine together", None, s.refine_together)
         if path == "/api/export":
             from autoalign.cli.label import export_session
 

@@ -160,6 +160,10 @@ def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
         assert session_instance(out, 0)["decision"] == "accepted"
         page.screenshot(path=str(shots / "5-accepted.png"))
 
+        # refining together needs two instances that are not rejected: said on the page
+        page.click("#refine-all")
+        page.wait_for_function("document.querySelector('#status').textContent.includes('needs two or more')")
+
         page.click("#export")
         state = wait_job_done(page)
         assert state["job"]["kind"] == "export" and state["job"]["error"] is None, state["job"]
@@ -390,3 +394,28 @@ def test_3d_view_draws_the_session_and_its_gizmo_moves_the_object(labelled, tmp_
         assert moved.source == "3d" and moved.verdict is None
     finally:
         viewer.stop()
+
+
+def test_refine_together_puts_moved_instances_back_and_keeps_decisions(labelled, tmp_path):
+    """In-process: two placed instances, one moved 3 mm and turned 3 degrees by hand; refining them
+    together (occlusion-aware) brings both within 1 mm / 1 degree, judged, their decisions kept."""
+    from autoalign.label_session import LabelSession
+
+    models = ModelSet.read(labelled.models)
+    session = LabelSession(labelled.scene, models, tmp_path / "session")
+    for k, obj, im in ((0, 1, 0), (1, 2, 5)):
+        col, row = mask_pixel(mask_of(labelled.scene, im, k))
+        session.place(obj, im, col, row)
+    session.decide(1, "accepted")
+    session.nudge(0, 0, [3.0, 0.0, 0.0], [0.0, 3.0, 0.0])
+    mm, deg = pose_error(session.instances[0].T_wm, labelled.truth[0], models.mesh(1).centre)
+    assert mm > 2.5 and deg > 2.5
+    session.refine_together()
+    for k in (0, 1):
+        inst = session.instances[k]
+        mm, deg = pose_error(inst.T_wm, labelled.truth[k], models.mesh(k + 1).centre)
+        assert mm < 1.0 and deg < 1.0, (k, mm, deg)
+        assert inst.source == "together" and inst.verdict == "ok" and inst.sigma_mm is not None
+    assert session.instances[1].decision == "accepted" and session.instances[0].decision == "open"
+    saved = json.loads((tmp_path / "session" / "session.json").read_text())
+    assert [i["source"] for i in saved["instances"]] == ["together", "together"]

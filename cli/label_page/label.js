@@ -178,7 +178,7 @@ function showJob() {
                           (j.total ? ` ${j.done}/${j.total}` : "") + ` (${j.seconds.toFixed(1)} s)`); return; }
   if (j.error) { if (shownJob !== j.number) status(`${j.kind} failed: ${j.error}`, true); }
   else if (j.kind === "export") status(`exported to ${state.out_dir}/bop`);
-  else status(`${j.kind} instance ${j.instance}: done in ${j.seconds.toFixed(1)} s`);
+  else status(`${j.kind}${j.instance != null ? " instance " + j.instance : ""}: done in ${j.seconds.toFixed(1)} s`);
   shownJob = j.number;
 }
 
@@ -243,6 +243,10 @@ document.addEventListener("keydown", async (e) => {
 });
 
 $("#tile").addEventListener("input", (e) => $("#views").style.setProperty("--tile", `${e.target.value}px`));
+
+$("#refine-all").addEventListener("click", async () => {
+  if (await post("/api/refine_all", {})) status("refining all together…");
+});
 
 $("#export").addEventListener("click", async () => {
   if (await post("/api/export", {})) status("exporting…");
