@@ -22,23 +22,15 @@ import tempfile
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from autoalign.atomic_files import write_json_atomic, write_text_atomic
 from autoalign.experiments.bench_scene import make_bench_scene, symmetries
 from autoalign.experiments.metrics import pose_errors
-from autoalign.experiments.label_page_driver import (LabelServerProcess, click_view, launch_browser, mask_pixel,
-                                                     open_page, wait_drawn, wait_job_done)
+from autoalign.experiments.label_page_driver import LabelServerProcess, launch_browser, open_page, place_in_largest_view
 from autoalign.models import ModelSet
 
 RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def _largest_view(scene: Path, k: int, n_views: int) -> tuple[int, np.ndarray]:
-    masks = [(im, cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 0) for im in range(n_views)
-             if (p := scene / "mask_visib" / f"{im:06d}_{k:06d}.png").is_file()]
-    return max(masks, key=lambda x: int(x[1].sum()))
 
 
 def measure(root: Path, n_obj: int, n_views: int, open_3d: bool, truth: list[np.ndarray]) -> list[dict]:
@@ -55,22 +47,11 @@ def measure(root: Path, n_obj: int, n_views: int, open_3d: bool, truth: list[np.
             page.click("#viewer-box summary")
             page.frame_locator("#viewer").locator("canvas").first.wait_for(timeout=60_000)
         for k in range(n_obj):
-            im, mask = _largest_view(root / "scene", k, n_views)
-            page.select_option("#object", str(k + 1))
-            page.evaluate("delete document.body.dataset.clickToContoursMs")
-            col, row = mask_pixel(mask)
-            click_view(page, im, col, row, 640, 480)
-            try:
-                wait_drawn(page, k)
-            except Exception:
-                raise RuntimeError(f"object {k + 1}: no outlines; the page says {page.inner_text('#status')!r}")
-            page.wait_for_function("document.body.dataset.clickToContoursMs !== undefined")
-            ms = float(page.evaluate("document.body.dataset.clickToContoursMs"))
-            state = wait_job_done(page)
-            inst = next(i for i in state["instances"] if i["index"] == k)
+            placed = place_in_largest_view(page, root / "scene", k, k + 1)
+            im, state, inst = placed.image_id, placed.state, placed.instance(k)
             err = pose_errors(np.array(inst["T_wm"]), truth[k], models.mesh(k + 1).centre, None,
                               symmetries(models, k + 1))
-            rows.append({"object": k + 1, "view": im, "click_to_outlines_s": ms / 1000.0,
+            rows.append({"object": k + 1, "view": im, "click_to_outlines_s": placed.click_to_outlines_s,
                          "server_job_s": state["job"]["seconds"], "verdict": inst["verdict"],
                          "reasons": inst["reasons"],
                          "error_mm": err.pos_err_mm, "error_deg": err.rot_err_deg,

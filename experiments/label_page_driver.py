@@ -142,3 +142,41 @@ def wait_job_done(page: Any, number: int | None = None, timeout_s: float = 120.0
         + (f" && s.job.number >= {number}" if number is not None else "") + ")", timeout=timeout_s * 1000,
         polling=250)
     return page.evaluate("fetch('/api/state').then(r => r.json())")
+
+
+@dataclass
+class Placement:
+    """One click of :func:`place_in_largest_view`: the view clicked, the time from the click to the
+    outlines on screen (s, measured in the page), and the session's state once the job ended."""
+
+    image_id: int
+    click_to_outlines_s: float
+    state: dict
+
+    def instance(self, index: int) -> dict:
+        return next(i for i in self.state["instances"] if i["index"] == index)
+
+
+def place_in_largest_view(page: Any, scene: Path, index: int, obj_id: int) -> Placement:
+    """Choose ``obj_id`` and click instance ``index`` in the view where its mask is largest (a pixel
+    well inside it); wait for its outlines and for the job to end."""
+    import cv2
+
+    state = page.evaluate("fetch('/api/state').then(r => r.json())")
+    sizes = {v["image_id"]: (v["width"], v["height"]) for v in state["views"]}
+    views = [(im, cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 0) for im in sizes
+             if (p := scene / "mask_visib" / f"{im:06d}_{index:06d}.png").is_file()]
+    im, mask = max(views, key=lambda v: int(v[1].sum()))
+    w, h = sizes[im]  # the masks may have been downscaled on reading: click in the views' resolution
+    mask = cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+    page.select_option("#object", str(obj_id))
+    page.evaluate("delete document.body.dataset.clickToContoursMs")
+    col, row = mask_pixel(mask)
+    click_view(page, im, col, row, w, h)
+    try:
+        wait_drawn(page, index)
+    except Exception:
+        raise RuntimeError(f"instance {index}: no outlines; the page says {page.inner_text('#status')!r}") from None
+    page.wait_for_function("document.body.dataset.clickToContoursMs !== undefined")
+    ms = float(page.evaluate("document.body.dataset.clickToContoursMs"))
+    return Placement(im, ms / 1000.0, wait_job_done(page))

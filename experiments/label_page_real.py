@@ -13,17 +13,14 @@ from __future__ import annotations
 import argparse
 import json
 import tempfile
-import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from autoalign.atomic_files import write_json_atomic, write_text_atomic
 from autoalign.bop import read_cameras
 from autoalign.experiments.bench_scene import symmetries
-from autoalign.experiments.label_page_driver import (LabelServerProcess, click_view, launch_browser, mask_pixel,
-                                                     open_page, wait_drawn, wait_job_done)
+from autoalign.experiments.label_page_driver import LabelServerProcess, launch_browser, open_page, place_in_largest_view
 from autoalign.experiments.metrics import pose_errors
 from autoalign.experiments.shared_data import REAL_SCENES
 from autoalign.models import ModelSet
@@ -42,30 +39,17 @@ def label_scene(scene: Path, out: Path, shot: Path) -> list[dict]:
         browser = launch_browser(pw)
         page = open_page(browser, server.url, len(read_cameras(scene)))
         state = page.evaluate("fetch('/api/state').then(r => r.json())")
-        sizes = {v["image_id"]: (v["width"], v["height"]) for v in state["views"]}
         for inst in state["instances"]:
             obj = inst["suggested_obj_id"]
             if str(obj) not in group:
                 continue
-            views = [(im, cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 0) for im in inst["views"]
-                     if (p := scene / "mask_visib" / f"{im:06d}_{inst['index']:06d}.png").is_file()]
-            im, mask = max(views, key=lambda v: int(v[1].sum()))
-            w, h = sizes[im]
-            mask = cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
-            page.select_option("#object", str(obj))
-            page.evaluate("delete document.body.dataset.clickToContoursMs")
-            col, row = mask_pixel(mask)
-            t0 = time.perf_counter()
-            click_view(page, im, col, row, w, h)
-            wait_drawn(page, inst["index"])
-            page.wait_for_function("document.body.dataset.clickToContoursMs !== undefined")
-            done = wait_job_done(page)
-            after = next(i for i in done["instances"] if i["index"] == inst["index"])
+            placed = place_in_largest_view(page, scene, inst["index"], obj)
+            after = placed.instance(inst["index"])
             err = pose_errors(np.array(after["T_wm"]), np.array(group[str(obj)]), models.mesh(obj).centre, None,
                               symmetries(models, obj))
-            rows.append({"scene": scene.name, "obj_id": obj, "view": im, "views": len(inst["views"]),
-                         "click_to_outlines_s": float(page.evaluate("document.body.dataset.clickToContoursMs")) / 1e3,
-                         "wall_s": time.perf_counter() - t0, "error_mm": err.pos_err_mm, "error_deg": err.rot_err_deg,
+            rows.append({"scene": scene.name, "obj_id": obj, "view": placed.image_id, "views": len(inst["views"]),
+                         "click_to_outlines_s": placed.click_to_outlines_s,
+                         "error_mm": err.pos_err_mm, "error_deg": err.rot_err_deg,
                          "verdict": after["verdict"], "median_iou": after["median_iou"], "reasons": after["reasons"]})
             print(json.dumps(rows[-1]), flush=True)
         page.evaluate("window.scrollTo(0, 0)")
