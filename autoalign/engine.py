@@ -359,8 +359,8 @@ def _seed(scene: Scene, mesh: Mesh, seed: Seed, opts: RefineOptions, search: Sof
     poses = poses_at(rotation_grid(opts.n_rotations), centre, mesh.centre)
     if progress is not None:
         progress("scoring orientations", 0, 1)
-    top = best_poses(search, scene, poses, opts.n_coarse)
-    starts = list(polish_poses(search, scene, top, opts.polish_deg))
+    top = best_poses(search, scene, poses, opts.n_coarse, anchor=centre)
+    starts = list(polish_poses(search, scene, top, opts.polish_deg, anchor=centre))
     if progress is not None:
         progress("scoring orientations", 1, 1)
     return starts
