@@ -116,9 +116,11 @@ def _from_instances_file(path: Path) -> list[Instance]:
     return sorted(out, key=lambda i: i.index)
 
 
-def read_instance_scenes(scene_dir: str | Path, instances: list[Instance],
+def read_instance_scenes(scene_dir: str | Path, instances: list[Instance] | None,
                          max_pixels: int | None = MAX_IMAGE_PIXELS) -> InstanceScenes:
-    """Cameras and every mask of ``scene_dir``, as one :class:`Scene` per instance (see module doc)."""
+    """Cameras and every mask of ``scene_dir``, as one :class:`Scene` per instance (see module doc).
+    ``instances=None``: every instance number with a non-empty mask, its object not known yet
+    (``obj_id`` 0, for ``autoalign label``, where a person says which object it is)."""
     scene_dir = check_scene_dir(scene_dir)
     cams = read_cameras(scene_dir)
     check_masks_have_cameras(scene_dir, set(cams))
@@ -132,6 +134,8 @@ def read_instance_scenes(scene_dir: str | Path, instances: list[Instance],
     for (im, _), m in read.masks.items():
         claimed[im] = m | claimed[im] if im in claimed else m.copy()
     pos = {im: i for i, im in enumerate(ids)}
+    if instances is None:
+        instances = [Instance(k, 0) for k in sorted({k for _, k in read.masks})]
     scenes = []
     for inst in instances:
         views = [im for im in ids if (im, inst.index) in read.masks]

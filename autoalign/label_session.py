@@ -33,12 +33,13 @@ from numpy.typing import NDArray
 
 from autoalign import __version__
 from autoalign.atomic_files import write_bytes_atomic
-from autoalign.bop import Scene, mask_files, read_json_file, read_masks, scene_gt_of
+from autoalign.bop import Scene, read_json_file, scene_gt_of
 from autoalign.camera import Camera, uv_from_opencv
-from autoalign.engine import RefineOptions, RefineResult, hard_ious, refine
+from autoalign.engine import RefineOptions, RefineResult, refine
 from autoalign.errors import AutoalignError
 from autoalign.instances import Instance, InstanceScenes, read_instance_scenes, read_instances
 from autoalign.models import ModelSet
+from autoalign.overlap import mask_iou
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 from autoalign.se3 import make_pose, so3_exp
 from autoalign.seeding import Click
@@ -177,11 +178,11 @@ class LabelSession:
                  options: RefineOptions | None = None) -> None:
         self.scene_dir, self.models, self.out_dir = Path(scene_dir), models, Path(out_dir)
         self.options = options or RefineOptions()
-        indices = sorted({k for (_, k) in read_masks(mask_files(self.scene_dir)).masks})
+        self.found: InstanceScenes = read_instance_scenes(self.scene_dir, None)
+        indices = [i.index for i in self.found.instances]
         if not indices:
             raise AutoalignError(f"{self.scene_dir / 'mask_visib'}: no non-empty instance mask; label a scene with "
                                  "masks (a segmenter's, or 'autoalign recon --propose')")
-        self.found: InstanceScenes = read_instance_scenes(self.scene_dir, [Instance(k, 0) for k in indices])
         self.suggested = self._suggested_objects(instances_file)
         self.object_ids = sorted(int(p.stem[4:]) for p in models.folder.glob("obj_*.ply") if p.stem[4:].isdigit())
         if not self.object_ids:
@@ -323,7 +324,7 @@ class LabelSession:
                 rev, T, obj = inst.pose_revision, inst.T_wm, inst.obj_id
             if not inst.placed:
                 return rev, {}
-            polys = self._render_contours(obj, T)
+            polys = self._outlines(self._silhouettes(obj, T))
         with self._lock:
             if self.instances[index].pose_revision == rev:
                 self._contours[index] = (rev, polys)
@@ -336,22 +337,27 @@ class LabelSession:
             self._rasterizers[obj_id] = SoftSilhouetteRasterizer(self.models.mesh(obj_id))
         return self._rasterizers[obj_id]
 
-    def _render_contours(self, obj_id: int, T_wm: NDArray[np.float64]) -> dict[int, list[list[list[float]]]]:
-        sil = self._rasterizer(obj_id).hard_masks(T_wm, self.views)
-        return {im: contour_polylines(m) for im, m in zip(self.image_ids, sil) if m.any()}
+    def _silhouettes(self, obj_id: int, T_wm: NDArray[np.float64]) -> dict[int, NDArray[np.bool_]]:
+        """The object's ray-cast silhouette at ``T_wm`` in every view, by image id."""
+        return dict(zip(self.image_ids, self._rasterizer(obj_id).hard_masks(T_wm, self.views)))
 
-    def _fit(self, index: int, obj_id: int, T_wm: NDArray[np.float64]) -> dict[int, float]:
-        """Per-view hard IoU of the silhouette at ``T_wm`` with the instance's masks, by image id."""
+    @staticmethod
+    def _outlines(silhouettes: dict[int, NDArray[np.bool_]]) -> dict[int, list[list[list[float]]]]:
+        return {im: contour_polylines(m) for im, m in silhouettes.items() if m.any()}
+
+    def _fit(self, index: int, silhouettes: dict[int, NDArray[np.bool_]]) -> dict[int, float]:
+        """Per-view hard IoU of the silhouettes with instance ``index``'s masks (the pixels other masks
+        claim left out, as :func:`~autoalign.engine.hard_ious`), by image id."""
         scene = self.scene_of(index)
-        rast = self._rasterizer(obj_id)
-        return {im: float(x) for im, x in zip(scene.image_ids, hard_ious(rast, scene, T_wm))}
+        return {im: mask_iou(silhouettes[im], np.asarray(t) > 0.5, scene.compared(k))
+                for k, (im, t) in enumerate(zip(scene.image_ids, scene.masks))}
 
     def _store_pose(self, index: int, obj_id: int, T_wm: NDArray[np.float64], source: str,
                     judged: tuple[Verdict, Uncertainty | None] | None = None) -> None:
         """Set the pose (and, after a refinement, its verdict and uncertainty), render its contours, save."""
         T_wm = np.asarray(T_wm, dtype=np.float64)
-        ious = self._fit(index, obj_id, T_wm)
-        polys = self._render_contours(obj_id, T_wm)
+        silhouettes = self._silhouettes(obj_id, T_wm)  # ray-cast once for the fit and the outlines
+        ious, polys = self._fit(index, silhouettes), self._outlines(silhouettes)
         with self._lock:
             inst = self.instances[index]
             changes: dict[str, Any] = {"obj_id": obj_id, "T_wm": T_wm, "source": source, "ious": ious,

@@ -77,14 +77,13 @@ def run_label(args: argparse.Namespace) -> int:
     preload("numpy", "cv2", "trimesh")  # extension modules, with Ctrl-C deferred
     from autoalign.bop import check_scene_dir
     from autoalign.cli.label_http import LabelServer
-    from autoalign.cli.main import warn
+    from autoalign.cli.main import check_outputs_spare_inputs, warn
     from autoalign.label_session import LabelSession
     from autoalign.models import ModelSet
 
     scene = check_scene_dir(args.scene)
     out = Path(args.out) if args.out else scene / "label_session"
-    if out.resolve() == scene.resolve():
-        raise AutoalignError(f"--out {out}: is the scene folder itself; choose another folder with --out")
+    check_outputs_spare_inputs(out, scene, [Path(args.instances)] if args.instances else [])
     if not 0 <= args.port < 65536:
         raise AutoalignError(f"--port {args.port}: a port is 0 (any free one) to 65535")
     models = ModelSet.read(args.models, args.units)
