@@ -7,7 +7,8 @@ the matches whose keypoints lie within ``MAX_MATCH_PX`` (10 px) of each other ar
 image distance of the kept matches is the feature distance: a label that puts the object where
 the photo shows it gives a small one (ProgressLabeller reports 1.95 px for its labels against
 2.28 px for the dataset's own on HOPE). Objects without texture give few matches and are flagged
-``too_few_matches`` instead of getting a number.
+``too_few_matches`` instead of getting a number. Every view also gets the outline-to-edge distance
+(:mod:`autoalign.edge_distance`), which needs no texture.
 
 Conventions (as the BOP files):
 
@@ -39,6 +40,10 @@ import trimesh
 from numpy.typing import NDArray
 
 from autoalign.bop import Label, mask_path, photo_path, read_cameras, read_labels, read_mask, read_photo
+from autoalign.edge_distance import (
+    BLUR_SIGMA_PX, CANNY_HIGH, CANNY_LOW, MAX_EDGE_PX, MIN_OUTLINE_PX, ORIENTATION_BINS, PhotoEdges,
+    outline_edge_distances, outline_pixels, photo_edges,
+)
 from autoalign.errors import AutoalignError
 from autoalign.overlap import mask_iou
 
@@ -103,6 +108,9 @@ class ViewInstanceCheck:
     hints at a translation error). ``bbox``: (u0, v0, u1, v1) pixel box (exclusive end) of the
     rendered visible silhouette dilated by ``BBOX_MARGIN_PX``, None when nothing is visible.
     ``matches``: (n, 4) float (u_render, v_render, u_photo, v_photo) of the kept matches (OpenCV px).
+    ``edge_px``: mean outline-to-edge distance (px, :mod:`autoalign.edge_distance`; None below
+    ``MIN_OUTLINE_PX`` outline pixels); ``edge_distances``: per outline pixel; ``outline_rc``: the
+    outline pixels (row, col).
     """
 
     image_id: int
@@ -118,6 +126,10 @@ class ViewInstanceCheck:
     n_render_keypoints: int = 0
     n_photo_keypoints: int = 0
     matches: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 4)), repr=False, compare=False)
+    edge_px: float | None = None
+    edge_distances: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0), repr=False, compare=False)
+    outline_rc: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), np.int64), repr=False,
+                                          compare=False)
 
     @property
     def distances_px(self) -> NDArray[np.float64]:
@@ -130,7 +142,8 @@ class ViewInstanceCheck:
                 "iou": _num(self.iou), "n_matches": self.n_matches, "mean_px": _num(self.mean_px),
                 "ci95": _pair(self.ci95), "offset_px": _pair(self.offset_px), "visible_px": self.visible_px,
                 "bbox": list(self.bbox) if self.bbox is not None else None,
-                "n_render_keypoints": self.n_render_keypoints, "n_photo_keypoints": self.n_photo_keypoints}
+                "n_render_keypoints": self.n_render_keypoints, "n_photo_keypoints": self.n_photo_keypoints,
+                "edge_px": _num(self.edge_px), "outline_px": int(len(self.edge_distances))}
 
 
 @dataclass
@@ -143,6 +156,8 @@ class InstanceSummary:
     only one view has any). ``views``: images where the instance is labelled; ``views_with_matches``:
     those with at least one kept match. ``median_iou``: over the views with a mask (None if none).
     ``offset_px``: mean (du, dv) photo minus rendering over the kept matches (px).
+    ``edge_px``: mean outline-to-edge distance (px) pooled over the views' outline pixels, with its
+    95% bootstrap interval over the views ``edge_ci95``; None when no view has an outline to judge.
     """
 
     instance: int
@@ -155,20 +170,26 @@ class InstanceSummary:
     too_few_matches: bool
     views_with_matches: int = 0
     offset_px: tuple[float, float] | None = None
+    edge_px: float | None = None
+    edge_ci95: tuple[float, float] | None = None
+    views_with_outline: int = 0
 
     def record(self) -> dict[str, Any]:
         """A JSON-ready dict."""
         return {"instance": self.instance, "obj_id": self.obj_id, "mean_px": _num(self.mean_px),
                 "ci95": _pair(self.ci95), "n_matches": self.n_matches, "views": self.views,
                 "views_with_matches": self.views_with_matches, "median_iou": _num(self.median_iou),
-                "too_few_matches": self.too_few_matches, "offset_px": _pair(self.offset_px)}
+                "too_few_matches": self.too_few_matches, "offset_px": _pair(self.offset_px),
+                "edge_px": _num(self.edge_px), "edge_ci95": _pair(self.edge_ci95),
+                "views_with_outline": self.views_with_outline}
 
 
 @dataclass
 class CheckReport:
     """The check of a scene: every (image, instance), the per-instance summaries, and the pooled
     mean feature distance (px) over the instances with enough matches, with its 95% bootstrap
-    interval over the (image, instance) views."""
+    interval over the (image, instance) views; ``edge_px`` / ``edge_ci95`` the same for the
+    outline-to-edge distance over every judged view."""
 
     scene_dir: Path
     labels_path: Path
@@ -181,6 +202,8 @@ class CheckReport:
     n_matches: int
     seed: int = 0
     warnings: list[str] = field(default_factory=list)
+    edge_px: float | None = None
+    edge_ci95: tuple[float, float] | None = None
 
     def record(self) -> dict[str, Any]:
         """The JSON-ready contents of ``check.json``."""
@@ -188,11 +211,15 @@ class CheckReport:
             "scene": str(self.scene_dir), "labels": str(self.labels_path), "models": str(self.models_dir),
             "image_ids": list(self.image_ids),
             "mean_px": _num(self.mean_px), "ci95": _pair(self.ci95), "n_matches": self.n_matches,
+            "edge_px": _num(self.edge_px), "edge_ci95": _pair(self.edge_ci95),
             "instances": [s.record() for s in self.instances],
             "views": [v.record() for v in self.views],
             "parameters": {"ratio_test": RATIO_TEST, "max_match_px": MAX_MATCH_PX, "bbox_margin_px": BBOX_MARGIN_PX,
                            "silhouette_margin_px": SILHOUETTE_MARGIN_PX, "upsample": UPSAMPLE, "min_matches": MIN_MATCHES,
-                           "n_bootstrap": N_BOOTSTRAP, "seed": self.seed},
+                           "n_bootstrap": N_BOOTSTRAP, "seed": self.seed,
+                           "canny_low": CANNY_LOW, "canny_high": CANNY_HIGH, "blur_sigma_px": BLUR_SIGMA_PX,
+                           "orientation_bins": ORIENTATION_BINS, "max_edge_px": MAX_EDGE_PX,
+                           "min_outline_px": MIN_OUTLINE_PX},
             "pixel_convention": "OpenCV/BOP: cam_K and keypoint positions put the centre of pixel (row i, col j) at (j, i)",
             "warnings": list(self.warnings),
         }
@@ -429,13 +456,15 @@ def bootstrap_pooled_ci(groups: Sequence[NDArray[np.float64]], rng: np.random.Ge
 
 def check_image(image_id: int, photo_bgr: NDArray[np.uint8], K: NDArray[np.float64], labels: Sequence[Label],
                 meshes: Mapping[int, ColouredMesh], masks: Mapping[int, NDArray[np.bool_]] | None = None,
-                seed: int = 0, photo_features: Features | None = None) -> tuple[Rendering, list[ViewInstanceCheck]]:
+                seed: int = 0, photo_features: Features | None = None,
+                edges: PhotoEdges | None = None) -> tuple[Rendering, list[ViewInstanceCheck]]:
     """Check every label of one image against its photo (BGR, OpenCV ``cam_K`` in px, poses in mm).
 
     ``masks``: instance -> visible mask (H, W) bool, for the IoU (instances without one get None).
     ``photo_features``: the photo's :func:`sift_features`, when already computed (several label
-    sets checked against one photo). Returns the rendering of all labels together and one
-    :class:`ViewInstanceCheck` per label.
+    sets checked against one photo); ``edges``: its :func:`autoalign.edge_distance.photo_edges`,
+    likewise. Returns the rendering of all labels together and one :class:`ViewInstanceCheck` per
+    label.
     """
     H, W = photo_bgr.shape[:2]
     K = np.asarray(K, dtype=np.float64).reshape(3, 3)
@@ -443,6 +472,7 @@ def check_image(image_id: int, photo_bgr: NDArray[np.uint8], K: NDArray[np.float
     rendering = render_labels(objects, K, W, H)
     render_feats = sift_features(cv2.cvtColor(rendering.rgb, cv2.COLOR_RGB2GRAY))
     photo_feats = photo_features if photo_features is not None else photo_sift(photo_bgr)
+    edge_maps = edges if edges is not None else photo_edges(photo_bgr)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * SILHOUETTE_MARGIN_PX + 1,) * 2)
     out = []
     for lab in labels:
@@ -453,6 +483,10 @@ def check_image(image_id: int, photo_bgr: NDArray[np.uint8], K: NDArray[np.float
             m = np.asarray(masks[lab.instance], dtype=bool)
             iou = mask_iou(m, sil) if (m | sil).any() else None
         check = ViewInstanceCheck(lab.image_id, lab.instance, lab.obj_id, iou, 0, None, visible_px=visible)
+        check.outline_rc = outline_pixels(rendering.instance, lab.instance)
+        check.edge_distances = outline_edge_distances(edge_maps, rendering.instance, lab.instance, check.outline_rc)
+        if len(check.edge_distances) >= MIN_OUTLINE_PX:
+            check.edge_px = float(check.edge_distances.mean())
         if visible:
             rows, cols = np.flatnonzero(sil.any(axis=1)), np.flatnonzero(sil.any(axis=0))
             box = (max(int(cols[0]) - BBOX_MARGIN_PX, 0), max(int(rows[0]) - BBOX_MARGIN_PX, 0),
@@ -489,8 +523,11 @@ def summarize(views: Sequence[ViewInstanceCheck], seed: int = 0) -> list[Instanc
             mean = float(np.concatenate(groups).mean())
             ci = bootstrap_pooled_ci(groups, np.random.default_rng([seed, 1_000_003, inst, obj]))
             offset = (float((allm[:, 2] - allm[:, 0]).mean()), float((allm[:, 3] - allm[:, 1]).mean()))
+        edges = [v.edge_distances for v in mine if v.edge_px is not None]
+        edge = float(np.concatenate(edges).mean()) if edges else None
+        edge_ci = bootstrap_pooled_ci(edges, np.random.default_rng([seed, 3_000_017, inst, obj])) if edges else None
         out.append(InstanceSummary(inst, obj, mean, ci, n, len(mine), float(np.median(ious)) if ious else None,
-                                   too_few, len(groups), offset))
+                                   too_few, len(groups), offset, edge, edge_ci, len(edges)))
     return out
 
 
@@ -562,7 +599,11 @@ def check_scene(scene_dir: str | Path, labels_path: str | Path, models_dir: str 
     n = int(sum(len(g) for g in groups))
     mean = float(np.concatenate(groups).mean()) if groups else None
     ci = bootstrap_pooled_ci(groups, np.random.default_rng([seed, 2_000_003])) if groups else None
-    return CheckReport(scene_dir, labels_path, models_dir, chosen, views, instances, mean, ci, n, seed, warnings)
+    edges = [v.edge_distances for v in views if v.edge_px is not None]
+    edge = float(np.concatenate(edges).mean()) if edges else None
+    edge_ci = bootstrap_pooled_ci(edges, np.random.default_rng([seed, 4_000_037])) if edges else None
+    return CheckReport(scene_dir, labels_path, models_dir, chosen, views, instances, mean, ci, n, seed, warnings,
+                       edge, edge_ci)
 
 
 # --------------------------------------------------------------------------------------------
@@ -579,8 +620,8 @@ def _colour(instance: int) -> tuple[int, int, int]:
 def match_figure(report: CheckReport, max_views: int = 4) -> NDArray[np.uint8]:
     """A BGR image of up to ``max_views`` checked photos (those with the most kept matches, in image
     order) with the kept matches: a line from the rendering keypoint (dot) to the photo keypoint,
-    the dilated bounding box, and ``obj id: mean px (n)`` per instance, in one colour per instance;
-    two photos per row."""
+    the label's visible outline, the dilated bounding box, and ``obj id: mean px (n), edge px`` per
+    instance, in one colour per instance; two photos per row."""
     counts = {im: 0 for im in report.image_ids}
     for v in report.views:
         counts[v.image_id] = counts.get(v.image_id, 0) + v.n_matches
@@ -591,10 +632,12 @@ def match_figure(report: CheckReport, max_views: int = 4) -> NDArray[np.uint8]:
         img = (img.astype(np.float32) * 0.6).astype(np.uint8)
         for v in (c for c in report.views if c.image_id == im):
             col = _colour(v.instance)
+            img[v.outline_rc[:, 0], v.outline_rc[:, 1]] = col
             if v.bbox is not None:
                 u0, v0, u1, v1 = v.bbox
                 cv2.rectangle(img, (u0, v0), (u1 - 1, v1 - 1), col, 1)
                 text = f"{v.obj_id}: " + (f"{v.mean_px:.1f}px ({v.n_matches})" if v.mean_px is not None else "no match")
+                text += f", edge {v.edge_px:.1f}px" if v.edge_px is not None else ""
                 cv2.putText(img, text, (u0 + 2, max(v0 - 3, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.4, col, 1, cv2.LINE_AA)
             for ur, vr, up, vp in v.matches:
                 a = (int(round(ur * 16)), int(round(vr * 16)))

@@ -1,4 +1,4 @@
-"""``autoalign check``: a ground-truth-free quality check of 6-DoF pose labels (feature distance).
+"""``autoalign check``: a ground-truth-free quality check of 6-DoF pose labels (feature and edge distance).
 
 Start-up imports only the standard library and :mod:`autoalign.errors`; numpy, OpenCV, open3d and
 trimesh load inside :func:`run_check` (nothing here imports torch or jax). Helpers of
@@ -23,7 +23,10 @@ ProgressLabeller): every labelled object is rendered with its vertex colours at 
 SIFT keypoints of the rendering and of the photo inside the object's box are matched (Lowe's
 ratio test 0.8) and the matches closer than 10 px are kept; their mean distance is small (1-4 px)
 when the label puts the object where the photo shows it. Untextured objects give too few matches
-to judge and are flagged so. With visible masks in mask_visib/, the IoU of the label's rendered
+to judge and are flagged so. The edge distance needs no texture: the mean distance (px, each
+pixel counted at most 10) from the label's rendered outline to the nearest edge of the photo
+(Canny); compare it between labels of the same photos, since texture edges near the object make
+every outline look closer than it is. With visible masks in mask_visib/, the IoU of the label's rendered
 visible silhouette with them is reported too."""
 
 _CHECK_EPILOG = """\
@@ -43,10 +46,11 @@ inputs:
 output:
   a table per instance: obj id, instance, views, median IoU, mean feature distance (px) with its
   95% confidence interval (bootstrap over views), kept matches, or "too few matches" (< 10 over all
-  views). With --out: check.json (every image and instance: IoU, matches, mean distance and its
-  interval, mean offset photo - rendering in px, bounding box; the per-instance summaries; the
-  parameters) and check.png (up to 4 photos with the kept matches: dot = rendering keypoint, line
-  to the photo keypoint).
+  views), and the mean edge distance (px) with its interval. With --out: check.json (every image
+  and instance: IoU, matches, mean distance and its interval, mean offset photo - rendering in px,
+  edge distance, bounding box; the per-instance summaries; the parameters) and check.png (up to 4
+  photos with the labels' outlines and the kept matches: dot = rendering keypoint, line to the
+  photo keypoint).
 
 examples:
   autoalign check scenes/000002 --labels labels/000002/scene_gt.json --models models/
@@ -60,7 +64,8 @@ def add_check_parser(subparsers: Any) -> argparse.ArgumentParser:
     from autoalign.cli.main import HelpFormatter, positive_int
 
     p = subparsers.add_parser(
-        "check", help="check pose labels against the photos without ground truth (SIFT feature distance, IoU)",
+        "check", help="check pose labels against the photos without ground truth (SIFT feature distance, edge "
+                      "distance, IoU)",
         description=_CHECK_DESCRIPTION, epilog=_CHECK_EPILOG, formatter_class=HelpFormatter)
     p.add_argument("scene", metavar="SCENE_DIR",
                    help="BOP scene folder with scene_camera.json and rgb/ (mask_visib/ optional; see 'inputs')")
@@ -90,18 +95,22 @@ def _ci(ci: tuple[float, float] | None) -> str:
 
 def format_table(report: Any) -> str:
     """The per-instance table of a :class:`autoalign.feature_distance.CheckReport`, and a total line."""
-    head = f"{'obj':>4} {'inst':>4} {'views':>5} {'median IoU':>10}  {'feature distance px (95% CI)':<30} {'matches':>7}"
+    head = (f"{'obj':>4} {'inst':>4} {'views':>5} {'median IoU':>10}  {'feature distance px (95% CI)':<30} "
+            f"{'matches':>7}  {'edge distance px (95% CI)':<26}")
     lines = [head, "-" * len(head)]
     for s in report.instances:
         iou = f"{s.median_iou:.2f}" if s.median_iou is not None else "-"
         dist = "too few matches" if s.too_few_matches else f"{s.mean_px:.2f} {_ci(s.ci95)}"
-        lines.append(f"{s.obj_id:>4} {s.instance:>4} {s.views:>5} {iou:>10}  {dist:<30} {s.n_matches:>7}")
+        edge = f"{s.edge_px:.2f} {_ci(s.edge_ci95)}" if s.edge_px is not None else "-"
+        lines.append(f"{s.obj_id:>4} {s.instance:>4} {s.views:>5} {iou:>10}  {dist:<30} {s.n_matches:>7}  {edge:<26}")
     ids = ", ".join(str(i) for i in report.image_ids)
     if report.mean_px is not None:
         lines.append(f"all instances with enough matches: {report.mean_px:.2f} px {_ci(report.ci95)} "
                      f"over {report.n_matches} matches")
     else:
         lines.append("no instance has enough matches to judge (untextured objects, or labels far off)")
+    if report.edge_px is not None:
+        lines.append(f"edge distance, all judged views: {report.edge_px:.2f} px {_ci(report.edge_ci95)}")
     lines.append(f"images ({len(report.image_ids)}): {ids}")
     return "\n".join(lines)
 

@@ -6,10 +6,14 @@
   ``Camera.from_opencv``) pixel for pixel, the nearest instance wins.
 * Pipeline: a photo that is the rendering moved by (3, -2) px gives a feature distance of
   sqrt(13) px and a mean offset of (3, -2) px; an uncoloured (grey) mesh gives too few matches.
+* Edge distance: a grey sphere's photo moved by s px gives the mean distance between the two
+  circles, computed analytically; edges of another orientation do not count; the image border is
+  not outline.
 * Real data (LM-O scene 2, 15 of its 29 images, the dataset's own labels): the textured objects
   (duck, glue, hole puncher) give 3.5-4.6 px; the labels moved by 8 mm along the camera x axis give
   about 3 px more and offsets 2-5 px to the left; a transposed rotation loses most matches and
-  IoU; a half-pixel shift of the principal point changes the distance by under a pixel.
+  IoU; a half-pixel shift of the principal point changes the distance by under a pixel. The edge
+  distance judges the untextured driller too and grows with both mistakes.
 * CLI: ``add_check_parser`` on a fresh parser, check.json / check.png, errors naming the file,
   no torch or jax.
 """
@@ -41,6 +45,7 @@ from autoalign.feature_distance import (
     load_models, photo_sift, read_labels, render_labels, select_images, summarize,
 )
 from autoalign.bop import photo_path, read_photo
+from autoalign.edge_distance import MAX_EDGE_PX, outline_edge_distances, outline_pixels, photo_edges
 from autoalign.mesh import load_mesh
 from autoalign.se3 import make_pose
 
@@ -165,6 +170,68 @@ def test_shifted_photo_gives_its_shift() -> None:
     assert e.n_matches == 0 and e.mean_px is None and e.visible_px == c.visible_px
 
 
+def _grey_sphere() -> ColouredMesh:
+    """A 40 mm sphere without colours (rendered flat grey): its outline is a circle."""
+    sph = trimesh.creation.icosphere(subdivisions=5, radius=40.0)
+    V = np.asarray(sph.vertices, dtype=np.float64)
+    return ColouredMesh(V, np.asarray(sph.faces, dtype=np.int64), np.full((len(V), 3), 0.5, np.float32), False)
+
+
+@pytest.mark.parametrize("shift", [(0.0, 0.0), (0.0, -1.0), (3.0, -2.0), (6.0, 0.0)])
+def test_edge_distance_of_a_shifted_circle(shift: tuple[float, float]) -> None:
+    """Photo = a grey sphere's rendering moved by ``shift`` px: the outline-to-edge distance is the
+    mean distance from the label's circle to the moved one, ``mean |‖r n(θ) - s‖ - r|`` over the
+    circle's directions, computed here independently of OpenCV (measured 0.33, 0.64, 2.13, 3.53 px
+    against 0, 0.64, 2.30, 3.82: Canny puts a step edge on one of its two pixels, so up to half a
+    pixel either way)."""
+    W, H = 320, 240
+    K = np.array([[500.0, 0.0, 159.5], [0.0, 500.0, 119.5], [0.0, 0.0, 1.0]])
+    mesh, t = _grey_sphere(), np.array([10.0, -5.0, 300.0])
+    bgr = cv2.cvtColor(render_labels([(0, mesh, np.eye(3), t)], K, W, H).rgb, cv2.COLOR_RGB2BGR)
+    photo = cv2.warpAffine(bgr, np.float32([[1, 0, shift[0]], [0, 1, shift[1]]]), (W, H))
+    _, (c,) = check_image(7, photo, K, [Label(7, 0, 1, np.eye(3), t)], {1: mesh})
+    # the sphere's outline is a circle: radius f tan(asin(R / |t|)) about the projected centre
+    r = 500.0 * np.tan(np.arcsin(40.0 / np.linalg.norm(t)))
+    theta = np.linspace(0.0, 2.0 * np.pi, 3600, endpoint=False)
+    n = np.column_stack([np.cos(theta), np.sin(theta)])
+    expected = np.mean(np.abs(np.linalg.norm(r * n - np.asarray(shift), axis=1) - r))
+    assert len(c.edge_distances) > 5.5 * r  # the whole 8-connected circle, about 4 sqrt(2) r px (measured 378)
+    assert c.edge_px == pytest.approx(expected, abs=0.5)
+    (s,) = summarize([c])
+    assert s.edge_px == pytest.approx(c.edge_px) and s.views_with_outline == 1
+    # a black photo has no edge: every outline pixel counts MAX_EDGE_PX
+    _, (e,) = check_image(7, np.zeros_like(photo), K, [Label(7, 0, 1, np.eye(3), t)], {1: mesh})
+    assert e.edge_px == MAX_EDGE_PX
+
+
+def test_edges_of_another_orientation_do_not_count() -> None:
+    """A rectangle label on a photo with a bright vertical band exactly as wide: its vertical sides lie
+    on the band's edges (distance < 1 px); its horizontal sides cross the band, close to its
+    vertical edges near the corners, but no photo edge is horizontal, so the middle of those sides
+    counts ``MAX_EDGE_PX``."""
+    H, W = 120, 100
+    photo = np.zeros((H, W), np.uint8)
+    photo[:, 20:81] = 200
+    label = np.full((H, W), -1)
+    label[40:81, 20:81] = 0
+    rc = outline_pixels(label, 0)
+    d = outline_edge_distances(photo_edges(photo), label, 0, rc)
+    sides = (rc[:, 0] >= 45) & (rc[:, 0] <= 75)
+    top_middle = (rc[:, 0] == 40) & (rc[:, 1] >= 26) & (rc[:, 1] <= 74)
+    assert sides.sum() == 62 and d[sides].max() <= 1.0
+    assert top_middle.sum() == 49 and np.all(d[top_middle] == MAX_EDGE_PX)
+
+
+def test_outline_leaves_out_the_image_border() -> None:
+    """The outline is the region's pixels with a 4-neighbour outside it, not the frame's pixels."""
+    m = np.full((6, 8), -1)
+    m[1:4, 2:5] = 3  # a 3x3 block inside: 8 outline pixels (the centre is inner)
+    m[2:6, 6:8] = 4  # a block touching the bottom and right borders
+    rc = outline_pixels(m, 3)
+    assert sorted(map(tuple, rc)) == [(r, c) for r in range(1, 4) for c in range(2, 5) if (r, c) != (2, 3)]
+    assert sorted(map(tuple, outline_pixels(m, 4))) == [(2, 6), (3, 6), (4, 6)]
+
+
 def _view(image_id: int, n: int, d: float = 2.0, obj: int = 5, iou: float | None = 0.9) -> ViewInstanceCheck:
     m = np.column_stack([np.arange(n), np.zeros(n), np.arange(n) + d, np.zeros(n)]).astype(float)
     return ViewInstanceCheck(image_id, 0, obj, iou, n, d if n else None, matches=m)
@@ -268,6 +335,11 @@ def test_dataset_labels_give_small_feature_distance_for_textured_objects(real: R
     # the dark, untextured driller: flagged instead of a number (measured 6 matches)
     assert s[8].too_few_matches and s[8].mean_px is None and s[8].ci95 is None
     assert rep.mean_px is not None and rep.ci95[0] < rep.mean_px < rep.ci95[1]
+    # ... but its outline is judged like every other object's (measured 3.14 px [2.73, 3.53])
+    assert s[8].edge_px is not None and s[8].edge_ci95[0] < s[8].edge_px < s[8].edge_ci95[1] < 4.0
+    # every view of every object has an outline to judge, but for the glue's 5 views out of frame
+    assert {x.obj_id: x.views_with_outline for x in rep.instances} == {**{o: N_IMAGES for o in s}, 11: 10}
+    assert rep.edge_ci95[0] < rep.edge_px < rep.edge_ci95[1]
 
 
 @needs_real
@@ -283,6 +355,11 @@ def test_labels_moved_8mm_give_clearly_larger_distance(real: Real) -> None:
     assert m_mean > 6.0 and m_mean > g_mean + 2.0
     assert m_du < g_du - 2.0  # measured -1.2 -> -4.9 px
     assert m[9].median_iou < g[9].median_iou - 0.05  # measured 0.86 -> 0.74
+    # the outline moves off the photo's edges too, untextured driller included (measured pooled
+    # 3.10 -> 3.82 px; it rose for 7 of the 8 objects, driller 3.14 -> 4.10, duck 1.90 -> 3.39)
+    assert real.shifted.edge_px > real.gt.edge_px + 0.4
+    assert m[8].edge_px > g[8].edge_px + 0.5 and m[9].edge_px > g[9].edge_px + 1.0
+    assert sum(m[o].edge_px > g[o].edge_px for o in g) >= 6
 
 
 @needs_real
@@ -297,6 +374,8 @@ def test_half_pixel_principal_point_changes_little(real: Real) -> None:
     for obj in (9, 11):
         assert abs(h[obj].mean_px - g[obj].mean_px) < 1.2
         assert abs(h[obj].median_iou - g[obj].median_iou) < 0.03
+    for obj in g:  # measured at most +0.15 px
+        assert abs(h[obj].edge_px - g[obj].edge_px) < 0.25
 
 
 @needs_real
@@ -311,6 +390,8 @@ def test_transposed_rotation_fails(real: Real) -> None:
         assert t[obj].too_few_matches or t[obj].mean_px > g[obj].mean_px + 1.5
     for obj in (8, 9, 11):
         assert t[obj].median_iou < g[obj].median_iou - 0.15
+    # every outline moves off the edges (measured +0.47 to +2.40 px; driller 3.14 -> 5.54)
+    assert all(t[obj].edge_px > g[obj].edge_px + 0.3 for obj in g) and t[8].edge_px > g[8].edge_px + 1.5
 
 
 # --------------------------------------------------------------------------------------------
@@ -340,6 +421,7 @@ def test_cli_check_writes_report(tmp_path: Path, capsys: pytest.CaptureFixture[s
     for i in rec["instances"]:
         assert i["too_few_matches"] == (i["n_matches"] < MIN_MATCHES)
         assert (i["mean_px"] is None) == i["too_few_matches"]
+        assert i["edge_px"] is not None and 0.0 <= i["edge_px"] <= rec["parameters"]["max_edge_px"]
     png = cv2.imread(str(out / "check.png"))
     assert png is not None and png.shape == (480, 1280, 3)
 
