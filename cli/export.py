@@ -55,7 +55,7 @@ OUTPUT_NAMES = ("scene_gt.json", "scene_gt_info.json", "scene_camera.json", "sce
 
 def add_export_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``autoalign export`` on an argparse subparsers object."""
-    from autoalign.cli.main import HelpFormatter
+    from autoalign.cli.main import HelpFormatter, add_units_argument
 
     p = subparsers.add_parser("export", help="write BOP labels (poses, masks, boxes; COCO) for every frame of a scene",
                               description=_DESCRIPTION, epilog=_EPILOG, formatter_class=HelpFormatter)
@@ -69,8 +69,7 @@ def add_export_parser(subparsers: Any) -> argparse.ArgumentParser:
     opt.add_argument("--cameras", metavar="SCENE_CAMERA_JSON", default=None,
                      help="cameras to export (default: scene_camera.json beside --labels if present, else SCENE_DIR's)")
     opt.add_argument("--coco", action="store_true", help="also write scene_gt_coco.json (COCO RLE of mask_visib)")
-    opt.add_argument("--units", choices=("mm", "m"), default=None,
-                     help="units of the meshes when they look like metres (default: mm, metres refused)")
+    add_units_argument(opt)
     opt.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     p.set_defaults(func=run_export)
     return p

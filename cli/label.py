@@ -49,7 +49,7 @@ and models folders only. Stop it with Ctrl-C (exit status 130); nothing accepted
 
 def add_label_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``autoalign label`` on an argparse subparsers object."""
-    from autoalign.cli.main import HelpFormatter
+    from autoalign.cli.main import HelpFormatter, add_units_argument
 
     p = subparsers.add_parser("label", help="a local web page to place, check and correct objects, then export",
                               description=_DESCRIPTION, epilog=_EPILOG, formatter_class=HelpFormatter)
@@ -61,8 +61,7 @@ def add_label_parser(subparsers: Any) -> argparse.ArgumentParser:
                      help="where the session and the export go (default: SCENE_DIR/label_session)")
     opt.add_argument("--instances", metavar="INSTANCES_JSON", default=None,
                      help='which object each instance is, to suggest it ({"instances": {"0": 5}})')
-    opt.add_argument("--units", choices=("mm", "m"), default=None,
-                     help="units of the meshes when they look like metres (default: mm, metres refused)")
+    add_units_argument(opt)
     opt.add_argument("--port", type=int, default=0, help="port of the page (default: a free one)")
     opt.add_argument("--no-browser", action="store_true", help="print the address instead of opening a browser")
     opt.add_argument("--no-3d", action="store_true", help="no 3D view (viser)")

@@ -139,6 +139,13 @@ positive_int = _int_at_least(1)
 nonnegative_int = _int_at_least(0)
 
 
+def add_units_argument(group: Any) -> None:
+    """``--units mm|m`` of the mesh files, the same for every command that reads models."""
+    group.add_argument("--units", choices=("mm", "m"), default=None,
+                       help="units of the mesh files; default mm, and a mesh under 2 units across is then refused "
+                            "as probably metres (pass --units m to scale it by 1000, --units mm to keep it)")
+
+
 def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``autoalign refine`` on an argparse subparsers object."""
     p = subparsers.add_parser(
@@ -160,9 +167,7 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
                      help="output folder, created if missing; scene_gt.json, refine.json and overlay.png are "
                           "written there (see 'outputs' below); it may not be the scene folder, and no output "
                           "may replace an input file")
-    req.add_argument("--units", choices=("mm", "m"), default=None,
-                     help="units of the mesh file; default mm, and a mesh under 2 units across is then refused "
-                          "as probably metres (pass --units m to scale it by 1000, --units mm to keep it)")
+    add_units_argument(req)
     sel = p.add_argument_group("object")
     sel.add_argument("--instances", metavar="INSTANCES_JSON",
                      help='with --models: {"instances": {"0": 5, "3": 8}} maps instance numbers (the N of '
