@@ -450,6 +450,15 @@ def bootstrap_pooled_ci(groups: Sequence[NDArray[np.float64]], rng: np.random.Ge
     return float(lo), float(hi)
 
 
+def pooled_mean_ci(groups: Sequence[NDArray[np.float64]], rng: np.random.Generator
+                   ) -> tuple[float | None, tuple[float, float] | None]:
+    """The mean of all values of ``groups`` (views) pooled, and its :func:`bootstrap_pooled_ci`;
+    ``(None, None)`` without groups."""
+    if not groups:
+        return None, None
+    return float(np.concatenate(groups).mean()), bootstrap_pooled_ci(groups, rng)
+
+
 # --------------------------------------------------------------------------------------------
 # The check
 # --------------------------------------------------------------------------------------------
@@ -520,12 +529,10 @@ def summarize(views: Sequence[ViewInstanceCheck], seed: int = 0) -> list[Instanc
         mean = ci = offset = None
         if not too_few:
             allm = np.concatenate([v.matches for v in mine if v.n_matches])
-            mean = float(np.concatenate(groups).mean())
-            ci = bootstrap_pooled_ci(groups, np.random.default_rng([seed, 1_000_003, inst, obj]))
+            mean, ci = pooled_mean_ci(groups, np.random.default_rng([seed, 1_000_003, inst, obj]))
             offset = (float((allm[:, 2] - allm[:, 0]).mean()), float((allm[:, 3] - allm[:, 1]).mean()))
         edges = [v.edge_distances for v in mine if v.edge_px is not None]
-        edge = float(np.concatenate(edges).mean()) if edges else None
-        edge_ci = bootstrap_pooled_ci(edges, np.random.default_rng([seed, 3_000_017, inst, obj])) if edges else None
+        edge, edge_ci = pooled_mean_ci(edges, np.random.default_rng([seed, 3_000_017, inst, obj]))
         out.append(InstanceSummary(inst, obj, mean, ci, n, len(mine), float(np.median(ious)) if ious else None,
                                    too_few, len(groups), offset, edge, edge_ci, len(edges)))
     return out
@@ -597,11 +604,9 @@ def check_scene(scene_dir: str | Path, labels_path: str | Path, models_dir: str 
     ok = {(s.instance, s.obj_id) for s in instances if not s.too_few_matches}
     groups = [v.distances_px for v in views if v.n_matches and (v.instance, v.obj_id) in ok]
     n = int(sum(len(g) for g in groups))
-    mean = float(np.concatenate(groups).mean()) if groups else None
-    ci = bootstrap_pooled_ci(groups, np.random.default_rng([seed, 2_000_003])) if groups else None
-    edges = [v.edge_distances for v in views if v.edge_px is not None]
-    edge = float(np.concatenate(edges).mean()) if edges else None
-    edge_ci = bootstrap_pooled_ci(edges, np.random.default_rng([seed, 4_000_037])) if edges else None
+    mean, ci = pooled_mean_ci(groups, np.random.default_rng([seed, 2_000_003]))
+    edge, edge_ci = pooled_mean_ci([v.edge_distances for v in views if v.edge_px is not None],
+                                   np.random.default_rng([seed, 4_000_037]))
     return CheckReport(scene_dir, labels_path, models_dir, chosen, views, instances, mean, ci, n, seed, warnings,
                        edge, edge_ci)
 
