@@ -315,15 +315,16 @@ def real(tmp_path_factory: pytest.TempPathFactory) -> Real:
     out.variants = {"halfpx": [], "transposed": []}
     for im in out.gt.image_ids:
         photo = read_photo(photo_path(REAL, im))
-        feats = photo_sift(photo)
+        feats, edges = photo_sift(photo), photo_edges(photo)
         masks = {lab.instance: read_mask(mask_path(REAL, im, lab.instance))[0] for lab in labels[im]
                  if (im, lab.instance) in masks_of and masks_of[(im, lab.instance)] is not None}
         K_half = Ks[im].copy()
         K_half[:2, 2] += 0.5
-        out.variants["halfpx"] += check_image(im, photo, K_half, labels[im], meshes, masks, photo_features=feats)[1]
+        out.variants["halfpx"] += check_image(im, photo, K_half, labels[im], meshes, masks, photo_features=feats,
+                                              edges=edges)[1]
         transposed = [replace(lab, R_m2c=lab.R_m2c.T) for lab in labels[im]]
         out.variants["transposed"] += check_image(im, photo, Ks[im], transposed, meshes, masks,
-                                                  photo_features=feats)[1]
+                                                  photo_features=feats, edges=edges)[1]
     return out
 
 
