@@ -34,6 +34,7 @@ from autoalign.camera import Camera
 from autoalign.errors import AutoalignError
 from autoalign.instances import InstanceScenes
 from autoalign.models import ModelSet
+from autoalign.hypotheses import CENTROID_OUTLIER
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 from autoalign.se3 import make_pose
 from autoalign.seeding import closest_point_to_rays
@@ -51,7 +52,8 @@ class ScaleGuess:
 
 
 def scale_from_masks(found: InstanceScenes, models: ModelSet,
-                     rotations: dict[int, NDArray[np.float64]] | None = None) -> ScaleGuess:
+                     rotations: dict[int, NDArray[np.float64]] | None = None,
+                     use: list[bool] | None = None) -> ScaleGuess:
     """The factor that puts ``found``'s camera translations in mm, from every instance's masks and
     its model's size. Each instance sits at the point nearest the rays through its masks'
     centroids. Without its world-from-model rotation (``rotations[index]``, 3x3) its expected
@@ -64,9 +66,12 @@ def scale_from_masks(found: InstanceScenes, models: ModelSet,
     the estimate too large, masks that leak or cover another object too small, and both spread
     the views' estimates: on the real LM-O scene ``lmo_im0115_0389`` the cat's SAM masks gave
     0.99 of the true scale with a spread of 11%, the driller's, egg box's and glue's 1.18-1.84
-    with spreads of 37-48%; pooling all views gave 1.45, the weighting about 1.1."""
+    with spreads of 37-48%; pooling all views gave 1.45, the weighting about 1.1. ``use`` (per
+    instance, default all): the instances that count, e.g. those whose pose fits its masks."""
     per_instance = []
-    for inst, scene in zip(found.instances, found.scenes):
+    for k, (inst, scene) in enumerate(zip(found.instances, found.scenes)):
+        if use is not None and not use[k]:
+            continue
         ratios: list[float] = []
         mesh = models.mesh(inst.obj_id)
         views = [(cam, m > 0.5) for cam, m in zip(scene.cameras, scene.masks) if (m > 0.5).any()]
@@ -74,7 +79,7 @@ def scale_from_masks(found: InstanceScenes, models: ModelSet,
             continue
         centroids = [np.argwhere(m)[:, ::-1].mean(0, keepdims=True) + 0.5 for _, m in views]  # pixel centres
         rays = np.array([cam.ray_directions(c)[0] for (cam, _), c in zip(views, centroids)])
-        X = closest_point_to_rays(np.array([cam.centre for cam, _ in views]), rays)
+        X = closest_point_to_rays(np.array([cam.centre for cam, _ in views]), rays, outlier=CENTROID_OUTLIER)
         areas = np.array([m.sum() for _, m in views], dtype=np.float64)
         R = None if rotations is None else rotations.get(inst.index)
         if R is None:

@@ -69,15 +69,23 @@ def _mask_support(scene: Scene, X: NDArray[np.float64], dilate_px: int = 0) -> N
     return count
 
 
-def closest_point_to_rays(origins: NDArray[np.float64], dirs: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Least-squares point nearest to a set of lines."""
-    A = np.zeros((3, 3))
-    b = np.zeros(3)
-    for o, d in zip(origins, dirs):
-        P = np.eye(3) - np.outer(d, d)
-        A += P
-        b += P @ o
-    return np.linalg.lstsq(A, b, rcond=None)[0]
+def closest_point_to_rays(origins: NDArray[np.float64], dirs: NDArray[np.float64],
+                          outlier: float | None = None, rounds: int = 3) -> NDArray[np.float64]:
+    """Least-squares point nearest to a set of lines (unit ``dirs``). With ``outlier``, the fit is
+    repeated ``rounds`` times without the lines farther from the point than ``outlier`` times the
+    median distance (at least 1 mm): a ray through a mask on another object passes far away."""
+    origins, dirs = np.asarray(origins, dtype=np.float64), np.asarray(dirs, dtype=np.float64)
+    P = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]  # projections off each line
+    keep = np.ones(len(origins), dtype=bool)
+    for _ in range(1 + (rounds if outlier is not None else 0)):
+        X = np.linalg.lstsq(P[keep].sum(0), np.einsum("kij,kj->i", P[keep], origins[keep]), rcond=None)[0]
+        if outlier is None:
+            break
+        dist = np.linalg.norm(np.einsum("kij,kj->ki", P, X - origins), axis=1)
+        keep = dist <= outlier * max(float(np.median(dist)), 1.0)
+        if keep.sum() < 2:
+            break
+    return X
 
 
 def hull_centre(scene: Scene, diameter: float, grid: int = 40, min_fraction: float = 0.8,
