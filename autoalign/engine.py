@@ -300,9 +300,10 @@ def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple
     there (it can be neither the answer nor ambiguous with it). At the last level only the best is
     polished: another is rendered once and its loss scaled by the best's polishing gain (from the
     same level before, the same gain); it is polished too only if that estimate is below the best's
-    loss (by ``opts.polish_margin``). On a symmetric object the runner-up is an equivalent pose, and polishing it bought nothing;
-    on the real LM-O can a half-turned pose was polished first and the right one, estimated 1.8%
-    lower, was left unpolished behind it when only a 5% lower estimate was polished.
+    loss (by ``opts.polish_margin``). On a symmetric object the runner-up is an equivalent pose,
+    and polishing it bought nothing; on the real LM-O can a half-turned pose was polished first and
+    the right one, estimated 1.8% lower, was left unpolished behind it when only a 5% lower estimate
+    was polished.
 
     Returns the finalists (best first, stage "final") and the ones that stopped early.
     """

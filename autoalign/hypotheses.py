@@ -196,7 +196,8 @@ def score_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.
         r = (views.g_cent.T[None] - cent).transpose(0, 2, 1)  # (K, V, 2)
         ok &= _centroid_inliers(r, ok)
         r = np.where(ok[:, :, None], r, 0.0)
-        J = np.where(ok[:, :, None, None], views.J[None], 0.0).reshape(len(poses), -1, 3)  # rows of left-out views zeroed
+        # rows of left-out views zeroed
+        J = np.where(ok[:, :, None, None], views.J[None], 0.0).reshape(len(poses), -1, 3)
         JtJ = np.einsum("kri,krj->kij", J, J)
         Jtr = np.einsum("kri,kr->ki", J, r.reshape(len(poses), -1))
         solvable = ok.sum(1) >= 2

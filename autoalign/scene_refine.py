@@ -137,7 +137,8 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
         fits = [r.verdict.status == "ok" for r in alone]
         scale_from = fits if any(fits) else None  # the instances whose masks decide the scale (all if none fit)
         if solve_scale and round_ < rounds - 1:  # the scale again, from the orientations found at this one
-            guess = scale_from_masks(found, models, {r.instance.index: r.result.T_wm[:3, :3] for r in alone}, scale_from)
+            rotations = {r.instance.index: r.result.T_wm[:3, :3] for r in alone}
+            guess = scale_from_masks(found, models, rotations, scale_from)
             if abs(guess.factor - 1.0) > SCALE_REGUESS:
                 found, scale = rescaled(found, guess.factor), scale * guess.factor
                 seeds = {r.instance.index: grown_pose(r.result.T_wm, models.mesh(r.instance.obj_id).centre, guess.factor)
