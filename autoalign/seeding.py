@@ -73,7 +73,9 @@ def closest_point_to_rays(origins: NDArray[np.float64], dirs: NDArray[np.float64
                           outlier: float | None = None, rounds: int = 3) -> NDArray[np.float64]:
     """Least-squares point nearest to a set of lines (unit ``dirs``). With ``outlier``, the fit is
     repeated ``rounds`` times without the lines farther from the point than ``outlier`` times the
-    median distance (at least 1 mm): a ray through a mask on another object passes far away."""
+    median distance: a ray through a mask on another object passes far away. That median counts as
+    at least a thousandth of the point's median distance from the origins (1 mm at 1 m), in
+    whatever unit the origins are (a reconstruction's cameras may be in an unknown one)."""
     origins, dirs = np.asarray(origins, dtype=np.float64), np.asarray(dirs, dtype=np.float64)
     P = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]  # projections off each line
     keep = np.ones(len(origins), dtype=bool)
@@ -82,7 +84,8 @@ def closest_point_to_rays(origins: NDArray[np.float64], dirs: NDArray[np.float64
         if outlier is None:
             break
         dist = np.linalg.norm(np.einsum("kij,kj->ki", P, X - origins), axis=1)
-        keep = dist <= outlier * max(float(np.median(dist)), 1.0)
+        floor = 1e-3 * float(np.median(np.linalg.norm(X - origins, axis=1)))
+        keep = dist <= outlier * max(float(np.median(dist)), floor)
         if keep.sum() < 2:
             break
     return X

@@ -92,7 +92,8 @@ def _moved(mask: np.ndarray, shift_px: int = 150) -> np.ndarray:
 def test_scale_guess_leaves_out_masks_on_another_object(tmp_path, monkeypatch):
     """A third of the masks on another object: the object's centre, from the rays through the
     masks' centroids, leaves those rays out, and the guess in its true orientation stays within 1%
-    (-0.4%); with every ray in the least squares it is 3.1% off."""
+    (-0.4%); with every ray in the least squares it is 3.1% off. The first guess (no orientation)
+    sees the cameras in their own unit: it must leave out the same rays there as in mm."""
     from autoalign import scene_scale
 
     truth = unscaled_scene(tmp_path, 1)
@@ -104,8 +105,14 @@ def test_scale_guess_leaves_out_masks_on_another_object(tmp_path, monkeypatch):
     off = {}
     for rule, outlier in (("robust", scene_scale.CENTROID_OUTLIER), ("every ray", None)):
         monkeypatch.setattr(scene_scale, "CENTROID_OUTLIER", outlier)
-        off[rule] = abs(scale_from_masks(rescaled(found, UNIT_MM), models, {0: truth[0][:3, :3]}).factor - 1)
+        in_mm = rescaled(found, UNIT_MM)
+        off[rule] = abs(scale_from_masks(in_mm, models, {0: truth[0][:3, :3]}).factor - 1)
+        off[f"first guess, {rule}"] = (scale_from_masks(in_mm, models).factor,
+                                       scale_from_masks(found, models).factor / UNIT_MM)  # in mm, in the unit
     assert off["robust"] < 0.01 and off["every ray"] > 0.02, off
+    mm, unit = off["first guess, robust"]
+    assert abs(unit / mm - 1) < 1e-6, off
+    assert abs(mm / off["first guess, every ray"][0] - 1) > 1e-3, off  # the same rays left out in both
 
 
 def test_scale_guess_from_the_instances_asked(tmp_path):
