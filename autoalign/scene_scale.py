@@ -32,9 +32,9 @@ from numpy.typing import NDArray
 from autoalign.bop import read_json_file
 from autoalign.camera import Camera
 from autoalign.errors import AutoalignError
+from autoalign.hypotheses import CENTROID_OUTLIER
 from autoalign.instances import InstanceScenes
 from autoalign.models import ModelSet
-from autoalign.hypotheses import CENTROID_OUTLIER
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 from autoalign.se3 import make_pose
 from autoalign.seeding import closest_point_to_rays

@@ -18,7 +18,7 @@ from autoalign.experiments.metrics import Symmetries, pose_errors
 from autoalign.experiments.protocol import ImageSetup, make_trial
 from autoalign.experiments.runner import get_model, model_ids
 from autoalign.experiments.shared_data import REAL_SCENES
-from autoalign.experiments.synthetic import make_scene
+from autoalign.experiments.synthetic import make_scene, translate_mask
 from autoalign.hypotheses import best_poses, flips, orbit, polish_poses, poses_at, score_poses
 from autoalign.mesh import mesh_from_trimesh
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
@@ -136,13 +136,6 @@ def test_recentring_stays_near_the_seed_it_is_anchored_to() -> None:
     assert drift["free"] > ANCHOR_REACH * radius, drift  # the masks do pull: the bound is what held them
 
 
-def _on_another_object(mask: np.ndarray, shift_px: int) -> np.ndarray:
-    """The mask moved ``shift_px`` to the right and down: a segmenter that masked a neighbour."""
-    out = np.zeros_like(mask)
-    out[shift_px:, shift_px:] = mask[:-shift_px, :-shift_px]
-    return out
-
-
 def test_recentring_leaves_out_masks_on_another_object(monkeypatch: pytest.MonkeyPatch) -> None:
     """A quarter of the masks on another object 120 px away: the true orientation, placed 20 mm
     off, is re-centred close to the truth; with every view in the least squares (no outlier
@@ -151,7 +144,8 @@ def test_recentring_leaves_out_masks_on_another_object(monkeypatch: pytest.Monke
 
     mesh, _, geo, scene = _trial("mug", 0)
     wrong = set(range(0, len(scene), 4))
-    masks = [_on_another_object(m, 120) if k in wrong else m for k, m in enumerate(scene.masks)]
+    # those views' masks are on a neighbour
+    masks = [translate_mask(m, 120, 120).astype(m.dtype) if k in wrong else m for k, m in enumerate(scene.masks)]
     scene = type(scene)(scene.cameras, masks, scene.image_ids)
     rast = SoftSilhouetteRasterizer(mesh.simplified(1500))
     truth_c = transform_points(geo.T_gt, mesh.centre[None])[0]

@@ -25,7 +25,7 @@ from autoalign.scene_scale import grown_pose, rescaled, scale_from_masks, scaled
 from autoalign.se3 import make_pose, transform_points
 
 from autoalign.camera import look_at
-from autoalign.experiments.synthetic import default_K, random_rotation
+from autoalign.experiments.synthetic import default_K, random_rotation, translate_mask
 
 UNIT_MM = 173.0  # mm per unit of the cameras as written
 
@@ -84,9 +84,7 @@ def test_scale_guess_from_the_masks(tmp_path):
 
 def _moved(mask: np.ndarray, shift_px: int = 150) -> np.ndarray:
     """The mask moved ``shift_px`` to the right and down: a segmenter that masked a neighbour."""
-    out = np.zeros_like(mask)
-    out[shift_px:, shift_px:] = mask[:-shift_px, :-shift_px]
-    return out
+    return translate_mask(mask, shift_px, shift_px).astype(mask.dtype)
 
 
 def test_scale_guess_leaves_out_masks_on_another_object(tmp_path, monkeypatch):
