@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from autoalign.camera import Camera
 from autoalign.se3 import make_pose, so3_log, transform_points
 
 POS_TOL_MM = 1.0
@@ -177,6 +178,40 @@ CRITERIA: dict[str, str] = {
     "strict": "position < 1 mm and rotation error < 1 degree",
     "addx": "ADD(-S) < 0.1 diameter",
 }
+
+
+@dataclass(frozen=True)
+class LabelDifference:
+    """Two labels of one object in one image (model-to-camera poses, mm), against the symmetric
+    equivalent of the reference closest to the other: the centres' distance (mm) and the rotation
+    (degrees); that distance split along the reference centre's viewing ray (signed, + farther)
+    and across it (mm); the model points' projection distance (px): mean, and largest (BOP's MSPD)."""
+
+    pos_mm: float
+    rot_deg: float
+    along_ray_mm: float
+    across_ray_mm: float
+    mean_px: float
+    mspd_px: float
+
+
+def label_difference(T_cm: ArrayLike, T_ref_cm: ArrayLike, K: ArrayLike, centre_m: ArrayLike,
+                     points_m: NDArray[np.float64], sym: Symmetries) -> LabelDifference:
+    """How far label ``T_cm`` is from ``T_ref_cm`` in an image with OpenCV / BOP intrinsics ``K``
+    (model-to-camera, mm; model centre and points in the model frame). In an image the depth along
+    the viewing ray is what a label shows least: a few px of MSPD can be tens of mm along the ray."""
+    T_cm = np.asarray(T_cm, dtype=np.float64)
+    e = pose_errors(T_cm, T_ref_cm, centre_m, None, sym)
+    T_ref = closest_equivalent(T_cm, T_ref_cm, sym)
+    eye = Camera.from_opencv(np.asarray(K, dtype=np.float64), np.eye(3), np.zeros(3), 1, 1)  # labels: camera frame
+    px = np.linalg.norm(eye.project(transform_points(T_cm, points_m)) - eye.project(transform_points(T_ref, points_m)),
+                        axis=1)
+    c = np.asarray(centre_m, dtype=np.float64)[None]
+    c_ref, c_lab = transform_points(T_ref, c)[0], transform_points(T_cm, c)[0]
+    ray = c_ref / np.linalg.norm(c_ref)
+    along = float((c_lab - c_ref) @ ray)
+    return LabelDifference(e.pos_err_mm, e.rot_err_deg, along, float(np.linalg.norm(c_lab - c_ref - along * ray)),
+                           float(px.mean()), float(px.max()))
 
 
 def success(err: PoseErrors | dict[str, float], criterion: str = "cols", diameter_mm: float | None = None,

@@ -24,14 +24,13 @@ import numpy as np
 
 from autoalign.atomic_files import write_json_atomic, write_text_atomic
 from autoalign.bop import read_cameras
-from autoalign.camera import Camera
 from autoalign.experiments.bench_pipeline import aligned_camera_errors, rigid_alignment
 from autoalign.experiments.bench_scene import symmetries
-from autoalign.experiments.metrics import Symmetries, closest_equivalent, pose_errors
+from autoalign.experiments.metrics import label_difference
 from autoalign.experiments.real_scenes import scene_inputs
 from autoalign.experiments.shared_data import REAL_SCENES
 from autoalign.models import ModelSet
-from autoalign.se3 import make_pose, transform_points
+from autoalign.se3 import make_pose
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -70,27 +69,10 @@ def _refine(scene: Path, models: Path, instances: Path, init: Path, out: Path) -
     return json.loads((out / "refine.json").read_text())
 
 
-def label_difference(Ta: np.ndarray, Tb: np.ndarray, K: np.ndarray, centre: np.ndarray, points: np.ndarray,
-                     sym: Symmetries) -> tuple[float, ...]:
-    """Two labels of one object in one image (model-to-camera, mm): the centres' distance (mm),
-    the rotation between them (degrees), the centres' offset along the viewing ray and across it
-    (mm), and the model points' projection distance (px, mean and largest: BOP's MSPD), all against
-    the symmetric equivalent of ``Ta`` closest to ``Tb``."""
-    e = pose_errors(Tb, Ta, centre, None, sym)
-    Ta = closest_equivalent(Tb, Ta, sym)
-    eye = Camera.from_opencv(K, np.eye(3), np.zeros(3), 1, 1)  # the image's camera; labels are camera-frame
-    px = np.linalg.norm(eye.project(transform_points(Ta, points)) - eye.project(transform_points(Tb, points)), axis=1)
-    ca, cb = transform_points(Ta, centre[None])[0], transform_points(Tb, centre[None])[0]
-    ray = ca / np.linalg.norm(ca)
-    along = float((cb - ca) @ ray)
-    return (e.pos_err_mm, e.rot_err_deg, along, float(np.linalg.norm(cb - ca - along * ray)), float(px.mean()),
-            float(px.max()))
-
-
 def same_labels(scene: Path, ours: Path, tmp: Path, aligned_scale: float) -> dict:
     """The rigid group labelled with the scene's cameras and with ours (scale solved by refine):
     per object the median and largest difference of its labels over the images
-    (:func:`label_difference`)."""
+    (:func:`~autoalign.experiments.metrics.label_difference`)."""
     instances, init, _ = scene_inputs(scene, tmp)
     shutil.copytree(scene / "mask_visib", ours / "mask_visib")
     a = _refine(scene, scene / "models", instances, init, tmp / "given_labels")
@@ -102,11 +84,14 @@ def same_labels(scene: Path, ours: Path, tmp: Path, aligned_scale: float) -> dic
         for ea, eb in zip(gt_a[im], gt_b[im]):
             o, mesh = ea["obj_id"], models.mesh(ea["obj_id"])
             Ta, Tb = (make_pose(np.reshape(e["cam_R_m2c"], (3, 3)), e["cam_t_m2c"]) for e in (ea, eb))
-            diffs.setdefault(o, []).append(label_difference(Ta, Tb, cameras[int(im)][0], mesh.centre,
-                                                            mesh.sample_points(1000), symmetries(models, o)))
+            d = label_difference(Tb, Ta, cameras[int(im)][0], mesh.centre, mesh.sample_points(1000),
+                                 symmetries(models, o))
+            diffs.setdefault(o, []).append((d.pos_mm, d.rot_deg, d.along_ray_mm, d.across_ray_mm, d.mean_px,
+                                            d.mspd_px))
     keys = ("mm", "deg", "along_ray_mm", "across_ray_mm", "mean_px", "mspd_px")
     per = {str(o): {**{f"median_{k}": float(x) for k, x in zip(keys, np.median(v, axis=0))},
-                    **{f"max_{k}": float(x) for k, x in zip(keys, np.max(np.abs(v), axis=0))}} for o, v in diffs.items()}
+                    **{f"max_{k}": float(x) for k, x in zip(keys, np.max(np.abs(v), axis=0))}}
+           for o, v in diffs.items()}
     pairs = list(zip(a["instances"], b["instances"]))
     verdicts = {str(vb["obj_id"]): (va["verdict"], vb["verdict"]) for va, vb in pairs}
     ious = {str(vb["obj_id"]): (va["median_iou_after"], vb["median_iou_after"]) for va, vb in pairs}
@@ -145,9 +130,9 @@ def main(argv: list[str] | None = None) -> int:
     lines += ["", "The rigid group labelled by `refine` with the scene's cameras and with ours (the scale solved from "
               "the objects, no depth), from the same coarse start and SAM masks: the difference of the two labels "
               "(`scene_gt.json`, each image's camera frame; the closest symmetric equivalent), median over the images "
-              "(largest size in brackets): the centres' distance and the rotation, that distance split along the viewing "
-              "ray and across it, and the model points' projection distance (mean; largest = BOP's MSPD); then how "
-              "well each label fits the SAM masks (median IoU over the views).", "",
+              "(largest size in brackets): the centres' distance and the rotation, that distance split along the "
+              "viewing ray and across it, and the model points' projection distance (mean; largest = BOP's MSPD); "
+              "then how well each label fits the SAM masks (median IoU over the views).", "",
               "| scene | run | scale solved vs Sim(3) | object | mm | deg | along ray mm | across mm | px mean | "
               "MSPD px | verdicts (given, ours) | median IoU (given, ours) |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|"]

@@ -7,8 +7,8 @@ import pytest
 
 from autoalign.se3 import make_pose
 from autoalign.experiments.metrics import (
-    Symmetries, add_mm, adds_mm, auc, axis_dot_axis_angle, axis_dot_columns, closest_equivalent, pose_errors,
-    success,
+    Symmetries, add_mm, adds_mm, auc, axis_dot_axis_angle, axis_dot_columns, closest_equivalent, label_difference,
+    pose_errors, success,
 )
 from autoalign.experiments.protocol import (
     ALT_SIGMA_MM, PAPER_SIGMA_MM, ImageSetup, make_trial, origin_cameras, sphere_radius,
@@ -173,3 +173,33 @@ def test_add_adds_and_auc():
     assert auc(np.zeros(10)) == pytest.approx(1.0)
     assert auc(np.full(10, 0.2)) == pytest.approx(0.0)
     assert auc(np.array([0.05, np.nan])) == pytest.approx(0.25, abs=0.01)
+
+
+def test_label_difference_along_and_across_the_ray_and_in_pixels():
+    """Against OpenCV's projectPoints (BOP's K as it is) and scipy's rotations: a label 30 mm
+    farther along its viewing ray and 2 mm across it, turned 1 degree, seen by a 572 px camera."""
+    import cv2
+    from scipy.spatial.transform import Rotation
+
+    K = np.array([[572.4, 0.0, 325.3], [0.0, 573.6, 242.0], [0.0, 0.0, 1.0]])
+    pts = np.random.default_rng(1).normal(0, 30, (400, 3)) + CENTRE
+    R = random_rotation(np.random.default_rng(2))
+    ref = make_pose(R, np.array([80.0, -40.0, 900.0]) - R @ CENTRE)  # centre at (80, -40, 900) in the camera
+    ray = np.array([80.0, -40.0, 900.0]) / np.linalg.norm([80.0, -40.0, 900.0])
+    across = np.cross(ray, [0.0, 1.0, 0.0])
+    across /= np.linalg.norm(across)
+    turn = Rotation.from_rotvec(np.radians(1.0) * np.array([0.0, 0.6, 0.8])).as_matrix()
+    R2 = turn @ R
+    c2 = np.array([80.0, -40.0, 900.0]) + 30.0 * ray + 2.0 * across
+    lab = make_pose(R2, c2 - R2 @ CENTRE)
+    d = label_difference(lab, ref, K, CENTRE, pts, Symmetries())
+    assert d.along_ray_mm == pytest.approx(30.0) and d.across_ray_mm == pytest.approx(2.0)
+    assert d.pos_mm == pytest.approx(np.hypot(30.0, 2.0)) and d.rot_deg == pytest.approx(1.0, abs=1e-6)
+
+    def cv_project(T):
+        uv, _ = cv2.projectPoints(pts, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, None)
+        return uv[:, 0]
+
+    px = np.linalg.norm(cv_project(lab) - cv_project(ref), axis=1)
+    assert d.mean_px == pytest.approx(px.mean(), rel=1e-6) and d.mspd_px == pytest.approx(px.max(), rel=1e-6)
+    assert 2.0 < d.mspd_px < 20.0  # 30 mm along the ray is a few pixels at 900 mm
