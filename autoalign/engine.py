@@ -42,7 +42,9 @@ class RefineOptions:
         robust: Cauchy re-weighting of views by their misfit.
         schedule: coarse-to-fine levels (scale, sigma in px, iterations).
         n_rotations: orientation hypotheses scored when the orientation is unknown.
-        n_coarse: best-scoring hypotheses refined at ``search_level``.
+        n_coarse: best-scoring hypotheses refined at ``search_level`` (16: on real masks that miss
+            parts the 1/8-resolution score ranks orientations coarsely; the real LM-O driller's
+            right basin was reached only from a start ranked below the 8th).
         polish_deg: before that, each is moved to the best of itself and its turns by +- these
             angles (degrees) about the model axes, by hard IoU (:func:`~autoalign.hypotheses.polish_poses`).
         n_mid: best distinct ones of those refined at the first schedule level.
@@ -83,7 +85,7 @@ class RefineOptions:
     robust: bool = True
     schedule: tuple[Level, ...] = DEFAULT_SCHEDULE
     n_rotations: int = 384
-    n_coarse: int = 8
+    n_coarse: int = 16
     polish_deg: tuple[float, ...] = (10.0, 5.0)
     n_mid: int = 3
     n_final: int = 3

@@ -67,6 +67,10 @@ def orbit(T_a: NDArray[np.float64], T_b: NDArray[np.float64], max_order: int = 1
     made an exact symmetry: a turn by exactly ``360/n`` degrees about ``D``'s axis, with no slide
     along it (the runner-up's own error, a tenth of a degree, would otherwise grow k-fold along
     the orbit). Otherwise none.
+
+    A runner-up shows a subgroup only: a keyed gear of 12 teeth whose runner-up came two teeth
+    away looks 6-fold. So the turns of each multiple of ``n`` up to ``max_order`` follow those
+    ``n - 2`` (each turn once): 10 more for ``n = 6``.
     """
     D = invert(T_a) @ T_b
     w = so3_log(D[:3, :3])
@@ -74,10 +78,18 @@ def orbit(T_a: NDArray[np.float64], T_b: NDArray[np.float64], max_order: int = 1
     n = int(round(360.0 / theta)) if theta > 1e-6 else 0
     if not 3 <= n <= max_order or abs(n * theta - 360.0) > tol_deg * n:
         return np.zeros((0, 4, 4))
-    R = so3_exp(w * (360.0 / n) / theta)
+    axis = w / np.linalg.norm(w)
+    R = so3_exp(axis * np.radians(360.0 / n))
     p = np.linalg.lstsq(np.eye(3) - R, D[:3, 3], rcond=None)[0]  # a point on the axis
     E = _turn_about(R, p)
-    return np.stack([T_a @ np.linalg.matrix_power(E, k) for k in range(2, n)])
+    out = [T_a @ np.linalg.matrix_power(E, k) for k in range(2, n)]
+    seen = {360 * k / n for k in range(n)}  # degrees, each a correctly rounded k/n: equal turns compare equal
+    for order in range(2 * n, max_order + 1, n):
+        for k in range(1, order):
+            if 360 * k / order not in seen:
+                seen.add(360 * k / order)
+                out.append(T_a @ _turn_about(so3_exp(axis * np.radians(360.0 * k / order)), p))
+    return np.stack(out)
 
 
 def poses_at(rotations: NDArray[np.float64], centre_w: NDArray[np.float64], centre_m: NDArray[np.float64]) -> NDArray[np.float64]:
