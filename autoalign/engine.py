@@ -51,7 +51,8 @@ class RefineOptions:
         n_final: best distinct ones of those refined through the rest of the schedule (3: on the
             real LM-O watering can the right basin came third at the first level, behind two half turns).
         search_level: the cheap level of the hypothesis search (its ``ftol`` the full-resolution one).
-        ambiguity_tol: runner-up within this relative loss of the winner (and at another pose) means ambiguous.
+        ambiguity_tol: runner-up within this relative loss of the winner (and at another pose) means ambiguous;
+            so does one within ``competitive`` whose mean IoU is higher.
         polish_margin: at the last level a finalist other than the best is polished only when its
             estimated loss is below the best's by more than this fraction (see :func:`_polish`);
             ``-inf`` polishes every one.
@@ -62,8 +63,9 @@ class RefineOptions:
             (quadric decimation; for the LINEMOD scans the silhouettes of 20k-face versions agree
             with the originals' at IoU >= 0.999 in every view); ``None`` renders the mesh as given.
         flips: after the search level, also refine the best hypothesis turned half a turn about
-            each principal axis of the mesh (the search otherwise settled on such a flip of thin
-            or flat objects in 2 of 44 simulated trials).
+            each principal axis of the mesh (with 8 scored orientations kept, the search settled on
+            such a flip of thin or flat objects in 2 of 44 simulated trials; with 16, in none of
+            88: a safety net).
         weak_turns: from a given pose, the result turned by these angles (degrees) about each weakly
             observed axis (:mod:`autoalign.uncertainty`) is scored by hard IoU at 1/4 resolution, and
             the best turn, if it beats the result by ``orbit_margin``, is refined too: a nearly
@@ -390,8 +392,12 @@ def _rank(final: list[Finalist], others: list[Hypothesis], centre_m: NDArray[np.
     """The standing of the finalists (best first) and every other hypothesis tried."""
     ranked = [f.hypothesis for f in final] + sorted(others, key=lambda h: h.loss)
     runner = next((h for h in ranked[1:] if _differs(h.T_final, ranked[0].T_final, centre_m)), None)
+    # ambiguous: the runner-up's loss is almost the best's, or competitive while its IoU is higher
+    # (the robust loss and the IoU disagree on which fits: masks that fail in some views)
     ambiguous = bool(runner is not None and runner.stage == "final"
-                     and runner.loss <= ranked[0].loss * (1.0 + opts.ambiguity_tol) + 1e-4)
+                     and (runner.loss <= ranked[0].loss * (1.0 + opts.ambiguity_tol) + 1e-4
+                          or (runner.loss <= ranked[0].loss * opts.competitive
+                              and runner.mean_iou >= ranked[0].mean_iou)))
     return Standing(ranked, runner, ambiguous)
 
 
