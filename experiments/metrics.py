@@ -201,7 +201,6 @@ def label_difference(T_cm: ArrayLike, T_ref_cm: ArrayLike, K: ArrayLike, centre_
     (model-to-camera, mm; model centre and points in the model frame). In an image the depth along
     the viewing ray is what a label shows least: a few px of MSPD can be tens of mm along the ray."""
     T_cm = np.asarray(T_cm, dtype=np.float64)
-    e = pose_errors(T_cm, T_ref_cm, centre_m, None, sym)
     T_ref = closest_equivalent(T_cm, T_ref_cm, sym)
     eye = Camera.from_opencv(np.asarray(K, dtype=np.float64), np.eye(3), np.zeros(3), 1, 1)  # labels: camera frame
     px = np.linalg.norm(eye.project(transform_points(T_cm, points_m)) - eye.project(transform_points(T_ref, points_m)),
@@ -210,8 +209,9 @@ def label_difference(T_cm: ArrayLike, T_ref_cm: ArrayLike, K: ArrayLike, centre_
     c_ref, c_lab = transform_points(T_ref, c)[0], transform_points(T_cm, c)[0]
     ray = c_ref / np.linalg.norm(c_ref)
     along = float((c_lab - c_ref) @ ray)
-    return LabelDifference(e.pos_err_mm, e.rot_err_deg, along, float(np.linalg.norm(c_lab - c_ref - along * ray)),
-                           float(px.mean()), float(px.max()))
+    return LabelDifference(float(np.linalg.norm(c_lab - c_ref)), rotation_error_deg(T_cm[:3, :3], T_ref[:3, :3]),
+                           along, float(np.linalg.norm(c_lab - c_ref - along * ray)), float(px.mean()),
+                           float(px.max()))
 
 
 def success(err: PoseErrors | dict[str, float], criterion: str = "cols", diameter_mm: float | None = None,

@@ -80,11 +80,12 @@ def same_labels(scene: Path, ours: Path, tmp: Path, aligned_scale: float) -> dic
     gt_a, gt_b = (json.loads((d / "scene_gt.json").read_text()) for d in (tmp / "given_labels", tmp / "recon_labels"))
     cameras, models = read_cameras(scene), ModelSet.read(scene / "models")
     diffs: dict[int, list[tuple[float, ...]]] = {}
+    points = {o: models.mesh(o).sample_points(1000) for o in {e["obj_id"] for es in gt_a.values() for e in es}}
     for im in sorted(set(gt_a) & set(gt_b), key=int):
         for ea, eb in zip(gt_a[im], gt_b[im]):
-            o, mesh = ea["obj_id"], models.mesh(ea["obj_id"])
+            o = ea["obj_id"]
             Ta, Tb = (make_pose(np.reshape(e["cam_R_m2c"], (3, 3)), e["cam_t_m2c"]) for e in (ea, eb))
-            d = label_difference(Tb, Ta, cameras[int(im)][0], mesh.centre, mesh.sample_points(1000),
+            d = label_difference(Tb, Ta, cameras[int(im)][0], models.mesh(o).centre, points[o],
                                  symmetries(models, o))
             diffs.setdefault(o, []).append((d.pos_mm, d.rot_deg, d.along_ray_mm, d.across_ray_mm, d.mean_px,
                                             d.mspd_px))

@@ -249,7 +249,7 @@ def test_masks_failing_like_sam_without_a_seed_leave_poses_right_or_flagged(tmp_
     orientation scores instead of 16 (``RefineOptions.n_coarse``) one was 180 deg off, 'ok'."""
     from autoalign.experiments.sam_failures import run_scene, within
 
-    rows = run_scene(tmp_path, 104, seed="none")
+    rows = run_scene(tmp_path, 104, seeds=("none",))
     assert sum(within(r) for r in rows) >= 4, rows
     assert all(within(r) or r["verdict"] != "ok" for r in rows), rows
 
