@@ -243,3 +243,63 @@ def auc(rel_errors: ArrayLike, max_rel: float = 0.1, steps: int = 1000) -> float
     e = np.where(np.isfinite(e), e, np.inf)
     th = (np.arange(steps) + 0.5) / steps * max_rel
     return float(np.mean((e[None, :] < th[:, None]).mean(axis=1)))
+
+
+@dataclass(frozen=True)
+class TrackFit:
+    """How well a set of cameras explains the photos' own feature tracks (px, OpenCV pixels).
+
+    Each track (one scene point seen by at least ``min_views`` cameras) is triangulated with the
+    cameras held fixed, and every observation's reprojection error is measured. A camera set that
+    is consistent with the photos reaches the keypoints' noise (about half a pixel for SIFT); a
+    camera that is off shows as a large error in its own views. ``per_view_px``: per image id, the
+    median error of its observations; ``tracks``: how many tracks were triangulated.
+    """
+
+    median_px: float
+    mean_px: float
+    p90_px: float
+    per_view_px: dict[int, float]
+    tracks: int
+
+
+def track_fit(observations: dict[int, tuple[NDArray[np.float64], NDArray[np.int64]]],
+              T_cw: dict[int, NDArray[np.float64]], K: ArrayLike, min_views: int = 3) -> TrackFit:
+    """:class:`TrackFit` of cameras ``T_cw`` (per image id, camera-from-world 4x4, any unit) and
+    intrinsics ``K`` (OpenCV convention) on ``observations`` (per image id, keypoints ``(M, 2)`` in
+    OpenCV pixels and the index of the track each belongs to, as ``recon.sfm.SfmResult`` holds
+    them). Triangulation: pycolmap's linear multi-view solve on the keypoints' bearing vectors;
+    images without a camera in ``T_cw`` are left out."""
+    import pycolmap
+
+    K = np.asarray(K, dtype=np.float64).reshape(3, 3)
+    Kinv = np.linalg.inv(K)
+    tracks: dict[int, list[tuple[int, NDArray[np.float64]]]] = {}
+    for im, (uv, idx) in observations.items():
+        if im in T_cw:
+            for p, q in zip(idx.tolist(), np.asarray(uv, dtype=np.float64)):
+                tracks.setdefault(p, []).append((im, q))
+    errors: list[float] = []
+    per_view: dict[int, list[float]] = {}
+    n = 0
+    for obs in tracks.values():
+        if len(obs) < min_views:
+            continue
+        uv = np.array([q for _, q in obs])
+        rays = np.c_[uv, np.ones(len(uv))] @ Kinv.T
+        X = pycolmap.triangulate_multi_view_point([T_cw[im][:3, :4] for im, _ in obs],
+                                                  rays / np.linalg.norm(rays, axis=1, keepdims=True))
+        if X is None:
+            continue
+        n += 1
+        X = np.asarray(X, dtype=np.float64).ravel()
+        for im, q in obs:
+            x = K @ (T_cw[im][:3, :3] @ X + T_cw[im][:3, 3])
+            e = float(np.hypot(*(x[:2] / x[2] - q))) if x[2] > 0 else float("inf")
+            errors.append(e)
+            per_view.setdefault(im, []).append(e)
+    if not errors:
+        raise ValueError(f"no track is seen by {min_views} of the given cameras")
+    e = np.array(errors)
+    return TrackFit(float(np.median(e)), float(np.mean(e[np.isfinite(e)])), float(np.percentile(e, 90)),
+                    {im: float(np.median(v)) for im, v in sorted(per_view.items())}, n)

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from autoalign.atomic_files import write_json_atomic, write_text_atomic
+from autoalign.atomic_files import write_bytes_atomic, write_json_atomic, write_text_atomic
 from autoalign.bop import read_cameras
 from autoalign.camera import Camera
 from autoalign.mesh import load_mesh
@@ -65,14 +65,18 @@ def scene_inputs(scene: Path, tmp: Path, seed: int = 0) -> tuple[Path, Path, dic
     return instances, init, truth
 
 
-def feature_distances(scene: Path, refine_dir: Path, tmp: Path) -> dict[int, tuple[dict, dict, float]]:
+def feature_distances(scene: Path, refine_dir: Path, tmp: Path,
+                      figure: Path | None = None) -> dict[int, tuple[dict, dict, float]]:
     """Per group member (obj id): the check summary (feature and edge distance) of our label and of
     the dataset's, and the share of the views judged for both where our outline is closer to the
-    photo's edges.
+    photo's edges (:func:`autoalign.label_compare.compare_reports`); with ``figure``, the
+    comparison figure of the group's members there (mask cyan, ours green, the dataset's red).
 
     Both label sets are the scene's ``scene_gt.json`` (every object, entry k = mask k); in ours the
     group members' entries are replaced by the refined poses, so the two differ only there."""
     from autoalign.feature_distance import check_scene
+    from autoalign.label_compare import compare_reports, comparison_figure
+    from autoalign.overlay import encode_png
 
     dataset = json.loads((scene / "scene_gt.json").read_text())
     ours_gt = json.loads((refine_dir / "scene_gt.json").read_text())
@@ -82,15 +86,17 @@ def feature_distances(scene: Path, refine_dir: Path, tmp: Path) -> dict[int, tup
         for im in ours:
             ours[im][r["instance"]] = ours_gt[im][r["scene_gt_position"]]
     write_json_atomic(tmp / "ours_gt.json", ours)
-    out = {}
     reports = [check_scene(scene, labels, scene / "models") for labels in (tmp / "ours_gt.json", scene / "scene_gt.json")]
+    group = {r["instance"] for r in rec["instances"]}
+    compared = {c.instance: c for c in compare_reports(*reports) if c.instance in group}
+    if figure is not None:
+        figure.parent.mkdir(parents=True, exist_ok=True)
+        write_bytes_atomic(figure, encode_png(comparison_figure(*reports, [compared[i] for i in sorted(compared)])))
+    out = {}
     for r in rec["instances"]:
         pair = [next(s.record() for s in rep.instances if s.instance == r["instance"]) for rep in reports]
-        edges = [{v.image_id: v.edge_px for v in rep.views if v.instance == r["instance"] and v.edge_px is not None}
-                 for rep in reports]
-        common = sorted(set(edges[0]) & set(edges[1]))
-        closer = float(np.mean([edges[0][i] < edges[1][i] for i in common])) if common else float("nan")
-        out[r["obj_id"]] = (pair[0], pair[1], closer)
+        c = compared.get(r["instance"])
+        out[r["obj_id"]] = (pair[0], pair[1], c.closer_share if c is not None else float("nan"))
     return out
 
 
@@ -120,8 +126,9 @@ def dataset_label_differences(scene: Path, refine_dir: Path) -> dict[int, dict[s
     return out
 
 
-def run_scene(scene: Path, seed_kind: str, tmp: Path) -> list[dict]:
-    """Run the command on one scene; one row per group member."""
+def run_scene(scene: Path, seed_kind: str, tmp: Path, figure: Path | None = None) -> list[dict]:
+    """Run the command on one scene; one row per group member; with ``figure``, also the figure
+    comparing our labels with the dataset's there (:func:`feature_distances`)."""
     instances, init, truth = scene_inputs(scene, tmp)
     out = tmp / f"out_{scene.name}_{seed_kind}"
     cmd = [sys.executable, "-m", "autoalign.cli.main", "refine", str(scene), "--models", str(scene / "models"),
@@ -133,7 +140,7 @@ def run_scene(scene: Path, seed_kind: str, tmp: Path) -> list[dict]:
     if proc.returncode not in (0, 3):
         raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}): {proc.stderr[-2000:]}")
     rec = json.loads((out / "refine.json").read_text())
-    fdist = feature_distances(scene, out, tmp)
+    fdist = feature_distances(scene, out, tmp, figure)
     vs_dataset = dataset_label_differences(scene, out)
     has_quality = (scene / "quality.json").is_file()
     quality = json.loads((scene / "quality.json").read_text())["per_object"] if has_quality else {}
@@ -182,7 +189,8 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for kind in a.seeds.split(","):
             for scene in scenes:
-                for r in run_scene(scene, kind, Path(tmp)):
+                figure = a.out / "real_scenes" / f"{scene.name}_{kind}.png" if kind == "init" else None
+                for r in run_scene(scene, kind, Path(tmp), figure):
                     rows.append(r)
                     print(json.dumps(r), flush=True)
     lines = ["# Real LM-O scenes: rigid-group labels against gt_world.json", "",
