@@ -154,6 +154,7 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
             "median_view_misfit_after": float(np.median(list(attempt.view_misfit_after.values()))),
             "per_view": {str(im): {"translation_mm": float(np.linalg.norm(E[:3, 3])),
                                    "rotation_deg": rotation_angle_deg(E[:3, :3], np.eye(3)),
+                                   "T_correction": E,  # corrected T_cw = T_cw @ E, kept or not
                                    "misfit_before": attempt.view_misfit_before.get(im),
                                    "misfit_after": attempt.view_misfit_after.get(im)}
                          for im, E in attempt.corrections.items()}}

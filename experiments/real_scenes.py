@@ -33,7 +33,7 @@ from autoalign.camera import Camera
 from autoalign.mesh import load_mesh
 from autoalign.se3 import make_pose
 from autoalign.experiments.shared_data import REAL_SCENES
-from autoalign.experiments.metrics import Symmetries, label_difference, pose_errors
+from autoalign.experiments.metrics import Symmetries, label_difference, pose_errors, track_fit
 from autoalign.experiments.procedural_models import load_bop_models_info
 from autoalign.experiments.synthetic import perturb_pose
 
@@ -126,6 +126,27 @@ def dataset_label_differences(scene: Path, refine_dir: Path) -> dict[int, dict[s
     return out
 
 
+def corrections_by_tracks(scene: Path, refine_dir: Path, tmp: Path) -> dict:
+    """The camera corrections of ``--refine-cameras`` (``refine.json``, kept or not) judged by the
+    photos' own feature tracks (:func:`~autoalign.experiments.metrics.track_fit` on
+    :func:`~autoalign.experiments.recon_real.photo_tracks`), which use neither masks nor labels:
+    the median reprojection error with the given and with the corrected cameras, the views that
+    got worse, and the given camera that fits the tracks worst, before and after."""
+    from autoalign.experiments.recon_real import photo_tracks
+
+    per_view = json.loads((refine_dir / "refine.json").read_text())["cameras"]["per_view"]
+    given = read_cameras(scene)
+    K = next(iter(given.values()))[0]
+    T = {i: make_pose(R, t) for i, (_, R, t) in given.items()}
+    corrected = {i: T[i] @ np.asarray(per_view[str(i)]["T_correction"]) if str(i) in per_view else T[i] for i in T}
+    sfm = photo_tracks(scene, tmp / f"tracks_{scene.name}")
+    a, b = track_fit(sfm.observations, T, K), track_fit(sfm.observations, corrected, K)
+    worst = max(a.per_view_px, key=a.per_view_px.get)
+    return {"given_median_px": a.median_px, "corrected_median_px": b.median_px, "views": len(a.per_view_px),
+            "views_worse": int(sum(b.per_view_px[i] > a.per_view_px[i] for i in a.per_view_px)),
+            "worst_given": {"image": worst, "given_px": a.per_view_px[worst], "corrected_px": b.per_view_px[worst]}}
+
+
 def run_scene(scene: Path, seed_kind: str, tmp: Path, figure: Path | None = None) -> list[dict]:
     """Run the command on one scene; one row per group member; with ``figure``, also the figure
     comparing our labels with the dataset's there (:func:`feature_distances`)."""
@@ -145,6 +166,7 @@ def run_scene(scene: Path, seed_kind: str, tmp: Path, figure: Path | None = None
     has_quality = (scene / "quality.json").is_file()
     quality = json.loads((scene / "quality.json").read_text())["per_object"] if has_quality else {}
     models_info = load_bop_models_info(scene / "models")
+    by_tracks = corrections_by_tracks(scene, out, tmp) if "cameras" in rec else None
     rows = []
     for r in rec["instances"]:
         o = r["obj_id"]
@@ -163,7 +185,7 @@ def run_scene(scene: Path, seed_kind: str, tmp: Path, figure: Path | None = None
                          "median_abs", float("nan")),
                      "views": len(r["image_ids"]), "wall_s": wall,
                      "view_misfit": (rec["cameras"]["median_view_misfit_before"], rec["cameras"]["median_view_misfit_after"])
-                     if "cameras" in rec else None})
+                     if "cameras" in rec else None, "corrections_by_tracks": by_tracks})
     return rows
 
 
@@ -199,6 +221,7 @@ def main(argv: list[str] | None = None) -> int:
              "| seed | kind | instances | ADD < 10% | median err mm | median err deg | vs the dataset's labels: "
              "along ray mm, across mm, MSPD px | verdict ok/check/failed |",
              "|---|---|---|---|---|---|---|---|"]
+    notes: list[str] = []
     for kind in a.seeds.split(","):
         sub = [r for r in rows if r["seed"] == kind]
         if sub:
@@ -211,6 +234,17 @@ def main(argv: list[str] | None = None) -> int:
                          + f" | {v[0]}/{v[1]}/{v[2]} |"
                          + (" median view misfit " + ", ".join(f"{sc}: {a:.3f} -> {b:.3f}" for sc, (a, b) in misfit)
                             if misfit else ""))
+            tracks = sorted({r["scene"]: r["corrections_by_tracks"] for r in sub
+                             if r.get("corrections_by_tracks")}.items())
+            if tracks:
+                notes.append(f"The camera corrections of `{kind}` (kept or not) judged by the photos' own feature "
+                             "tracks (`experiments.metrics.track_fit`; no masks, no labels): " + "; ".join(
+                                 f"{sc}: median {t['given_median_px']:.2f} px with the given cameras, "
+                                 f"{t['corrected_median_px']:.2f} px corrected, {t['views_worse']} of {t['views']} "
+                                 f"views worse, the worst given camera (image {t['worst_given']['image']}) "
+                                 f"{t['worst_given']['given_px']:.2f} -> {t['worst_given']['corrected_px']:.2f} px"
+                                 for sc, t in tracks) + ".")
+    lines += [x for note in notes for x in ("", note)]
     lines += ["", "Feature distance (px, mean of SIFT matches within 10 px, 95% interval over views; `autoalign "
               "check`): of our label and of the dataset's, on the same photos; `-` = too few matches. Edge distance "
               "(px, mean distance of the label's outline pixels to the nearest photo edge of their orientation, each "

@@ -34,7 +34,7 @@ from autoalign.experiments.real_scenes import scene_inputs
 from autoalign.experiments.shared_data import REAL_SCENES
 from autoalign.models import ModelSet
 from autoalign.recon.capture import read_capture
-from autoalign.recon.sfm import run_sfm
+from autoalign.recon.sfm import SfmResult, run_sfm
 from autoalign.se3 import make_pose
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -79,15 +79,22 @@ def axis_split(ours: dict, given: dict, sim3: np.ndarray) -> tuple[list[float], 
     return along, across
 
 
+def photo_tracks(scene: Path, tmp: Path) -> SfmResult:
+    """Our structure from motion of the scene's photos (with its ``cam_K``; COLMAP's files in
+    ``tmp/tracks``): the photos' own feature tracks, for :func:`~autoalign.experiments.metrics.track_fit`."""
+    K = next(iter(read_cameras(scene).values()))[0]
+    (tmp / "tracks").mkdir(parents=True, exist_ok=True)
+    write_json_atomic(tmp / "tracks" / "K.json", {"cam_K": K.ravel().tolist()})
+    return run_sfm(read_capture(scene / "rgb", tmp / "tracks", intrinsics=tmp / "tracks" / "K.json"), tmp / "tracks")
+
+
 def camera_track_fit(scene: Path, tmp: Path) -> dict:
-    """Reprojection errors (px) of the photos' feature tracks with the scene's cameras and with ours
-    held fixed: our structure from motion's tracks (SIFT, geometrically verified, kept by its
-    bundle adjustment) triangulated with each camera set. Our cameras come from that same bundle
-    adjustment, so they are the floor; a camera set off by a few pixels would show it here.
-    ``tmp``: the scene's folder of :func:`run_scene` (its ``K.json``)."""
+    """Reprojection errors (px) of the photos' feature tracks (:func:`photo_tracks`) with the
+    scene's cameras and with ours held fixed. Ours come from the bundle adjustment of those
+    tracks, so they are the floor; a camera set off by a few pixels would show it here."""
     given = read_cameras(scene)
     K = next(iter(given.values()))[0]
-    sfm = run_sfm(read_capture(scene / "rgb", tmp / "tracks", intrinsics=tmp / "K.json"), tmp / "tracks")
+    sfm = photo_tracks(scene, tmp)
     fits = {"ours": track_fit(sfm.observations, sfm.T_cw, K),
             "given": track_fit(sfm.observations, {i: make_pose(R, t) for i, (_, R, t) in given.items()}, K)}
     return {k: {"median_px": f.median_px, "mean_px": f.mean_px, "p90_px": f.p90_px, "tracks": f.tracks,

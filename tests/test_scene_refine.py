@@ -331,3 +331,7 @@ def test_refine_cameras_corrects_perturbed_cameras(multi, tmp_path):
     assert worst_object_mm(joint) < worst_object_mm(alone)
     cam = joint["cameras"]
     assert cam["median_view_misfit_after"] < 0.5 * cam["median_view_misfit_before"]
+    # each view's recorded correction is what turned its given camera into the written one
+    assert sorted(map(int, cam["per_view"])) == sorted(fixed_T)
+    for im, view in cam["per_view"].items():
+        assert np.allclose(bad_T[int(im)] @ np.asarray(view["T_correction"]), fixed_T[int(im)], atol=1e-5)
