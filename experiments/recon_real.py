@@ -1,6 +1,6 @@
 """``autoalign recon`` on the real LM-O photos (``../shared/real/lmo_dev``, RGB only, no depth):
 frames registered, and the reconstructed cameras against the scenes' own (which come from the
-dataset's per-frame labels and carry errors of a few pixels) after a Sim(3) alignment (the scale
+dataset's per-frame labels) after a Sim(3) alignment (the scale
 is unknown without depth). Then the rigid group is labelled twice by ``refine`` from the same
 coarse start (``real_scenes.scene_inputs``) and the same SAM masks: with the scene's cameras, and
 with ours, the scale solved from the objects; the two sets of labels (``scene_gt.json``, each
