@@ -1,8 +1,8 @@
 """``autoalign label`` on the real LM-O scenes (``../shared/real/lmo_dev``): real photos, real SAM
 masks, cameras from the dataset's labels. Every object of the rigid group is clicked once in the
-page (headless Chromium), with the object the scene's ``scene_gt.json`` names, in the view where its mask is
-largest; the pose it is given is compared with ``gt_world.json`` (modulo symmetries), with the
-time from the click to the outlines, the verdict and its reasons. A screenshot of each scene's
+page (headless Chromium), with the object the scene's ``scene_gt.json`` names, in the view where its
+mask is largest; the pose it is given is compared with ``gt_world.json`` (modulo symmetries), with
+the time from the click to the outlines, the verdict and its reasons. A screenshot of each scene's
 page is kept. Results: ``experiments/results/label_page_real.md`` and ``label_page/real-*.png``.
 
 ``python -m autoalign.experiments.label_page_real [--data ../shared/real/lmo_dev]``
