@@ -62,7 +62,7 @@ output:
 examples:
   autoalign check scenes/000002 --labels labels/000002/scene_gt.json --models models/
   autoalign check scenes/000002 --labels scenes/000002/scene_gt.json --models models/ --images 10 --out report/
-  autoalign check scenes/000002 --labels labels/000002/scene_gt.json --against scenes/000002/scene_gt.json \
+  autoalign check scenes/000002 --labels labels/000002/scene_gt.json --against scenes/000002/scene_gt.json \\
       --models models/ --out report/
 
 exit status: 0 the check ran (whatever the numbers), 2 a mistake in the command or the input files."""
