@@ -17,6 +17,7 @@ segmenter found nothing), not as "the object is absent", and is listed in ``Scen
 from __future__ import annotations
 
 import json
+import os
 import re
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -90,7 +91,8 @@ class Scene:
         return None if self.ignore is None else ~self.ignore[k]
 
 
-def read_json_file(path: Path, what: str) -> Any:
+def read_json_file(path: str | os.PathLike[str], what: str) -> Any:
+    path = Path(path)
     if not path.is_file():
         raise AutoalignError(f"{path}: not found; {what}")
     try:
@@ -124,12 +126,12 @@ def json_floats(entry: dict[str, Any], key: str, n: int, path: Path, where: str,
     return a
 
 
-def read_cameras(scene_dir: Path) -> dict[int, tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]:
+def read_cameras(scene_dir: str | os.PathLike[str]) -> dict[int, tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]:
     """``{im_id: (K, R_w2c, t_w2c)}`` from ``scene_dir/scene_camera.json`` (:func:`read_camera_file`)."""
     return read_camera_file(Path(scene_dir) / "scene_camera.json")
 
 
-def read_camera_file(path: Path) -> dict[int, tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]:
+def read_camera_file(path: str | os.PathLike[str]) -> dict[int, tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]:
     """``{im_id: (K, R_w2c, t_w2c)}`` from a BOP ``scene_camera.json``, validated; ``K`` as in the
     file (OpenCV / BOP convention: build cameras with :meth:`Camera.from_opencv`)."""
     path = Path(path)
@@ -161,7 +163,7 @@ def read_camera_file(path: Path) -> dict[int, tuple[NDArray[np.float64], NDArray
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 
 
-def photo_path(scene_dir: Path, image_id: int) -> Path:
+def photo_path(scene_dir: str | os.PathLike[str], image_id: int) -> Path:
     """The photo of an image: ``rgb/{image_id:06d}`` with suffix .png, .jpg, .jpeg, .tif or .tiff."""
     base = Path(scene_dir) / "rgb" / f"{image_id:06d}"
     for s in PHOTO_SUFFIXES:
@@ -171,7 +173,7 @@ def photo_path(scene_dir: Path, image_id: int) -> Path:
                          f"put image {image_id}'s photo in {base.parent}")
 
 
-def read_photo(path: Path) -> NDArray[np.uint8]:
+def read_photo(path: str | os.PathLike[str]) -> NDArray[np.uint8]:
     """A photo as (H, W, 3) uint8 BGR (OpenCV order)."""
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
@@ -179,9 +181,9 @@ def read_photo(path: Path) -> NDArray[np.uint8]:
     return img
 
 
-def mask_path(scene_dir: Path, im_id: int, instance: int) -> Path:
+def mask_path(scene_dir: str | os.PathLike[str], im_id: int, instance: int) -> Path:
     """BOP visible-mask path of one instance in one image."""
-    return scene_dir / "mask_visib" / f"{im_id:06d}_{instance:06d}.png"
+    return Path(scene_dir) / "mask_visib" / f"{im_id:06d}_{instance:06d}.png"
 
 
 def read_mask(path: Path) -> tuple[NDArray[np.bool_], str]:
@@ -207,9 +209,9 @@ def read_mask(path: Path) -> tuple[NDArray[np.bool_], str]:
 _MASK_NAME = re.compile(r"^(\d+)_(\d+)\.png$")
 
 
-def mask_files(scene_dir: Path) -> dict[tuple[int, int], Path]:
+def mask_files(scene_dir: str | os.PathLike[str]) -> dict[tuple[int, int], Path]:
     """``{(im_id, instance): path}`` of the files in ``mask_visib/`` named ``{im_id:06d}_{inst:06d}.png``."""
-    folder = scene_dir / "mask_visib"
+    folder = Path(scene_dir) / "mask_visib"
     out = {}
     if folder.is_dir():
         for p in folder.iterdir():
@@ -219,8 +221,9 @@ def mask_files(scene_dir: Path) -> dict[tuple[int, int], Path]:
     return dict(sorted(out.items()))
 
 
-def check_masks_have_cameras(scene_dir: Path, image_ids: set[int]) -> None:
+def check_masks_have_cameras(scene_dir: str | os.PathLike[str], image_ids: set[int]) -> None:
     """Raise if a mask file names an image that ``scene_camera.json`` has no camera for."""
+    scene_dir = Path(scene_dir)
     orphans = [p for (im, _), p in mask_files(scene_dir).items() if im not in image_ids]
     if orphans:
         raise AutoalignError(f"{orphans[0]}: image {int(_MASK_NAME.match(orphans[0].name).group(1))} has no entry in "

@@ -26,6 +26,7 @@ image's ``scene_gt.json`` list (ProgressLabeller's export let the names drift fr
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
@@ -161,9 +162,10 @@ def _canvas_crop(cam: Camera, T_cm: NDArray[np.float64], hull: NDArray[np.float6
 
 # ---------------------------------------------------------------------------------------- files
 
-def image_size(scene_dir: Path, image_id: int) -> tuple[int, int]:
+def image_size(scene_dir: str | os.PathLike[str], image_id: int) -> tuple[int, int]:
     """``(W, H)`` of an image from its photo, else one of its masks, else its depth image (which
     :func:`read_depth` then checks against it)."""
+    scene_dir = Path(scene_dir)
     candidates = []
     try:
         candidates.append(photo_path(scene_dir, image_id))
@@ -180,26 +182,28 @@ def image_size(scene_dir: Path, image_id: int) -> tuple[int, int]:
                          "from; add its photo")
 
 
-def read_depth(scene_dir: Path, image_id: int, depth_scale: float, size: tuple[int, int]) -> NDArray[np.float64] | None:
+def read_depth(scene_dir: str | os.PathLike[str], image_id: int, depth_scale: float,
+               size: tuple[int, int]) -> NDArray[np.float64] | None:
     """The depth image of ``image_id`` in mm (``depth/{id:06d}.png`` times ``depth_scale``), or ``None``."""
-    p = scene_dir / "depth" / f"{image_id:06d}.png"
+    p = Path(scene_dir) / "depth" / f"{image_id:06d}.png"
     if not p.is_file():
         return None
     return read_depth_png(p, size).astype(np.float64) * depth_scale
 
 
-def depth_scales(scene_dir: Path) -> dict[int, float]:
+def depth_scales(scene_dir: str | os.PathLike[str]) -> dict[int, float]:
     """``depth_scale`` per image id from ``scene_camera.json`` (BOP: depth times it is mm; default 1)."""
-    data = read_json_file(scene_dir / "scene_camera.json", "a BOP scene folder needs scene_camera.json")
+    data = read_json_file(Path(scene_dir) / "scene_camera.json", "a BOP scene folder needs scene_camera.json")
     return {int(k): float(v.get("depth_scale", 1.0)) if isinstance(v, dict) else 1.0 for k, v in data.items()}
 
 
-def export_frames(scene_dir: Path, labels: dict[int, list[Label]], models: ModelSet, labels_path: Path,
-                  delta_mm: float = DELTA_MM, progress: Progress | None = None,
-                  cameras_path: Path | None = None) -> list[FrameExport]:
+def export_frames(scene_dir: str | os.PathLike[str], labels: dict[int, list[Label]], models: ModelSet,
+                  labels_path: str | os.PathLike[str], delta_mm: float = DELTA_MM, progress: Progress | None = None,
+                  cameras_path: str | os.PathLike[str] | None = None) -> list[FrameExport]:
     """Render every image of ``labels`` (see :func:`autoalign.bop.read_labels`) of the scene, with
     the intrinsics of ``cameras_path`` (default ``scene_dir/scene_camera.json``)."""
-    cameras_path = cameras_path or scene_dir / "scene_camera.json"
+    scene_dir, labels_path = Path(scene_dir), Path(labels_path)
+    cameras_path = Path(cameras_path) if cameras_path is not None else scene_dir / "scene_camera.json"
     cams = read_camera_file(cameras_path)
     missing = sorted(set(labels) - set(cams))
     if missing:
@@ -242,9 +246,10 @@ def bop_files(frames: list[FrameExport]) -> dict[str, bytes]:
     return files
 
 
-def coco_annotations(frames: list[FrameExport], scene_dir: Path) -> dict[str, Any]:
+def coco_annotations(frames: list[FrameExport], scene_dir: str | os.PathLike[str]) -> dict[str, Any]:
     """COCO instance annotations of the visible masks (RLE, pycocotools), one image per BOP image
     (COCO image id = BOP image id); entries with no visible pixel get none, as in the bop_toolkit."""
+    scene_dir = Path(scene_dir)
     from pycocotools import mask as coco_mask
 
     images, annotations, categories = [], [], set()
@@ -270,12 +275,15 @@ def coco_annotations(frames: list[FrameExport], scene_dir: Path) -> dict[str, An
             "images": images, "annotations": annotations}
 
 
-def cameras_to_export(scene: Path, labels_path: Path, given: Path | None) -> Path:
+def cameras_to_export(scene: str | os.PathLike[str], labels_path: str | os.PathLike[str],
+                      given: str | os.PathLike[str] | None) -> Path:
     """The ``scene_camera.json`` to export: ``given``, else the one beside the labels (refine writes
     the cameras it corrected or scaled there), else the scene's. Cameras without a metric scale
     (the scene's ``recon.json`` says so) are refused: a BOP scene's translations are in mm."""
     from autoalign.scene_scale import cameras_up_to_scale
 
+    scene, labels_path = Path(scene), Path(labels_path)
+    given = Path(given) if given is not None else None
     beside = labels_path.parent / "scene_camera.json"
     path = given or (beside if beside.is_file() else scene / "scene_camera.json")
     if not path.is_file():
@@ -298,7 +306,8 @@ class ExportedDataset:
     dropped: int
 
 
-def export_dataset(scene_dir: Path, labels_path: Path, models: ModelSet, cameras_path: Path, coco: bool = False,
+def export_dataset(scene_dir: str | os.PathLike[str], labels_path: str | os.PathLike[str], models: ModelSet,
+                   cameras_path: str | os.PathLike[str], coco: bool = False,
                    progress: Progress | None = None) -> ExportedDataset:
     """The files of a complete BOP scene folder for the labels in ``labels_path`` (a BOP
     ``scene_gt.json``): poses, masks, boxes (:func:`bop_files`), COCO annotations if ``coco``, the
@@ -311,6 +320,7 @@ def export_dataset(scene_dir: Path, labels_path: Path, models: ModelSet, cameras
     from autoalign import __version__
     from autoalign.bop import read_labels
 
+    scene_dir, labels_path, cameras_path = Path(scene_dir), Path(labels_path), Path(cameras_path)
     t0 = time.perf_counter()
     labels = read_labels(labels_path)
     frames = export_frames(scene_dir, labels, models, labels_path, progress=progress, cameras_path=cameras_path)

@@ -20,6 +20,7 @@ strayed onto it. Its silhouette is compared with its own mask everywhere else.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -72,11 +73,12 @@ class InstanceScenes:
         return dict(zip(self.image_ids, self.cameras))
 
 
-def read_instances(scene_dir: Path, instances_file: Path | None = None) -> list[Instance]:
+def read_instances(scene_dir: str | os.PathLike[str],
+                   instances_file: str | os.PathLike[str] | None = None) -> list[Instance]:
     """The instances to pose, from ``instances_file`` or else ``scene_dir/scene_gt.json``."""
     if instances_file is not None:
         return _from_instances_file(Path(instances_file))
-    path = scene_dir / "scene_gt.json"
+    path = Path(scene_dir) / "scene_gt.json"
     if not path.is_file():
         raise AutoalignError(f"{path}: not found, and no --instances file was given; say which object each "
                              f"instance is ({INSTANCES_FIX}), or add the scene's scene_gt.json")
@@ -116,7 +118,7 @@ def _from_instances_file(path: Path) -> list[Instance]:
     return sorted(out, key=lambda i: i.index)
 
 
-def read_instance_scenes(scene_dir: str | Path, instances: list[Instance] | None,
+def read_instance_scenes(scene_dir: str | os.PathLike[str], instances: list[Instance] | None,
                          max_pixels: int | None = MAX_IMAGE_PIXELS) -> InstanceScenes:
     """Cameras and every mask of ``scene_dir``, as one :class:`Scene` per instance (see module doc).
     ``instances=None``: every instance number with a non-empty mask, its object not known yet
@@ -154,7 +156,7 @@ def read_instance_scenes(scene_dir: str | Path, instances: list[Instance] | None
     return InstanceScenes(list(instances), scenes, cameras, ids, unmodelled)
 
 
-def read_init_poses(path: str | Path, found: InstanceScenes) -> dict[int, NDArray[np.float64]]:
+def read_init_poses(path: str | os.PathLike[str], found: InstanceScenes) -> dict[int, NDArray[np.float64]]:
     """World-from-model poses (4x4, mm) of the instances from a coarse BOP ``scene_gt.json``.
 
     Instance ``k``'s pose is entry ``k`` of the lowest image id that is a view of the scene and

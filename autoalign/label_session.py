@@ -21,6 +21,7 @@ masks' resolution (the views' ``width`` x ``height``).
 from __future__ import annotations
 
 import json
+import os
 import threading
 import time
 from dataclasses import dataclass, field, replace
@@ -174,8 +175,8 @@ class LabelSession:
         instances_file: an instances file (``{"instances": {"0": 5}}``) whose objects are offered first.
     """
 
-    def __init__(self, scene_dir: Path, models: ModelSet, out_dir: Path, instances_file: Path | None = None,
-                 options: RefineOptions | None = None) -> None:
+    def __init__(self, scene_dir: str | os.PathLike[str], models: ModelSet, out_dir: str | os.PathLike[str],
+                 instances_file: str | os.PathLike[str] | None = None, options: RefineOptions | None = None) -> None:
         self.scene_dir, self.models, self.out_dir = Path(scene_dir), models, Path(out_dir)
         self.options = options or RefineOptions()
         self.found: InstanceScenes = read_instance_scenes(self.scene_dir, None)

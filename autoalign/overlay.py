@@ -14,6 +14,7 @@ All poses are world-from-model 4x4 matrices in millimetres (BOP world frame of t
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import cv2
@@ -219,7 +220,7 @@ _STATUS_MARK = {"ok": "ok", "check": "CHECK", "failed": "FAILED"}
 MULTI_TILE_W, MULTI_TILE_H = 480, 360
 
 
-def photo_at(scene_dir: Path | None, image_id: int, width: int, height: int) -> NDArray[np.uint8] | None:
+def photo_at(scene_dir: str | os.PathLike[str] | None, image_id: int, width: int, height: int) -> NDArray[np.uint8] | None:
     """The scene's photo of ``image_id`` (:func:`autoalign.bop.photo_path`) at ``width x height``
     (BGR), or ``None`` if there is none to read."""
     if scene_dir is None:
@@ -231,7 +232,7 @@ def photo_at(scene_dir: Path | None, image_id: int, width: int, height: int) -> 
     return img if img.shape[:2] == (height, width) else cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
 
 
-def render_instances_overlay(cameras: list, image_ids: list[int], scene_dir: Path | None,
+def render_instances_overlay(cameras: list, image_ids: list[int], scene_dir: str | os.PathLike[str] | None,
                              instances: list[tuple[str, dict[int, NDArray[np.bool_]], NDArray[np.bool_] | None]],
                              views: list[int]) -> NDArray[np.uint8]:
     """A grid of whole views with every instance in its own colour (BGR uint8); nothing is written.

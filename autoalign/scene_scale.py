@@ -22,6 +22,7 @@ orientations are right).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -104,7 +105,7 @@ def scale_from_masks(found: InstanceScenes, models: ModelSet,
     return ScaleGuess(float(np.exp(log_scale)), spread, sum(g.views for g in per_instance))
 
 
-def scale_by_overlap(found: InstanceScenes, models: ModelSet, init_path: Path,
+def scale_by_overlap(found: InstanceScenes, models: ModelSet, init_path: str | os.PathLike[str],
                      factors: NDArray[np.float64] | None = None, resolution: float = 0.25) -> tuple[float, float]:
     """The factor (of ``factors``, default 0.6-1.6 in steps of 2%) that makes the coarse poses of
     ``init_path`` overlap their masks best, and that best mean IoU. The init gives each pose in one
@@ -159,7 +160,7 @@ def scaled_cameras(cameras: dict[int, Camera], factor: float,
     return {im: replace(c, t_w2c=-c.R_w2c @ (p + factor * (c.centre - p))) for im, c in cameras.items()}
 
 
-def cameras_up_to_scale(scene_dir: Path) -> bool:
+def cameras_up_to_scale(scene_dir: str | os.PathLike[str]) -> bool:
     """Whether ``scene_dir/recon.json`` (written by ``autoalign recon``) says its cameras have no
     metric scale (a reconstruction from RGB alone); ``False`` without one."""
     path = Path(scene_dir) / "recon.json"

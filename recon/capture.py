@@ -40,7 +40,7 @@ class Capture:
     K_opencv: NDArray[np.float64] | None
 
 
-def read_intrinsics(path: Path) -> NDArray[np.float64]:
+def read_intrinsics(path: str | os.PathLike[str]) -> NDArray[np.float64]:
     """``K`` (3x3, OpenCV convention) from an intrinsics JSON file (see :data:`INTRINSICS_FIX`)."""
     data = read_json_file(path, f"pass an existing intrinsics file ({INTRINSICS_FIX})")
     try:
@@ -80,12 +80,13 @@ def _frames_of_video(video: Path, every: int, workdir: Path) -> list[Path]:
     return out
 
 
-def read_capture(capture: str | Path, workdir: Path, depth_dir: str | Path | None = None, depth_scale: float = 1.0,
-                 intrinsics: str | Path | None = None, every: int = 1) -> Capture:
+def read_capture(capture: str | os.PathLike[str], workdir: str | os.PathLike[str],
+                 depth_dir: str | os.PathLike[str] | None = None, depth_scale: float = 1.0,
+                 intrinsics: str | os.PathLike[str] | None = None, every: int = 1) -> Capture:
     """The frames of ``capture`` (a folder of images, its ``rgb/`` if it has one, or a video file),
     every ``every``-th; depth from ``depth_dir`` (default ``capture/depth`` if present), one file
     per frame with the frame's name; every frame read once to check it."""
-    capture = Path(capture)
+    capture, workdir = Path(capture), Path(workdir)
     if capture.is_file():
         frames = _frames_of_video(capture, every, workdir)
     elif capture.is_dir():

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -51,10 +52,11 @@ class Reconstruction:
     proposal_masks: dict[int, list[NDArray[np.bool_]]] | None = None
 
 
-def reconstruct(capture: Capture, workdir: Path, progress: Progress | None = None,
+def reconstruct(capture: Capture, workdir: str | os.PathLike[str], progress: Progress | None = None,
                 propose: bool = False) -> Reconstruction:
     """Run the stages on ``capture`` (intermediate files in ``workdir``); with ``propose`` (which
     needs depth) also propose the instances on the table."""
+    workdir = Path(workdir)
     sfm = run_sfm(capture, workdir, progress)
     scale = None
     if capture.depth is not None:

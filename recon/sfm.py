@@ -14,6 +14,7 @@ then registered to the keyframes' points by its verified matches with its neighb
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
@@ -75,7 +76,7 @@ class SfmResult:
     n_frames: int
 
 
-def run_sfm(capture: Capture, workdir: Path, progress: Progress | None = None) -> SfmResult:
+def run_sfm(capture: Capture, workdir: str | os.PathLike[str], progress: Progress | None = None) -> SfmResult:
     """Reconstruct the cameras of ``capture`` (files in ``workdir``: COLMAP's database and model)."""
     import pycolmap
 
@@ -85,6 +86,7 @@ def run_sfm(capture: Capture, workdir: Path, progress: Progress | None = None) -
         if progress is not None:
             progress(stage, done, 3)
 
+    workdir = Path(workdir)
     folder = capture.frames[0].parent
     if any(p.parent != folder for p in capture.frames):
         raise AutoalignError(f"{folder}: the frames must be in one folder")
