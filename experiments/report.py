@@ -37,8 +37,8 @@ COLOURS = {"paper": "tab:red", "autoalign": "tab:blue", "adam": "tab:green", "au
 METHOD_NOTES = {
     "paper": "the paper's greedy argmax-IoU procedure (experiments/paper_method.py), from T_init",
     "autoalign": "autoalign.engine.refine(scene, mesh, seed=None): visual-hull centre + 384 orientation "
-                 "hypotheses (best 8 polished by hard-IoU pattern search), LM coarse-to-fine (the paper's T_init "
-                 "carries no orientation information)",
+                 "hypotheses (best {n_coarse} polished by hard-IoU pattern search{n_coarse_note}), LM "
+                 "coarse-to-fine (the paper's T_init carries no orientation information)",
     "adam": "the same with RefineOptions(optimizer='adam')",
     "autoalign-seeded": "refine(scene, mesh, seed=T_init): local refinement from the paper's initial pose",
     "init": "no refinement (the initial pose)",
@@ -288,6 +288,21 @@ def _paper_choices(opts: dict[str, Any] | None) -> str:
             "at that start, the paper's at T_init.\n")
 
 
+def _n_coarse(records: list[dict[str, Any]], method: str) -> dict[str, str]:
+    """The fields of :data:`METHOD_NOTES`: ``n_coarse``, how many scored orientations the engine
+    polished and refined in ``method``'s trials (``RefineOptions.n_coarse``, recorded per trial; 8
+    before the search kept 16), and ``n_coarse_note``, which says so when that is not today's."""
+    from autoalign.engine import RefineOptions
+
+    values = {r.get("n_coarse") for r in records if r.get("method") == method}
+    text = " / ".join(str(v) for v in sorted(int(v) for v in values if v is not None))
+    if None in values:
+        text += " (some trials: not recorded)" if text else "? (not recorded)"
+    now = RefineOptions().n_coarse
+    note = f"; RefineOptions.n_coarse was {text} in these trials and is {now} now" if values - {now} else ""
+    return {"n_coarse": text, "n_coarse_note": note}
+
+
 def markdown(records: list[dict[str, Any]], config: dict[str, Any] | None = None) -> str:
     """The full results report."""
     cfg = (config or {}).get("last_run", {})
@@ -323,7 +338,7 @@ def markdown(records: list[dict[str, Any]], config: dict[str, Any] | None = None
                  "ADD for asymmetric and ADD-S for symmetric models.\n")
     parts.append("\n### Methods\n")
     for m in methods:
-        parts.append(f"- `{m}`: {METHOD_NOTES.get(m, '')}\n")
+        parts.append(f"- `{m}`: {METHOD_NOTES.get(m, '').format(**_n_coarse(records, m))}\n")
     if cfg:
         parts.append(f"\nLast run settings: `{json.dumps(cfg)}`\n")
     return "".join(parts)
