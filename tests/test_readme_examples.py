@@ -391,6 +391,40 @@ def test_readme_example(block: Block, workdir: Path, capsys: pytest.CaptureFixtu
     assert repo_status() == status, "the example changed files of the repository"
 
 
+SKIP_MARKS_PLUGIN = '''
+from _pytest.skipping import evaluate_skip_marks
+
+
+def pytest_collection_modifyitems(session, config, items):
+    for item in items:
+        if evaluate_skip_marks(item) is not None:
+            print("SKIPPED", item.nodeid.split("::")[0])
+'''
+"""A pytest plugin printing each collected test that a skip mark skips in this environment."""
+
+
+def test_the_readme_counts_the_tests_that_need_the_shared_folder(tmp_path: Path) -> None:
+    """The Set up section's count of the tests skipped without ``shared/real`` is right: the test
+    files that use the shared folder are collected with it absent, and their skip marks evaluated."""
+    files = sorted(p for p in (REPO / "tests").glob("test_*.py") if "shared_data" in p.read_text())
+    (tmp_path / "skip_marks.py").write_text(SKIP_MARKS_PLUGIN)
+    env = {**environment(), "AUTOALIGN_SHARED": str(tmp_path / "absent"),
+           "PYTHONPATH": os.pathsep.join([str(tmp_path), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    run = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "skip_marks", *map(str, files)],
+                         cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+    counted: dict[str, int] = {}
+    for line in run.stdout.splitlines():
+        if line.startswith("SKIPPED "):
+            name = Path(line.split()[1]).name
+            counted[name] = counted.get(name, 0) + 1
+    text = " ".join(README.read_text().split())
+    m = re.search(r"(\d+) tests are skipped: (.*?) \(pytest's summary", text)
+    assert m, "the Set up section no longer says how many tests need shared/real"
+    said = {name: int(n) for n, name in re.findall(r"(\d+) in `tests/([\w.]+)`", m.group(2))}
+    assert said == counted and int(m.group(1)) == sum(counted.values()), (m.group(0), counted)
+
+
 def test_stored_simulation_report_says_which_search_its_trials_ran() -> None:
     """The stored results.md is what the report makes of the stored trials, and says that their
     search polished the best 8 orientations (the engine keeps 16 now, as the README says)."""
