@@ -57,9 +57,11 @@ MIN_OUTLINE_PX = 20
 class PhotoEdges:
     """The photo's edges as distance maps: ``distance[k]`` (H, W) is the distance (px) of every pixel
     centre to the nearest Canny edge pixel whose orientation is in bin ``k`` or a neighbour of it,
-    truncated at ``MAX_EDGE_PX`` (float16: half the memory, steps of at most 0.008 px below 10)."""
+    truncated at ``MAX_EDGE_PX`` (float16: half the memory, steps of at most 0.008 px below 10).
+    ``origin``: (row, col) of the photo pixel at ``distance[k][0, 0]`` (the maps of a region of it)."""
 
     distance: NDArray[np.float16]
+    origin: tuple[int, int] = (0, 0)
 
 
 def _orientation_bins(gx: NDArray[np.float32], gy: NDArray[np.float32]) -> NDArray[np.int64]:
@@ -68,10 +70,11 @@ def _orientation_bins(gx: NDArray[np.float32], gy: NDArray[np.float32]) -> NDArr
     return np.floor(angle / (np.pi / ORIENTATION_BINS)).astype(np.int64) % ORIENTATION_BINS
 
 
-def photo_edges(photo_bgr: NDArray[np.uint8]) -> PhotoEdges:
+def photo_edges(photo_bgr: NDArray[np.uint8], origin: tuple[int, int] = (0, 0)) -> PhotoEdges:
     """Canny edges of a photo (BGR or grey; ``cv2.Canny`` takes, per pixel, the gradient of the
     channel that changes most) split by orientation into per-bin distance maps (exact Euclidean,
-    ``cv2.DIST_MASK_PRECISE``)."""
+    ``cv2.DIST_MASK_PRECISE``). ``origin``: (row, col) of ``photo_bgr[0, 0]`` in the whole photo,
+    when it is a region of it."""
     blurred = cv2.GaussianBlur(photo_bgr, (0, 0), BLUR_SIGMA_PX)
     edges = cv2.Canny(blurred, CANNY_LOW, CANNY_HIGH, L2gradient=True) > 0
     gx = cv2.Sobel(blurred, cv2.CV_32F, 1, 0).reshape(*blurred.shape[:2], -1)
@@ -84,7 +87,7 @@ def photo_edges(photo_bgr: NDArray[np.uint8]) -> PhotoEdges:
         not_edge = (~(edges & near)).astype(np.uint8)
         d = cv2.distanceTransform(not_edge, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
         maps.append(np.minimum(d, MAX_EDGE_PX).astype(np.float16))
-    return PhotoEdges(np.stack(maps))
+    return PhotoEdges(np.stack(maps), (int(origin[0]), int(origin[1])))
 
 
 def outline_pixels(instance_map: NDArray[np.integer], instance: int) -> NDArray[np.int64]:
@@ -100,14 +103,18 @@ def outline_pixels(instance_map: NDArray[np.integer], instance: int) -> NDArray[
 
 
 def outline_edge_distances(edges: PhotoEdges, instance_map: NDArray[np.integer], instance: int,
-                           outline_rc: NDArray[np.int64]) -> NDArray[np.float64]:
+                           outline_rc: NDArray[np.int64], offset: tuple[int, int] = (0, 0)) -> NDArray[np.float64]:
     """Distance (px, truncated at ``MAX_EDGE_PX``) from each outline pixel (row, col) of
     ``instance`` to the nearest photo edge oriented like the outline there (the normal of the
-    instance's blurred visible silhouette)."""
+    instance's blurred visible silhouette). ``instance_map`` and ``outline_rc`` may be of a region
+    of the photo whose first pixel is the photo's ``offset`` (row, col); ``edges`` must cover the
+    outline."""
     if len(outline_rc) == 0:
         return np.zeros(0)
     bins = _outline_bins(instance_map, instance, outline_rc)
-    d = edges.distance[bins, outline_rc[:, 0], outline_rc[:, 1]].astype(np.float64)
+    r = outline_rc[:, 0] + (offset[0] - edges.origin[0])
+    c = outline_rc[:, 1] + (offset[1] - edges.origin[1])
+    d = edges.distance[bins, r, c].astype(np.float64)
     return np.minimum(d, MAX_EDGE_PX)
 
 

@@ -10,6 +10,14 @@ the photo shows it gives a small one (ProgressLabeller reports 1.95 px for its l
 ``too_few_matches`` instead of getting a number. Every view also gets the outline-to-edge distance
 (:mod:`autoalign.edge_distance`), which needs no texture.
 
+Large photos: a photo of more than :data:`autoalign.bop.MAX_IMAGE_PIXELS` is read downscaled by the
+same whole factor as ``autoalign refine`` reads its masks (area-averaged over whole blocks, its
+masks and ``cam_K`` with it, so the pixel grid stays exact), and SIFT and the edge maps see only the
+region around the labels' renderings, SIFT at most ``MAX_SIFT_PIXELS``: 24 views of 12-megapixel
+photos are checked in well under 2 GB (README, "Large images"). Every distance, coordinate and px
+parameter is then in the pixels of the photo as checked (``image_scale`` times the file's); a
+photo the size of LM-O's (640 x 480) is checked whole and at full size, as before.
+
 Conventions (as the BOP files):
 
 * millimetres; OpenCV camera frame (x right, y down, z forward);
@@ -39,13 +47,17 @@ import open3d as o3d
 import trimesh
 from numpy.typing import NDArray
 
-from autoalign.bop import Label, mask_path, photo_path, read_cameras, read_labels, read_mask, read_photo
+from autoalign.bop import (
+    MAX_IMAGE_PIXELS, Label, downscale_factor, mask_path, photo_path, read_cameras, read_labels, read_masks,
+    read_photo,
+)
+from autoalign.camera import K_from_opencv, K_to_opencv
 from autoalign.edge_distance import (
     BLUR_SIGMA_PX, CANNY_HIGH, CANNY_LOW, MAX_EDGE_PX, MIN_OUTLINE_PX, ORIENTATION_BINS, PhotoEdges,
     outline_edge_distances, outline_pixels, photo_edges,
 )
 from autoalign.errors import AutoalignError
-from autoalign.overlap import mask_iou
+from autoalign.overlap import iou_from_counts
 
 RATIO_TEST = 0.8
 """Lowe's ratio: a match is kept when its descriptor distance is below this times the second best's."""
@@ -60,6 +72,15 @@ UPSAMPLE = 2
 """Both images are enlarged this many times (bilinear) before SIFT: LM-O-sized objects (50-150 px
 across at 640x480) give three to four times more matches than at native size (measured on LM-O
 scene 2); keypoint positions are mapped back to the original pixels."""
+MAX_SIFT_PIXELS = 640 * 480 * UPSAMPLE ** 2
+"""SIFT sees at most this many pixels (an LM-O photo enlarged ``UPSAMPLE`` times): a photo larger than
+640 x 480 is searched only in its region around the labels (``CONTEXT_PX``), enlarged ``UPSAMPLE``
+times while that fits and reduced to fit otherwise (SIFT's own pyramid of a 12-megapixel photo
+enlarged twice took 11 GB and 24 s)."""
+CONTEXT_PX = 32
+"""The region searched in a photo larger than 640 x 480: the labels' rendered pixels' box dilated by
+this many pixels (more than ``BBOX_MARGIN_PX`` plus ``MAX_EDGE_PX`` and SIFT's border, so that the
+features and edges near the outlines are those of the whole photo)."""
 MIN_MATCHES = 10
 """An instance with fewer kept matches than this over all its views is flagged ``too_few_matches``."""
 N_BOOTSTRAP = 1000
@@ -204,22 +225,37 @@ class CheckReport:
     warnings: list[str] = field(default_factory=list)
     edge_px: float | None = None
     edge_ci95: tuple[float, float] | None = None
+    image_scales: dict[int, float] = field(default_factory=dict)
+    max_pixels: int | None = MAX_IMAGE_PIXELS
+
+    @property
+    def image_scale(self) -> float | None:
+        """The photos as checked over the files' resolution when all images share it (else None):
+        1 unless they have more than ``max_pixels`` pixels (then 1/2, 1/3, ...)."""
+        scales = set(self.image_scales.values()) or {1.0}
+        return scales.pop() if len(scales) == 1 else None
 
     def record(self) -> dict[str, Any]:
         """The JSON-ready contents of ``check.json``."""
         return {
             "scene": str(self.scene_dir), "labels": str(self.labels_path), "models": str(self.models_dir),
             "image_ids": list(self.image_ids),
+            "image_scale": self.image_scale,
+            "pixels": "every px value, pixel coordinate and px parameter is in pixels of the photos as checked: "
+                      "image_scale times the files' resolution (photos over max_image_pixels are read downscaled "
+                      "by a whole factor, area-averaged, masks and cam_K with them, as autoalign refine reads "
+                      "masks); divide by image_scale for the files' pixels",
             "mean_px": _num(self.mean_px), "ci95": _pair(self.ci95), "n_matches": self.n_matches,
             "edge_px": _num(self.edge_px), "edge_ci95": _pair(self.edge_ci95),
             "instances": [s.record() for s in self.instances],
-            "views": [v.record() for v in self.views],
+            "views": [{**v.record(), "image_scale": self.image_scales.get(v.image_id, 1.0)} for v in self.views],
             "parameters": {"ratio_test": RATIO_TEST, "max_match_px": MAX_MATCH_PX, "bbox_margin_px": BBOX_MARGIN_PX,
                            "silhouette_margin_px": SILHOUETTE_MARGIN_PX, "upsample": UPSAMPLE, "min_matches": MIN_MATCHES,
                            "n_bootstrap": N_BOOTSTRAP, "seed": self.seed,
                            "canny_low": CANNY_LOW, "canny_high": CANNY_HIGH, "blur_sigma_px": BLUR_SIGMA_PX,
                            "orientation_bins": ORIENTATION_BINS, "max_edge_px": MAX_EDGE_PX,
-                           "min_outline_px": MIN_OUTLINE_PX},
+                           "min_outline_px": MIN_OUTLINE_PX, "max_image_pixels": self.max_pixels,
+                           "max_sift_pixels": MAX_SIFT_PIXELS, "context_px": CONTEXT_PX},
             "pixel_convention": "OpenCV/BOP: cam_K and keypoint positions put the centre of pixel (row i, col j) at (j, i)",
             "warnings": list(self.warnings),
         }
@@ -294,41 +330,107 @@ def load_models(models_dir: str | Path, obj_ids: Sequence[int], labels_path: Pat
     return out
 
 
+@dataclass
+class ScaledPhoto:
+    """A photo as checked: ``bgr`` (h, w, 3) uint8 at ``1 / factor`` of the file's ``size`` (H, W)."""
+
+    bgr: NDArray[np.uint8]
+    factor: int
+    size: tuple[int, int]
+
+
+def read_photo_scaled(path: Path, max_pixels: int | None = MAX_IMAGE_PIXELS) -> ScaledPhoto:
+    """A photo (BGR) downscaled by :func:`autoalign.bop.downscale_factor` when it has more than
+    ``max_pixels`` pixels: each output pixel is the mean of a ``factor x factor`` block, the last
+    blocks padded with the edge pixels, so that output pixel (i, j) covers exactly the file's
+    pixels ``[j f, (j+1) f) x [i f, (i+1) f)`` as :meth:`autoalign.camera.Camera.scaled` assumes
+    (:func:`autoalign.bop.read_masks` does the same to the masks, padding with zeros)."""
+    img = read_photo(path)
+    H, W = img.shape[:2]
+    f = downscale_factor(W, H, max_pixels)
+    if f > 1:
+        h, w = -(-H // f), -(-W // f)
+        img = cv2.copyMakeBorder(img, 0, h * f - H, 0, w * f - W, cv2.BORDER_REPLICATE)
+        img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)  # exact block means at a whole factor
+    return ScaledPhoto(img, f, (H, W))
+
+
+def scaled_K(K: NDArray[np.float64], factor: int) -> NDArray[np.float64]:
+    """OpenCV / BOP ``cam_K`` of the image read at ``1 / factor`` (:func:`read_photo_scaled`): scaled in
+    autoalign's internal convention (pixel edges on integers, see :mod:`autoalign.camera`), so a file
+    ``cx`` becomes ``(cx + 0.5) / factor - 0.5``."""
+    K = np.asarray(K, dtype=np.float64).reshape(3, 3)
+    if factor == 1:
+        return K
+    return K_to_opencv(np.diag([1.0 / factor, 1.0 / factor, 1.0]) @ K_from_opencv(K))
+
+
 # --------------------------------------------------------------------------------------------
 # Rendering
 # --------------------------------------------------------------------------------------------
 
-def pixel_rays(K: NDArray[np.float64], width: int, height: int) -> NDArray[np.float32]:
-    """Camera-frame ray directions (H*W, 3), row-major, of every pixel; pixel (i, j) goes through
-    ``K^-1 [j, i, 1]`` (OpenCV / BOP: pixel centres at integer coordinates); unit z component, so
-    the hit distance is the depth z (mm)."""
+def pixel_rays(K: NDArray[np.float64], width: int, height: int,
+               box: tuple[int, int, int, int] | None = None) -> NDArray[np.float32]:
+    """Camera-frame ray directions (H*W, 3), row-major, of every pixel (of ``box`` = (u0, v0, u1, v1),
+    end exclusive, if given); pixel (i, j) goes through ``K^-1 [j, i, 1]`` (OpenCV / BOP: pixel
+    centres at integer coordinates); unit z component, so the hit distance is the depth z (mm)."""
+    u0, v0, u1, v1 = box if box is not None else (0, 0, width, height)
     Kinv = np.linalg.inv(np.asarray(K, dtype=np.float64).reshape(3, 3))
-    u = np.arange(width, dtype=np.float64)
-    v = np.arange(height, dtype=np.float64)
+    u = np.arange(u0, u1, dtype=np.float64)
+    v = np.arange(v0, v1, dtype=np.float64)
     d = (v[:, None, None] * Kinv[:, 1] + Kinv[:, 2]) + u[None, :, None] * Kinv[:, 0]
     d = d / d[..., 2:3]
     return d.reshape(-1, 3).astype(np.float32)
+
+
+def _projected_box(vertices_c: Sequence[NDArray[np.float64]], K: NDArray[np.float64], width: int,
+                   height: int) -> tuple[int, int, int, int] | None:
+    """The pixels (u0, v0, u1, v1), end exclusive, that rays may hit: the box of the vertices'
+    projections (camera frame, mm) and a pixel more, within the image; the whole image when a
+    vertex is not in front of the camera; None when the box misses the image. A ray hits a
+    triangle only inside its projection, the hull of its vertices' projections."""
+    V = np.concatenate([np.asarray(v, dtype=np.float64) for v in vertices_c]) if vertices_c else np.zeros((0, 3))
+    if len(V) == 0:
+        return None
+    if not np.all(V[:, 2] > 1e-6) or not np.all(np.isfinite(V)):
+        return 0, 0, width, height
+    uvw = V @ np.asarray(K, dtype=np.float64).reshape(3, 3).T
+    u, v = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]
+    box = (max(int(np.floor(u.min())) - 1, 0), max(int(np.floor(v.min())) - 1, 0),
+           min(int(np.ceil(u.max())) + 2, width), min(int(np.ceil(v.max())) + 2, height))
+    return box if box[0] < box[2] and box[1] < box[3] else None
 
 
 def render_labels(objects: Sequence[tuple[int, ColouredMesh, NDArray[np.float64], NDArray[np.float64]]],
                   K: NDArray[np.float64], width: int, height: int) -> Rendering:
     """Ray-cast ``(instance, mesh, R_m2c, t_m2c)`` objects into one colour image (camera frame, mm).
 
-    One ray per pixel (:func:`pixel_rays`); the nearest surface among all objects wins, its colour
-    is the barycentric blend ``(1-u-v) c0 + u c1 + v c2`` of the hit triangle's vertex colours
-    (open3d's ``primitive_uvs``). Background is black with instance -1.
+    One ray per pixel (:func:`pixel_rays`), cast only within the box of the objects' projections
+    (:func:`_projected_box`: the other rays cannot hit); the nearest surface among all objects
+    wins, its colour is the barycentric blend ``(1-u-v) c0 + u c1 + v c2`` of the hit triangle's
+    vertex colours (open3d's ``primitive_uvs``). Background is black with instance -1.
     """
     scene = o3d.t.geometry.RaycastingScene()
     gid_to_index: dict[int, int] = {}
+    placed = []
     for idx, (_, mesh, R, t) in enumerate(objects):
         V_c = mesh.vertices @ np.asarray(R, dtype=np.float64).T + np.asarray(t, dtype=np.float64)
+        placed.append(V_c)
         gid = scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(V_c, dtype=np.float32)),
                                   o3d.core.Tensor(np.ascontiguousarray(mesh.faces, dtype=np.uint32)))
         gid_to_index[int(gid)] = idx
-    n = width * height
+    full = Rendering(np.zeros((height, width, 3), np.uint8), np.full((height, width), -1, np.int32),
+                     np.full((height, width), np.inf, np.float32))
+    box = _projected_box(placed, K, width, height)
+    if box is None:
+        return full
+    u0, v0, u1, v1 = box
+    w, h = u1 - u0, v1 - v0
+    n = w * h
     rays = np.zeros((n, 6), dtype=np.float32)
-    rays[:, 3:] = pixel_rays(K, width, height)
+    rays[:, 3:] = pixel_rays(K, width, height, box)
     ans = scene.cast_rays(o3d.core.Tensor(rays))
+    del rays
     t_hit = ans["t_hit"].numpy()
     hit = np.isfinite(t_hit)
     gids = ans["geometry_ids"].numpy().astype(np.int64)
@@ -348,7 +450,10 @@ def render_labels(objects: Sequence[tuple[int, ColouredMesh, NDArray[np.float64]
         inst[sel] = instance
     depth = np.where(hit, t_hit, np.inf).astype(np.float32)
     img = np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8)
-    return Rendering(img.reshape(height, width, 3), inst.reshape(height, width), depth.reshape(height, width))
+    full.rgb[v0:v1, u0:u1] = img.reshape(h, w, 3)
+    full.instance[v0:v1, u0:u1] = inst.reshape(h, w)
+    full.depth[v0:v1, u0:u1] = depth.reshape(h, w)
+    return full
 
 
 # --------------------------------------------------------------------------------------------
@@ -365,17 +470,32 @@ class Features:
     def subset(self, keep: NDArray[np.bool_]) -> "Features":
         return Features(self.uv[keep], self.descriptors[keep])
 
+    def moved(self, du: float, dv: float) -> "Features":
+        """The same keypoints with (du, dv) px added to their positions (a crop's to the photo's)."""
+        return Features(self.uv + [du, dv], self.descriptors)
 
-def sift_features(gray: NDArray[np.uint8], upsample: int = UPSAMPLE) -> Features:
-    """SIFT keypoints (``cv2.SIFT_create`` defaults) of a grey image enlarged ``upsample`` times
-    (bilinear, pixel centres aligned); positions in the original image's OpenCV pixels."""
-    s = int(upsample)
-    big = gray if s == 1 else cv2.resize(gray, None, fx=s, fy=s, interpolation=cv2.INTER_LINEAR)
+
+def sift_features(gray: NDArray[np.uint8], upsample: float = UPSAMPLE) -> Features:
+    """SIFT keypoints (``cv2.SIFT_create`` defaults) of a grey image resized ``upsample`` times
+    (bilinear when enlarged, area-averaged when reduced; pixel centres aligned); positions in the
+    original image's OpenCV pixels."""
+    s = float(upsample)
+    big = gray if s == 1 else cv2.resize(gray, None, fx=s, fy=s,
+                                         interpolation=cv2.INTER_LINEAR if s > 1 else cv2.INTER_AREA)
     kps, desc = cv2.SIFT_create().detectAndCompute(big, None)
+    del big
     if desc is None or not kps:
         return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
     uv = np.array([k.pt for k in kps], dtype=np.float64)
     return Features((uv + 0.5) / s - 0.5, desc.astype(np.float32))
+
+
+def sift_scale(width: int, height: int) -> float:
+    """How many times an image region ``width x height`` is resized for SIFT: ``UPSAMPLE`` while the
+    result has at most ``MAX_SIFT_PIXELS``, else the factor (below ``UPSAMPLE``) that brings it there."""
+    if width * height * UPSAMPLE ** 2 <= MAX_SIFT_PIXELS:
+        return float(UPSAMPLE)
+    return math.sqrt(MAX_SIFT_PIXELS / (width * height))
 
 
 def photo_sift(photo_bgr: NDArray[np.uint8]) -> Features:
@@ -470,38 +590,58 @@ def check_image(image_id: int, photo_bgr: NDArray[np.uint8], K: NDArray[np.float
     """Check every label of one image against its photo (BGR, OpenCV ``cam_K`` in px, poses in mm).
 
     ``masks``: instance -> visible mask (H, W) bool, for the IoU (instances without one get None).
-    ``photo_features``: the photo's :func:`sift_features`, when already computed (several label
-    sets checked against one photo); ``edges``: its :func:`autoalign.edge_distance.photo_edges`,
-    likewise. Returns the rendering of all labels together and one :class:`ViewInstanceCheck` per
-    label.
+    ``photo_features``: the photo's :func:`sift_features` (photo pixels), when already computed
+    (several label sets checked against one photo); ``edges``: its
+    :func:`autoalign.edge_distance.photo_edges`, likewise (covering the labels' outlines). A photo
+    of 640 x 480 or less is searched whole; a larger one only in the box of the labels' rendered
+    pixels dilated by ``CONTEXT_PX`` (:func:`sift_scale` sets SIFT's resolution there). Returns the
+    rendering of all labels together and one :class:`ViewInstanceCheck` per label.
     """
     H, W = photo_bgr.shape[:2]
     K = np.asarray(K, dtype=np.float64).reshape(3, 3)
     objects = [(lab.instance, meshes[lab.obj_id], lab.R_m2c, lab.t_m2c) for lab in labels]
     rendering = render_labels(objects, K, W, H)
-    render_feats = sift_features(cv2.cvtColor(rendering.rgb, cv2.COLOR_RGB2GRAY))
-    photo_feats = photo_features if photo_features is not None else photo_sift(photo_bgr)
-    edge_maps = edges if edges is not None else photo_edges(photo_bgr)
+    region = _search_region(rendering.instance)
+    u0, v0, u1, v1 = region if region is not None else (0, 0, 0, 0)
+    inst_map = rendering.instance[v0:v1, u0:u1]  # the labels' pixels all lie in the region
+    render_feats = photo_feats = Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
+    if region is not None:
+        scale = sift_scale(u1 - u0, v1 - v0)
+        crop = np.ascontiguousarray(rendering.rgb[v0:v1, u0:u1])
+        render_feats = sift_features(cv2.cvtColor(crop, cv2.COLOR_RGB2GRAY), scale).moved(u0, v0)
+        if photo_features is None:
+            crop = np.ascontiguousarray(photo_bgr[v0:v1, u0:u1])
+            photo_feats = sift_features(cv2.cvtColor(crop, cv2.COLOR_BGR2GRAY), scale).moved(u0, v0)
+        if edges is None:
+            edges = photo_edges(photo_bgr[v0:v1, u0:u1], (v0, u0))
+        del crop
+    if photo_features is not None:
+        photo_feats = photo_features
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * SILHOUETTE_MARGIN_PX + 1,) * 2)
     out = []
     for lab in labels:
-        sil = rendering.instance == lab.instance
-        visible = int(sil.sum())
+        sil = inst_map == lab.instance
+        visible = int(np.count_nonzero(sil))
         iou = None
         if masks is not None and lab.instance in masks:
             m = np.asarray(masks[lab.instance], dtype=bool)
-            iou = mask_iou(m, sil) if (m | sil).any() else None
+            area = int(np.count_nonzero(m))
+            if area or visible:
+                iou = float(iou_from_counts(np.count_nonzero(m[v0:v1, u0:u1] & sil), area, visible))
         check = ViewInstanceCheck(lab.image_id, lab.instance, lab.obj_id, iou, 0, None, visible_px=visible)
-        check.outline_rc = outline_pixels(rendering.instance, lab.instance)
-        check.edge_distances = outline_edge_distances(edge_maps, rendering.instance, lab.instance, check.outline_rc)
+        if visible:
+            rc = outline_pixels(inst_map, lab.instance)  # the region's border is the photo's or off the labels
+            check.edge_distances = outline_edge_distances(edges, inst_map, lab.instance, rc, (v0, u0))
+            check.outline_rc = rc + [v0, u0]
         if len(check.edge_distances) >= MIN_OUTLINE_PX:
             check.edge_px = float(check.edge_distances.mean())
         if visible:
-            rows, cols = np.flatnonzero(sil.any(axis=1)), np.flatnonzero(sil.any(axis=0))
+            rows, cols = np.flatnonzero(sil.any(axis=1)) + v0, np.flatnonzero(sil.any(axis=0)) + u0
             box = (max(int(cols[0]) - BBOX_MARGIN_PX, 0), max(int(rows[0]) - BBOX_MARGIN_PX, 0),
                    min(int(cols[-1]) + 1 + BBOX_MARGIN_PX, W), min(int(rows[-1]) + 1 + BBOX_MARGIN_PX, H))
             near = cv2.dilate(sil.astype(np.uint8), kernel).astype(bool)
-            r = render_feats.subset(_in_box(render_feats.uv, box) & _at_pixels(render_feats.uv, near))
+            r = render_feats.subset(_in_box(render_feats.uv, box))
+            r = r.subset(_at_pixels(r.uv - [u0, v0], near))
             p = photo_feats.subset(_in_box(photo_feats.uv, box))
             matches = match_features(r, p)
             check.bbox, check.n_render_keypoints, check.n_photo_keypoints = box, len(r.uv), len(p.uv)
@@ -514,6 +654,21 @@ def check_image(image_id: int, photo_bgr: NDArray[np.uint8], K: NDArray[np.float
                 check.ci95 = bootstrap_mean_ci(d, np.random.default_rng([seed, image_id, lab.instance]))
         out.append(check)
     return rendering, out
+
+
+def _search_region(instance_map: NDArray[np.int32]) -> tuple[int, int, int, int] | None:
+    """The region (u0, v0, u1, v1), end exclusive, of a photo that SIFT and the edge maps see: all of
+    a photo of at most 640 x 480 (``MAX_SIFT_PIXELS / UPSAMPLE**2``); of a larger one, the box of the
+    labels' rendered pixels dilated by ``CONTEXT_PX``, None when no label is in view."""
+    H, W = instance_map.shape
+    if W * H * UPSAMPLE ** 2 <= MAX_SIFT_PIXELS:
+        return 0, 0, W, H
+    seen = instance_map >= 0
+    rows, cols = np.flatnonzero(seen.any(axis=1)), np.flatnonzero(seen.any(axis=0))
+    if rows.size == 0:
+        return None
+    return (max(int(cols[0]) - CONTEXT_PX, 0), max(int(rows[0]) - CONTEXT_PX, 0),
+            min(int(cols[-1]) + 1 + CONTEXT_PX, W), min(int(rows[-1]) + 1 + CONTEXT_PX, H))
 
 
 def summarize(views: Sequence[ViewInstanceCheck], seed: int = 0) -> list[InstanceSummary]:
@@ -549,20 +704,37 @@ def select_images(image_ids: Sequence[int], n: int | None) -> list[int]:
     return [ids[i] for i in picks]
 
 
-def check_scene(scene_dir: str | Path, labels_path: str | Path, models_dir: str | Path,
-                images: int | None = None, seed: int = 0, image_ids: Sequence[int] | None = None,
-                progress: Any = None) -> CheckReport:
-    """Check the labels of ``labels_path`` (BOP scene_gt.json, mm) on the photos of ``scene_dir``.
+@dataclass
+class CheckInputs:
+    """Everything a check reads before its first image, validated (:func:`prepare_check`): the labels
+    (BOP ``scene_gt.json``, mm), the scene's cameras (file ``cam_K``, px), the images to check, their
+    photos' paths and the meshes (mm) of the objects labelled there."""
+
+    scene_dir: Path
+    labels_path: Path
+    models_dir: Path
+    labels: dict[int, list[Label]]
+    cameras: dict[int, tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]
+    image_ids: list[int]
+    photos: dict[int, Path]
+    meshes: dict[int, ColouredMesh]
+    warnings: list[str] = field(default_factory=list)
+
+
+def prepare_check(scene_dir: str | Path, labels_path: str | Path, models_dir: str | Path,
+                  images: int | None = None, image_ids: Sequence[int] | None = None,
+                  labels: Mapping[int, list[Label]] | None = None) -> CheckInputs:
+    """Read and validate the inputs of a check (no photo is read, nothing is rendered).
 
     ``images``: check only that many images, spread evenly over the labelled ones (default all);
-    ``image_ids``: or exactly these labelled images (then ``images`` is ignored).
-    ``progress``: optional ``callable(done, total)`` called after each image.
-    Raises :class:`AutoalignError` (naming the file and the fix) for missing or malformed inputs.
+    ``image_ids``: or exactly these labelled images (then ``images`` is ignored); ``labels``: the
+    labels file as :func:`autoalign.bop.read_labels` read it, if already read. Raises
+    :class:`AutoalignError` (naming the file and the fix) for missing or malformed inputs.
     """
     scene_dir, labels_path, models_dir = Path(scene_dir), Path(labels_path), Path(models_dir)
     if not scene_dir.is_dir():
         raise AutoalignError(f"{scene_dir}: not a folder; give a BOP scene folder with scene_camera.json and rgb/")
-    labels = read_labels(labels_path)
+    labels = dict(labels) if labels is not None else read_labels(labels_path)
     cameras = read_cameras(scene_dir)
     missing = [i for i in labels if i not in cameras]
     if missing:
@@ -578,26 +750,41 @@ def check_scene(scene_dir: str | Path, labels_path: str | Path, models_dir: str 
         chosen = sorted(set(int(i) for i in image_ids))
     else:
         chosen = select_images(labelled, images)
+    photos = {im: photo_path(scene_dir, im) for im in chosen}
     meshes = load_models(models_dir, [lab.obj_id for i in chosen for lab in labels[i]], labels_path)
     warnings = [f"{m.path}: no vertex colours; rendered grey, so few matches are expected"
                 for m in meshes.values() if not m.has_colours]
+    return CheckInputs(scene_dir, labels_path, models_dir, labels, cameras, chosen, photos, meshes, warnings)
+
+
+def check_prepared(inputs: CheckInputs, seed: int = 0, progress: Any = None,
+                   max_pixels: int | None = MAX_IMAGE_PIXELS) -> CheckReport:
+    """Check the labels of :func:`prepare_check`'s ``inputs`` on their photos, one image at a time
+    (only one photo, its masks and its rendering are held at once).
+
+    Photos and masks of more than ``max_pixels`` are read downscaled by a whole factor, ``cam_K``
+    with them (:func:`read_photo_scaled`; ``None``: full size). ``progress``: optional
+    ``callable(done, total)`` called before the first image and after each.
+    """
     views: list[ViewInstanceCheck] = []
+    scales: dict[int, float] = {}
+    chosen = inputs.image_ids
+    if progress is not None:
+        progress(0, len(chosen))
     for n_done, im in enumerate(chosen, 1):
-        photo = read_photo(photo_path(scene_dir, im))
-        H, W = photo.shape[:2]
-        masks = {}
-        for lab in labels[im]:
-            p = mask_path(scene_dir, im, lab.instance)
-            if p.is_file():
-                m, kind = read_mask(p)
-                if kind == "empty":  # the segmenter found nothing: no mask, as in autoalign.bop
-                    continue
-                if m.shape != (H, W):
-                    raise AutoalignError(f"{p}: mask is {m.shape[1]}x{m.shape[0]} but the photo is {W}x{H}; masks "
-                                         "must have the photo's size")
-                masks[lab.instance] = m
-        _, checks = check_image(im, photo, cameras[im][0], labels[im], meshes, masks, seed)
+        photo = read_photo_scaled(inputs.photos[im], max_pixels)
+        paths = {(im, lab.instance): mask_path(inputs.scene_dir, im, lab.instance) for lab in inputs.labels[im]}
+        read = read_masks({k: p for k, p in paths.items() if p.is_file()}, max_pixels)
+        if read.size is not None and read.size != photo.size:
+            p = next(p for p in paths.values() if p.is_file())
+            raise AutoalignError(f"{p}: mask is {read.size[1]}x{read.size[0]} but the photo is {photo.size[1]}x"
+                                 f"{photo.size[0]}; masks must have the photo's size")
+        masks = {inst: m for (_, inst), m in read.masks.items()}  # empty masks: none, as in autoalign.bop
+        K = scaled_K(inputs.cameras[im][0], photo.factor)
+        _, checks = check_image(im, photo.bgr, K, inputs.labels[im], inputs.meshes, masks, seed)
         views.extend(checks)
+        scales[im] = 1.0 / photo.factor
+        del photo, read, masks  # before the next image's are read
         if progress is not None:
             progress(n_done, len(chosen))
     instances = summarize(views, seed)
@@ -607,8 +794,17 @@ def check_scene(scene_dir: str | Path, labels_path: str | Path, models_dir: str 
     mean, ci = pooled_mean_ci(groups, np.random.default_rng([seed, 2_000_003]))
     edge, edge_ci = pooled_mean_ci([v.edge_distances for v in views if v.edge_px is not None],
                                    np.random.default_rng([seed, 4_000_037]))
-    return CheckReport(scene_dir, labels_path, models_dir, chosen, views, instances, mean, ci, n, seed, warnings,
-                       edge, edge_ci)
+    return CheckReport(inputs.scene_dir, inputs.labels_path, inputs.models_dir, chosen, views, instances, mean, ci, n,
+                       seed, list(inputs.warnings), edge, edge_ci, scales, max_pixels)
+
+
+def check_scene(scene_dir: str | Path, labels_path: str | Path, models_dir: str | Path,
+                images: int | None = None, seed: int = 0, image_ids: Sequence[int] | None = None,
+                progress: Any = None, max_pixels: int | None = MAX_IMAGE_PIXELS) -> CheckReport:
+    """Check the labels of ``labels_path`` (BOP scene_gt.json, mm) on the photos of ``scene_dir``:
+    :func:`prepare_check` then :func:`check_prepared` (see them for the arguments)."""
+    return check_prepared(prepare_check(scene_dir, labels_path, models_dir, images, image_ids), seed, progress,
+                          max_pixels)
 
 
 # --------------------------------------------------------------------------------------------
@@ -624,7 +820,8 @@ def _colour(instance: int) -> tuple[int, int, int]:
 
 def match_figure(report: CheckReport, max_views: int = 4) -> NDArray[np.uint8]:
     """A BGR image of up to ``max_views`` checked photos (those with the most kept matches, in image
-    order) with the kept matches: a line from the rendering keypoint (dot) to the photo keypoint,
+    order; read as they were checked, downscaled if large) with the kept matches: a line from the
+    rendering keypoint (dot) to the photo keypoint,
     the label's visible outline, the dilated bounding box, and ``obj id: mean px (n), edge px`` per
     instance, in one colour per instance; two photos per row."""
     counts = {im: 0 for im in report.image_ids}
@@ -633,7 +830,7 @@ def match_figure(report: CheckReport, max_views: int = 4) -> NDArray[np.uint8]:
     ids = sorted(sorted(counts, key=lambda im: (-counts[im], im))[:max_views])
     tiles = []
     for im in ids:
-        img = read_photo(photo_path(report.scene_dir, im))
+        img = read_photo_scaled(photo_path(report.scene_dir, im), report.max_pixels).bgr  # as checked
         img = (img.astype(np.float32) * 0.6).astype(np.uint8)
         for v in (c for c in report.views if c.image_id == im):
             col = _colour(v.instance)

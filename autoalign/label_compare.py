@@ -25,9 +25,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.bop import mask_path, photo_path, read_mask, read_photo
+from autoalign.bop import mask_path, photo_path, read_masks
 from autoalign.edge_distance import outline_pixels
-from autoalign.feature_distance import CheckReport, ViewInstanceCheck, bootstrap_mean_ci
+from autoalign.feature_distance import CheckReport, ViewInstanceCheck, bootstrap_mean_ci, read_photo_scaled
 
 FIGURE_VIEWS = 5
 """Views per instance in :func:`comparison_figure`, spread evenly over the paired views."""
@@ -115,10 +115,11 @@ def comparison_figure(labels: CheckReport, reference: CheckReport, comparisons: 
         picks = np.unique(np.rint(np.linspace(0, c.views - 1, min(views, c.views))).astype(int))
         tiles = []
         for im in (c.image_ids[k] for k in picks):
-            photo = read_photo(photo_path(labels.scene_dir, im))
+            # photo and mask as they were checked (downscaled if large), where the outlines are
+            photo = read_photo_scaled(photo_path(labels.scene_dir, im), labels.max_pixels).bgr
             lines = {"labels": outline[(im, c.instance)], "reference": outline_ref[(im, c.instance)]}
             p = mask_path(labels.scene_dir, im, c.instance)
-            mask = read_mask(p)[0] if p.is_file() else None
+            mask = read_masks({(im, c.instance): p}, labels.max_pixels).masks.get((im, c.instance)) if p.is_file() else None
             lines["mask"] = outline_pixels(mask.astype(np.int32), 1) if mask is not None else np.zeros((0, 2), int)
             tiles.append(_tile(photo, lines, f"obj {c.obj_id} inst {c.instance}, image {im}", tile))
         tiles += [np.zeros((tile, tile, 3), np.uint8)] * (views - len(tiles))

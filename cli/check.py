@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +57,9 @@ output:
   check.json gets "against" (the reference's report and the comparison) and compare.png shows a
   row per instance: 5 views cropped around the object, mask outline cyan, labels green,
   reference red.
+  Photos over 3.2 megapixels are checked at 1/2, 1/3, ... of their size (the smallest whole factor
+  that brings them under it, masks and cam_K with them, as refine reads masks): check.json's
+  "image_scale" says so, and its px (distances, boxes, the 10 px limits) are those pixels.
 
 examples:
   autoalign check scenes/000002 --labels labels/000002/scene_gt.json --models models/
@@ -90,13 +92,15 @@ def add_check_parser(subparsers: Any) -> argparse.ArgumentParser:
                           "instance by instance (entry k is instance k in both); see 'output'")
     opt.add_argument("--images", metavar="N", type=positive_int, default=None,
                      help="check only N labelled images, spread evenly over the scene (default: all; about "
-                          "0.5 s an image at 640x480)")
+                          "0.5 s an image at 640x480, 1 s at 4000x3000, which is read at half size)")
     opt.add_argument("--out", metavar="REPORT_DIR", default=None,
                      help="write check.json and check.png into this folder (created if missing; files of the same "
                           "name are replaced)")
     opt.add_argument("--json", action="store_true",
                      help="print one JSON object on stdout (the contents of check.json, plus the output paths) and "
                           "nothing else there")
+    opt.add_argument("--quiet", action="store_true",
+                     help="no progress bar on stderr (the table or --json, warnings and errors still appear)")
     p.set_defaults(func=run_check)
     return p
 
@@ -124,6 +128,11 @@ def format_table(report: Any) -> str:
     if report.edge_px is not None:
         lines.append(f"edge distance, all judged views: {report.edge_px:.2f} px {_ci(report.edge_ci95)}")
     lines.append(f"images ({len(report.image_ids)}): {ids}")
+    if report.image_scale != 1.0:
+        scale = f"{report.image_scale:g}" if report.image_scale is not None else "per image, see check.json"
+        lines.append(f"photos over {report.max_pixels / 1e6:g} megapixels were checked downscaled (image_scale "
+                     f"{scale}): every px above is a pixel of the photo as checked; divide by image_scale for the "
+                     "files' pixels")
     return "\n".join(lines)
 
 
@@ -158,25 +167,32 @@ def run_check(args: argparse.Namespace) -> int:
                 raise AutoalignError(f"--out {out}: writing {name} there would replace the input file {out / name}; "
                                      "choose another folder with --out")
     as_json = bool(getattr(args, "json", False))
+    from autoalign import feature_distance as fd
+
+    # every input file is read and validated before any photo is checked (a bad --against file
+    # was found only after the labels' whole check) and before --out is created
+    inputs = fd.prepare_check(scene, labels, models, images=getattr(args, "images", None))
+    ref_inputs = _prepare_reference(scene, against, models, inputs) if against is not None else None
     created = prepare_out_dir(out) if out is not None else []
     try:
-        from autoalign import feature_distance as fd
         from autoalign.overlay import encode_png
 
-        bar = ProgressBar(enabled=not as_json and sys.stderr.isatty())
+        bar = ProgressBar(enabled=not getattr(args, "quiet", False))
         try:
-            report = fd.check_scene(scene, labels, models, images=getattr(args, "images", None),
-                                    progress=lambda done, total: bar("checking images", done, total))
+            report = fd.check_prepared(inputs, progress=lambda done, total: bar("checking images", done, total))
+            reference = None
+            if ref_inputs is not None:
+                reference = fd.check_prepared(
+                    ref_inputs, progress=lambda done, total: bar("checking the reference", done, total))
         finally:
             bar.close()
         for w in report.warnings:
             warn(w)
         record = report.record()
         comparison = None
-        if against is not None:
+        if reference is not None:
             from autoalign import label_compare
 
-            reference = _check_reference(scene, against, models, report, labels, bar)
             comparison = label_compare.compare_reports(report, reference)
             record["against"] = {"labels": str(against), "report": reference.record(),
                                  "comparison": [c.record() for c in comparison]}
@@ -202,21 +218,18 @@ def run_check(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_reference(scene: Path, against: Path, models: Path, report: Any, labels: Path, bar: Any) -> Any:
-    """The check of the reference labels on the images of ``report`` that the reference labels too."""
+def _prepare_reference(scene: Path, against: Path, models: Path, inputs: Any) -> Any:
+    """The validated inputs of the reference's check (:func:`autoalign.feature_distance.prepare_check`):
+    the images of ``inputs`` that the reference labels too."""
     from autoalign import feature_distance as fd
     from autoalign.bop import read_labels
 
-    labelled = {i for i, labs in read_labels(against).items() if labs}
-    common = [i for i in report.image_ids if i in labelled]
+    ref_labels = read_labels(against)
+    common = [i for i in inputs.image_ids if ref_labels.get(i)]
     if not common:
-        raise AutoalignError(f"--against {against}: it labels none of the checked images of {labels}; compare labels "
-                             "of the same scene")
-    try:
-        return fd.check_scene(scene, against, models, image_ids=common,
-                              progress=lambda done, total: bar("checking the reference", done, total))
-    finally:
-        bar.close()
+        raise AutoalignError(f"--against {against}: it labels none of the checked images of {inputs.labels_path}; "
+                             "compare labels of the same scene")
+    return fd.prepare_check(scene, against, models, image_ids=common, labels=ref_labels)
 
 
 def _write(files: dict[Path, bytes], out: Path) -> None:

@@ -14,11 +14,15 @@
   about 3 px more and offsets 2-5 px to the left; a transposed rotation loses most matches and
   IoU; a half-pixel shift of the principal point changes the distance by under a pixel. The edge
   distance judges the untextured driller too and grows with both mistakes.
+* Large photos: a 2400 x 1800 photo moved by (4, -2) px is checked at half size (masks and cam_K
+  with it) and gives the shift, the feature distance and a grey sphere's edge distance of the
+  full-size check, in its own pixels (the pixel grid kept exact: a half-pixel error would show).
 * Comparison (``--against``): paired views by hand; on LM-O the dataset's labels against the same
   labels moved 8 mm are judged closer for most objects, and the other way round; identical labels
   give no difference; the figure's tiles show the three outlines in their colours.
 * CLI: ``add_check_parser`` on a fresh parser, check.json / check.png / compare.png, errors naming
-  the file, no torch or jax.
+  the file, no torch or jax; a NaN in ``--against`` or an infinity in ``--labels`` stops the command
+  (exit 2, one line naming the file and the entry) before any image is checked.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ import cv2
 import numpy as np
 import pytest
 import trimesh
+from numpy.typing import NDArray
 
 from autoalign.bop import mask_path, read_cameras, read_mask
 from autoalign.camera import Camera
@@ -138,11 +143,11 @@ def test_silhouette_equals_independent_raycast_masks() -> None:
 # The pipeline on synthetic photos
 # --------------------------------------------------------------------------------------------
 
-def _textured_sphere(rng: np.random.Generator) -> ColouredMesh:
-    """A 40 mm sphere with smooth random colour blobs (~10 mm), good for SIFT."""
+def _textured_sphere(rng: np.random.Generator, blob_mm: float = 6.0) -> ColouredMesh:
+    """A 40 mm sphere with smooth random colour blobs (about ``blob_mm`` * 1.6 mm), good for SIFT."""
     sph = trimesh.creation.icosphere(subdivisions=5, radius=40.0)
     V = np.asarray(sph.vertices, dtype=np.float64)
-    freqs, phases = rng.normal(size=(3, 6, 3)) / 6.0, rng.uniform(0.0, 2 * np.pi, (3, 6))
+    freqs, phases = rng.normal(size=(3, 6, 3)) / blob_mm, rng.uniform(0.0, 2 * np.pi, (3, 6))
     C = np.stack([0.5 + 0.5 * np.tanh(np.sin(V @ freqs[c].T + phases[c]).sum(1)) for c in range(3)], 1)
     return ColouredMesh(V, np.asarray(sph.faces, dtype=np.int64), C.astype(np.float32), True)
 
@@ -278,6 +283,71 @@ def test_uncoloured_mesh_file_is_grey(tmp_path: Path) -> None:
     box.export(str(p))
     m = load_coloured_mesh(p)
     assert not m.has_colours and np.allclose(m.colours, 0.5) and len(m.vertices) == len(box.vertices)
+
+
+# --------------------------------------------------------------------------------------------
+# Large photos: read downscaled, the same distances
+# --------------------------------------------------------------------------------------------
+
+def _circle_edge_px(radius_px: float, shift: NDArray) -> float:
+    """Mean distance from a circle to the same circle moved by ``shift`` (px), over its directions."""
+    theta = np.linspace(0.0, 2.0 * np.pi, 3600, endpoint=False)
+    n = np.column_stack([np.cos(theta), np.sin(theta)])
+    return float(np.mean(np.abs(np.linalg.norm(radius_px * n - shift, axis=1) - radius_px)))
+
+
+def test_large_photo_is_checked_downscaled_with_the_full_size_distances(tmp_path: Path) -> None:
+    """A 2400 x 1800 photo (4.3 megapixels, over MAX_IMAGE_PIXELS) of a textured sphere and a grey one
+    on a dark floor, moved by (4, -2) px from the labels. Checked as shipped it is read at half size
+    (image_scale 0.5; photo, mask and cam_K halved, outlines on the 1200 x 900 grid), and its
+    numbers, in those pixels, are the full-size check's (``max_pixels=None``) halved: the offset
+    photo - rendering (2, -1) px within 0.1 px (measured 0.03; the half-pixel error of halving
+    cam_K naively would show as 0.25), the feature distance sqrt(5) px (measured 2.249 against
+    the full size's 4.465 / 2), the grey sphere's edge distance within 0.3 full-size px of the
+    full-size one (measured 2.56 against 2.64; the two circles' mean distance is 2.85), and the
+    same IoU with the mask."""
+    rng = np.random.default_rng(5)
+    W, H, shift = 2400, 1800, np.array([4.0, -2.0])
+    K = np.array([[1500.0, 0.0, 1203.3], [0.0, 1500.0, 897.8], [0.0, 0.0, 1.0]])
+    textured = _textured_sphere(rng, blob_mm=2.0)
+    grey = ColouredMesh(textured.vertices, textured.faces, np.full((len(textured.vertices), 3), 0.6, np.float32), True)
+    (R, t), (R2, t2) = (random_rotation(rng), np.array([20.0, -10.0, 300.0])), (np.eye(3), np.array([-90.0, 40.0, 330.0]))
+    r = render_labels([(0, textured, R, t), (1, grey, R2, t2)], K, W, H)
+    move = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
+    photo = cv2.warpAffine(np.where((r.instance >= 0)[..., None], r.rgb[..., ::-1], np.uint8(50)), move, (W, H),
+                           borderMode=cv2.BORDER_REPLICATE)
+    scene, models = tmp_path / "scene", tmp_path / "models"
+    for d in (scene / "rgb", scene / "mask_visib", models):
+        d.mkdir(parents=True)
+    cv2.imwrite(str(scene / "rgb" / "000000.png"), photo)
+    cv2.imwrite(str(mask_path(scene, 0, 0)), cv2.warpAffine((r.instance == 0).astype(np.uint8) * 255, move, (W, H)))
+    (scene / "scene_camera.json").write_text(json.dumps({"0": {"cam_K": K.ravel().tolist(), "cam_R_w2c":
+                                                               np.eye(3).ravel().tolist(), "cam_t_w2c": [0, 0, 0]}}))
+    labels = [{"obj_id": k + 1, "cam_R_m2c": Rk.ravel().tolist(), "cam_t_m2c": tk.tolist()}
+              for k, (Rk, tk) in enumerate([(R, t), (R2, t2)])]
+    (scene / "scene_gt.json").write_text(json.dumps({"0": labels}))
+    for obj, mesh in ((1, textured), (2, grey)):
+        trimesh.Trimesh(mesh.vertices, mesh.faces, vertex_colors=np.rint(mesh.colours * 255).astype(np.uint8),
+                        process=False).export(models / f"obj_{obj:06d}.ply")
+
+    half = check_scene(scene, scene / "scene_gt.json", models)
+    full = check_scene(scene, scene / "scene_gt.json", models, max_pixels=None)
+    assert (half.image_scale, full.image_scale) == (0.5, 1.0)
+    rec = half.record()
+    assert rec["image_scale"] == 0.5 and [v["image_scale"] for v in rec["views"]] == [0.5, 0.5]
+    (h, hg), (f, fg) = half.views, full.views
+    assert np.all(h.outline_rc.max(axis=0) < [900, 1200]) and np.all(f.outline_rc.max(axis=0) > [900, 1200])
+    assert 0.45 < len(h.outline_rc) / len(f.outline_rc) < 0.55  # the same circle on a grid half as fine
+    for v, s in ((h, 0.5), (f, 1.0)):
+        assert v.n_matches >= 60  # measured 150 and 161
+        assert np.allclose(v.offset_px, shift * s, atol=0.1 if s < 1 else 0.15)
+        assert v.mean_px == pytest.approx(np.hypot(*shift) * s, abs=0.1 if s < 1 else 0.15)
+    assert h.mean_px / 0.5 == pytest.approx(f.mean_px, abs=0.2)
+    assert h.iou == pytest.approx(f.iou, abs=0.002) and h.iou > 0.95
+    radius = 1500.0 * np.tan(np.arcsin(40.0 / np.linalg.norm(t2)))  # px of the full-size photo
+    assert hg.edge_px / 0.5 == pytest.approx(fg.edge_px, abs=0.3)
+    assert hg.edge_px == pytest.approx(_circle_edge_px(radius / 2, shift / 2), abs=0.5)
+    assert fg.edge_px == pytest.approx(_circle_edge_px(radius, shift), abs=0.5)
 
 
 # --------------------------------------------------------------------------------------------
@@ -541,6 +611,41 @@ def test_cli_check_against_a_reference(tmp_path: Path, capsys: pytest.CaptureFix
     with pytest.raises(AutoalignError, match=re.escape(str(other))) as exc:
         args.func(args)
     assert "\n" not in str(exc.value) and not (tmp_path / "rep2").exists()
+
+
+def _run_cli(*args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run([sys.executable, "-m", "autoalign.cli.main", *args], capture_output=True, text=True, env=env,
+                          timeout=300)
+
+
+@needs_real
+def test_cli_bad_number_in_the_reference_or_labels_stops_before_any_image(tmp_path: Path) -> None:
+    """A NaN in --against (image 695 entry 2 cam_t_m2c) or an infinity in --labels: exit 2, one line
+    on stderr naming the file, the entry and the fix, no report folder, and no image checked: the
+    progress bar, which a good run shows on stderr (a pipe here), never started (the NaN was found
+    only after the labels' whole check before)."""
+    labels = REAL / "scene_gt.json"
+    common = ["--models", str(REAL / "models"), "--images", "2"]
+    good = _run_cli("check", str(REAL), "--labels", str(labels), *common)
+    assert good.returncode == 0 and "checking images" in good.stderr and "images (2): 480, 695" in good.stdout
+
+    raw = json.loads(labels.read_text())
+    raw["695"][2]["cam_t_m2c"][1] = float("nan")
+    bad_ref = tmp_path / "reference_gt.json"
+    bad_ref.write_text(json.dumps(raw))  # json writes the NaN token, which Python's reader accepts
+    raw["695"][2]["cam_t_m2c"][1] = float("inf")
+    bad_labels = tmp_path / "labels_gt.json"
+    bad_labels.write_text(json.dumps(raw))
+    for argv, bad in ((["--labels", str(labels), "--against", str(bad_ref)], bad_ref),
+                      (["--labels", str(bad_labels)], bad_labels)):
+        out = tmp_path / f"report_{bad.stem}"
+        r = _run_cli("check", str(REAL), *argv, *common, "--out", str(out))
+        assert r.returncode == 2 and r.stdout == ""
+        (line,) = r.stderr.strip().splitlines()
+        assert line.startswith(f"autoalign: error: {bad}: image 695 entry 2 'cam_t_m2c' must be 3 finite numbers; "), line
+        assert '"cam_t_m2c": 3 numbers (mm)' in line  # the fix: what an entry must hold
+        assert "checking" not in r.stderr and not out.exists()
 
 
 def test_cli_missing_labels_names_the_file(tmp_path: Path) -> None:
