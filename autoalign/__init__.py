@@ -20,8 +20,10 @@ from typing import TYPE_CHECKING, Any
 
 from autoalign.interrupts import Interrupts, is_command_process
 
-if is_command_process() and threading.current_thread() is threading.main_thread():
-    signal.signal(signal.SIGINT, Interrupts.remember)  # until the command's main() takes over
+# Until the command's main() takes over; a process that ignores Ctrl-C (a batch worker, nohup) keeps ignoring it.
+if (is_command_process() and threading.current_thread() is threading.main_thread()
+        and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN):
+    signal.signal(signal.SIGINT, Interrupts.remember)
 
 __version__ = "0.1.0"
 

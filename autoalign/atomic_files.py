@@ -9,9 +9,12 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import tempfile
 from pathlib import Path
 from typing import Any
+
+from autoalign.interrupts import held_signals
 
 _UMASK = os.umask(0o022)
 os.umask(_UMASK)  # read once at import: os.umask can only be read by setting it
@@ -34,8 +37,9 @@ def write_files_atomic(files: dict[Path, bytes]) -> None:
                 f.write(data)
                 f.flush()
                 os.fsync(f.fileno())
-        for path, tmp in temps:
-            os.replace(tmp, path)
+        with held_signals(signal.SIGINT, signal.SIGTERM):  # all the targets replaced, or none
+            for path, tmp in temps:
+                os.replace(tmp, path)
     except BaseException:
         for _, tmp in temps:
             if os.path.exists(tmp):

@@ -10,7 +10,11 @@
 * :func:`refine_many` runs ``autoalign refine`` on many scene folders with the same options,
   each into ``OUT/<scene folder name>``, one record per scene in ``OUT/batch.jsonl`` (its exit
   status: 0 ok, 3 written but flagged); a scene with a mistake in its inputs (status 2) goes to
-  ``OUT/errors.jsonl`` with its one-line error and runs again next time.
+  ``OUT/errors.jsonl`` with its one-line error and runs again next time, and a scene interrupted
+  by Ctrl-C is not recorded at all (the run stops; the same command again finishes it).
+
+Ctrl-C: worker processes ignore it and are terminated by the parent, which then raises
+``KeyboardInterrupt`` (the command exits 130); no worker outlives the run.
 
 Why Dask (``dask.distributed``) rather than Ray: it is pure Python and pip-installable with no
 compiled core, a ``LocalCluster`` starts in a second inside a test, and a cluster is just
@@ -21,12 +25,15 @@ function on that dict somewhere and give me the result", which ``Client.submit``
 
 from __future__ import annotations
 
+import gc
 import json
 import os
+import signal
 import time
 import traceback
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
@@ -34,21 +41,54 @@ from typing import Any
 
 from autoalign.atomic_files import write_bytes_atomic
 from autoalign.errors import AutoalignError
+from autoalign.interrupts import Interrupts, held_signals
 
 Task = dict[str, Any]
 TaskFn = Callable[[Task], dict[str, Any]]
 
 
+class Terminated(BaseException):
+    """SIGTERM in a worker process during a task: unwinds the task (its atomic writes remove their
+    temporary files), then :func:`safe_task` ends the process."""
+
+
+_in_task = False  # whether this worker process is running a task (see _on_sigterm)
+
+
 def safe_task(task: Task, fn: TaskFn) -> dict[str, Any]:
     """Run ``fn(task)``; an exception becomes ``{"id", "error", "traceback"}`` instead of killing the run."""
+    global _in_task
+    _in_task = True
     try:
         return fn(task)
     except Exception as exc:  # noqa: BLE001 - reported per task, run again on resume
         return {"id": task["id"], "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
+    except Terminated:
+        os._exit(128 + signal.SIGTERM)
+    finally:
+        _in_task = False
+
+
+def _on_sigterm(signum: int, frame: Any) -> None:
+    """A worker's SIGTERM handler (the parent stops its workers with it): a task in progress is
+    unwound first (:class:`Terminated`); an idle worker just ends."""
+    if _in_task:
+        raise Terminated
+    os._exit(128 + signum)
 
 
 def init_worker(threads: int) -> None:
-    """Give each worker process its share of the cores (drjit defaults to all of them)."""
+    """Set up a worker process: Ctrl-C ignored (the parent decides, and stops the workers itself:
+    a worker that handled it would end its task as interrupted and take the next one), and its
+    share of the cores (drjit defaults to all of them).
+
+    The worker was started with SIGINT blocked (:func:`~autoalign.interrupts.held_signals`), so a
+    Ctrl-C pressed while it started is dropped here rather than raised in its start-up code. SIGTERM,
+    with which the parent stops it, unwinds a task in progress before the process ends (:func:`_on_sigterm`).
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     os.environ.setdefault("OMP_NUM_THREADS", str(threads))
     try:
         from autoalign.backend import drjit
@@ -130,10 +170,20 @@ class RunSummary:
     seconds: float
 
 
+Handler = Callable[[dict[str, Any]], None]
+
+
 def run_tasks(tasks: Sequence[Task], task_fn: TaskFn, out_dir: str | Path, records: str = "trials.jsonl",
               workers: int = 1, scheduler: Any = None, progress: bool = True, desc: str = "tasks",
               unit: str = "task") -> RunSummary:
     """Run every task whose id is not yet in ``out_dir/records`` (see module doc).
+
+    A task is recorded only once ``task_fn`` has returned its record; a task that was running when
+    the run was interrupted (``KeyboardInterrupt``, raised here or by ``task_fn``) is not, so the
+    same call again runs exactly those. On an interrupt the worker processes are stopped before
+    the exception goes on. A task whose worker died (killed, out of memory) goes to
+    ``errors.jsonl``; on a Dask cluster the scheduler first runs it again elsewhere, and its record
+    says how many workers died while holding it (``lost_workers``).
 
     Args:
         tasks: JSON-able dicts, each with a unique ``id``.
@@ -173,19 +223,10 @@ def run_tasks(tasks: Sequence[Task], task_fn: TaskFn, out_dir: str | Path, recor
             _run_dask(pending, scheduler, handle, task_fn, desc)
         elif workers <= 1:
             for t in pending:
+                Interrupts.check()  # a Ctrl-C that the previous task only remembered stops the run here
                 handle(safe_task(t, task_fn))
         else:
-            threads = max(1, (os.cpu_count() or 1) // workers)
-            ex = ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
-                                     initializer=init_worker, initargs=(threads,))
-            try:
-                futs = [ex.submit(safe_task, t, task_fn) for t in pending]
-                for fut in as_completed(futs):
-                    handle(fut.result())
-            except BaseException:
-                ex.shutdown(wait=False, cancel_futures=True)
-                raise
-            ex.shutdown(wait=True)
+            _run_processes(pending, task_fn, workers, handle)
     finally:
         bar.close()
         writer.close()
@@ -194,28 +235,96 @@ def run_tasks(tasks: Sequence[Task], task_fn: TaskFn, out_dir: str | Path, recor
     return summary
 
 
-def _run_dask(pending: list[Task], scheduler: Any, handle: Callable[[dict[str, Any]], None], task_fn: TaskFn,
-              desc: str) -> None:
+def _run_processes(pending: list[Task], task_fn: TaskFn, workers: int, handle: Handler) -> None:
+    """The tasks on ``workers`` spawned processes (:func:`init_worker`); stopped on any exception."""
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    ex = ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
+                             initializer=init_worker, initargs=(threads,))
+    try:
+        # The workers start here (on submit), with Ctrl-C blocked until init_worker ignores it; one
+        # pressed meanwhile is raised after the block, not inside the executor's own code.
+        with held_signals(signal.SIGINT):
+            futs = {ex.submit(safe_task, t, task_fn): t for t in pending}
+        for fut in as_completed(futs):
+            if isinstance(fut.exception(), BrokenProcessPool):
+                handle({"id": futs[fut]["id"], "error": "a worker process died (killed, or out of memory?) before "
+                        "this task finished; it runs again next time"})
+            else:
+                handle(fut.result())
+    except BaseException:
+        _stop_workers(ex)
+        # Free the executor now, not at exit: the command ends an interrupted run with os._exit, which
+        # runs no finalizers, and the resource tracker would then warn of its leaked semaphores.
+        del ex
+        gc.collect()  # its queues sit in reference cycles
+        raise
+    ex.shutdown(wait=True)
+
+
+def _stop_workers(ex: ProcessPoolExecutor) -> None:
+    """Terminate the executor's worker processes, wait for them, then shut it down (its manager
+    thread sees the workers gone and ends; waiting for it frees its queues). ``shutdown`` alone lets
+    each worker finish its task first, and ``ProcessPoolExecutor`` has no public list of its
+    processes before Python 3.14's ``terminate_workers``."""
+    procs = list((getattr(ex, "_processes", None) or {}).values())
+    for p in procs:
+        p.terminate()
+    for p in procs:
+        p.join(5)
+        if p.is_alive():
+            p.kill()
+            p.join()
+    ex.shutdown(wait=True, cancel_futures=True)
+
+
+def _dask_client(scheduler: Any) -> tuple[Any, bool]:
+    """A ``dask.distributed.Client`` for ``scheduler`` and whether it was made here (to close)."""
     try:
         from dask.distributed import Client
-        from dask.distributed import as_completed as dask_completed
     except ImportError:
         raise AutoalignError("--scheduler needs dask.distributed; install it with "
                              "`pip install 'dask[distributed]'` (or autoalign[distributed])") from None
-    own = not isinstance(scheduler, Client)
+    if isinstance(scheduler, Client):
+        return scheduler, False
     try:
-        client = Client(scheduler, timeout="20s") if own else scheduler
+        return Client(scheduler, timeout="20s"), True
     except (OSError, TimeoutError) as exc:
         raise AutoalignError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({exc}); "
                              "start one with `dask scheduler` and pass its tcp://HOST:PORT") from None
+
+
+def _lost_workers(dask_scheduler: Any, key: str) -> int:
+    """On the scheduler: how many workers died while ``key`` was assigned to them (``suspicious``)."""
+    ts = dask_scheduler.tasks.get(key)
+    return int(ts.suspicious) if ts is not None else 0
+
+
+def _run_dask(pending: list[Task], scheduler: Any, handle: Handler, task_fn: TaskFn, desc: str) -> None:
+    """The tasks on a Dask cluster. The scheduler reruns a task whose worker died (up to its
+    ``distributed.scheduler.allowed-failures``); each result is released once handled, so that a
+    later worker death cannot make the scheduler compute a finished task again."""
+    from dask.distributed import KilledWorker
+    from dask.distributed import as_completed as dask_completed
+
+    client, own = _dask_client(scheduler)
     try:
-        futs = [client.submit(safe_task, t, task_fn, pure=False, key=f"{desc}-{i}-{abs(hash(t['id']))}")
-                for i, t in enumerate(pending)]
+        futs = {client.submit(safe_task, t, task_fn, pure=False, key=f"{desc}-{i}-{abs(hash(t['id']))}"): t
+                for i, t in enumerate(pending)}
         try:
-            for fut in dask_completed(futs):
-                handle(fut.result())
+            for fut in dask_completed(list(futs)):
+                task = futs.pop(fut)
+                lost = client.run_on_scheduler(_lost_workers, key=fut.key)
+                try:
+                    rec = fut.result()
+                except KilledWorker:
+                    rec = {"id": task["id"], "error": f"{lost} Dask workers died while running it; it runs again "
+                           "next time (is a scene too large for a worker's memory?)"}
+                if lost:
+                    rec["lost_workers"] = lost
+                fut.release()
+                handle(rec)
         except BaseException:
-            client.cancel(futs)
+            client.cancel(list(futs))
             raise
     finally:
         if own:
@@ -278,6 +387,8 @@ def refine_task(task: Task) -> dict[str, Any]:
     with contextlib.redirect_stderr(err):
         status = main(["refine", task["scene"], *task["args"], "--out", task["out"], "--quiet"])
     messages = err.getvalue().strip().splitlines()
+    if status == 130:  # interrupted in this process: not done; the whole run stops (run_tasks)
+        raise KeyboardInterrupt
     if status == 2:  # a mistake in this scene's inputs: not done, so that it runs again once fixed
         return {"id": task["id"], "error": messages[-1] if messages else "exit status 2"}
     return {"id": task["id"], "scene": task["scene"], "out": task["out"], "status": int(status),
@@ -289,7 +400,13 @@ def refine_many(scenes: Sequence[str | Path], args: Sequence[str], out_dir: str 
     """``autoalign refine`` with the options ``args`` (e.g. ``["--models", "models/"]``) on every
     scene folder, each into ``out_dir/<its name>`` (``extra[str(scene)]``: that scene's own
     options); resumable (``out_dir/batch.jsonl``)."""
+    return run_tasks(refine_tasks(scenes, args, out_dir, extra), refine_task, out_dir, BATCH_RECORDS, workers,
+                     scheduler, progress, "refine", "scene")
+
+
+def refine_tasks(scenes: Sequence[str | Path], args: Sequence[str], out_dir: str | Path,
+                 extra: dict[str, list[str]] | None = None) -> list[Task]:
+    """The tasks of :func:`refine_many` (one per scene, its id the scene folder's absolute path)."""
     extra = extra or {}
-    tasks = [{"id": str(Path(s).absolute()), "scene": str(Path(s)), "args": [*args, *extra.get(str(s), [])],
-              "out": str(Path(out_dir) / Path(s).name)} for s in scenes]
-    return run_tasks(tasks, refine_task, out_dir, BATCH_RECORDS, workers, scheduler, progress, "refine", "scene")
+    return [{"id": str(Path(s).absolute()), "scene": str(Path(s)), "args": [*args, *extra.get(str(s), [])],
+             "out": str(Path(out_dir) / Path(s).name)} for s in scenes]

@@ -8,10 +8,11 @@ Layout written: ``scene_gt.json`` with ``cam_R_m2c`` / ``cam_t_m2c`` (mm) per im
 converted to autoalign's internal one on import and back on export (see :mod:`autoalign.camera`).
 
 Mask files: a pixel is the object where the mask is non-zero (in any colour channel of a colour
-image; an alpha channel is ignored). Grey-level (0/255), 0/1 and colour masks are all read
-correctly, but one scene must use one kind: a mixture means files from different tools and is an
-error naming one file of each kind. A mask that is empty everywhere is treated as missing (the
-segmenter found nothing), not as "the object is absent", and is listed in ``Scene.empty``.
+image, or in the alpha channel of an image whose alpha is not the same everywhere). Grey-level
+(0/255), 0/1, colour and alpha masks are all read correctly, but one scene must use one kind: a
+mixture means files from different tools and is an error naming one file of each kind. A mask
+that is empty everywhere is treated as missing (the segmenter found nothing), not as "the object
+is absent", and is listed in ``Scene.empty``.
 """
 
 from __future__ import annotations
@@ -190,12 +191,17 @@ def read_mask(path: Path) -> tuple[NDArray[np.bool_], str]:
     """A mask file as a boolean image (non-zero = object) and its kind.
 
     Kinds: ``"0/N"`` for a single-channel image holding 0 and one other value N (0/255, 0/1,
-    0/65535), ``"grey levels"`` for one with more values, ``"colour"`` for a colour image (any
-    non-zero colour channel is the object; an alpha channel is ignored), ``"empty"`` for all zero.
+    0/65535), ``"grey levels"`` for one with more values, ``"alpha"`` for an image with an alpha
+    channel that is not the same everywhere (non-zero alpha is the object, whatever the colours: a
+    cut-out's colours are the photo's), ``"colour"`` for a colour image otherwise (any non-zero
+    colour channel is the object; an opaque alpha channel says nothing), ``"empty"`` for all zero.
     """
     m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if m is None:
         raise AutoalignError(f"{path}: cannot read the mask image; replace it with a PNG (white or 1 = object)")
+    if m.ndim == 3 and m.shape[2] == 4 and m[..., 3].min() != m[..., 3].max():
+        obj = m[..., 3] != 0  # the alpha channel carries the mask (a cut-out, or a mask stored only there)
+        return obj, ("alpha" if obj.any() else "empty")
     if m.ndim == 3:
         obj = np.any(m[..., :3] != 0, axis=2)
         return obj, ("colour" if obj.any() else "empty")

@@ -47,9 +47,17 @@ class Interrupts:
             raise KeyboardInterrupt
 
     @classmethod
+    def outputs_written(cls) -> None:
+        """The command's outputs are written and complete: from here to the command's end, Ctrl-C is
+        only remembered, so that the command reports and exits with its own status (``main`` then
+        says the outputs are complete) instead of calling finished work interrupted."""
+        if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) == cls.handler:
+            signal.signal(signal.SIGINT, cls.remember)
+
+    @classmethod
     @contextmanager
     def deferred(cls) -> Iterator[None]:
-        """Within the command, Ctrl-C during the block is remembered and raised after it.
+        """Within the command, Ctrl-C during the block is remembered and raised after it (:func:`held_signals`).
 
         C++ extension modules run Python code while they initialise (drjit imports its submodules
         from its module init); an exception raised there ends in ``std::terminate``: the process
@@ -57,15 +65,40 @@ class Interrupts:
         command (another SIGINT handler installed), and in any thread but the main one (only it
         receives signals; ``autoalign label`` refines on a worker thread), this does nothing.
         """
-        if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) != cls.handler:
+        if signal.getsignal(signal.SIGINT) != cls.handler:
             yield
             return
-        signal.signal(signal.SIGINT, cls.remember)
-        try:
+        with held_signals(signal.SIGINT):
             yield
-        finally:
-            signal.signal(signal.SIGINT, cls.handler)
-        cls.check()
+
+
+@contextmanager
+def held_signals(*signums: int) -> Iterator[None]:
+    """The signals ``signums`` that arrive during the block are delivered when it ends, to the
+    handlers that were in place (a ``KeyboardInterrupt`` is raised after the block, a SIGTERM with
+    the default action ends the process after it); ignored ones stay ignored.
+
+    For work that must not be cut in two: renaming a set of output files into place, importing an
+    extension module, starting worker processes. The signals are also blocked in this thread, so
+    that processes started in the block begin with them blocked (a blocked signal mask is inherited
+    through fork and exec: a worker can then set its own handlers before any arrives). Only the main
+    thread runs Python's signal handlers; in any other thread this does nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held = [s for s in signums if signal.getsignal(s) is not signal.SIG_IGN]
+    arrived: list[int] = []
+    previous = {s: signal.signal(s, lambda signum, frame: arrived.append(signum)) for s in held}
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, set(held))
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    for s in dict.fromkeys(arrived):
+        signal.raise_signal(s)
 
 
 def preload(*modules: str) -> None:

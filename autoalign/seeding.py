@@ -133,8 +133,15 @@ def check_click(scene: Scene, click: Click, tol_px: float = CLICK_TOLERANCE_PX) 
     position, so it is refused.)
     """
     if click.image_id not in scene.image_ids:
-        raise AutoalignError(f"--click {click.image_id}:...: image {click.image_id} is not a view of the scene "
-                             f"(views: {scene.image_ids[0]}..{scene.image_ids[-1]}); click in one of them")
+        views = f"views with a mask: {scene.image_ids[0]}..{scene.image_ids[-1]}"
+        if click.image_id in scene.empty:
+            why = f"the object's mask in image {click.image_id} is empty (the segmenter found nothing there)"
+        elif click.image_id in scene.skipped:
+            why = f"image {click.image_id} has no mask file for this instance"
+        else:
+            why = f"image {click.image_id} is not a view of the scene"
+        raise AutoalignError(f"--click {click.image_id}:...: {why} ({views}); click in a view where the object "
+                             "is masked")
     k = scene.image_ids.index(click.image_id)
     cam = scene.cameras[k]
     typed = "{:g},{:g}".format(*uv_to_opencv(np.array([click.u, click.v])))  # as the user wrote it

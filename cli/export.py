@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from autoalign.errors import AutoalignError
+from autoalign.interrupts import Interrupts, preload
 
 _DESCRIPTION = """\
 Export BOP labels for every frame of a scene: for each image and each labelled object in view,
@@ -77,7 +78,6 @@ def add_export_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run_export(args: argparse.Namespace) -> int:
     """``autoalign export``: see ``autoalign export --help``."""
-    from autoalign.interrupts import preload
 
     preload("numpy", "cv2", "trimesh")  # extension modules, with Ctrl-C deferred
     from autoalign.cli.main import ProgressBar, write_folder
@@ -101,6 +101,7 @@ def run_export(args: argparse.Namespace) -> int:
         bar.close()
     files = dataset.files
     write_folder(out, files)
+    Interrupts.outputs_written()
     if not args.quiet:
         print(f"{dataset.images} image(s), {dataset.entries} entries ({dataset.dropped} out of view left out), "
               f"{time.perf_counter() - t0:.1f} s; wrote {len(files)} files to {out}", file=sys.stdout, flush=True)

@@ -282,7 +282,9 @@ def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 ok, 2 usage/input error, 130 interrupted)."""
     import threading
 
-    if threading.current_thread() is not threading.main_thread():  # only it may handle signals
+    # Only the main thread may handle signals; a process that ignores Ctrl-C (a batch worker, whose
+    # parent stops it; nohup) keeps ignoring it.
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         return _main(argv)
     previous = signal.signal(signal.SIGINT, Interrupts.handler)
     if Interrupts.seen and is_command_process():  # pressed while the command's modules loaded
@@ -291,12 +293,15 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     Interrupts.seen = False
     try:
-        return _main(argv)
+        status = _main(argv)
     except KeyboardInterrupt:  # pressed while the parser's modules loaded, before the command's own handling
         print(f"\n{PROG}: interrupted", file=sys.stderr, flush=True)
         return 130
     finally:
         signal.signal(signal.SIGINT, previous)
+    if Interrupts.seen and status != 130:  # Ctrl-C after Interrupts.outputs_written()
+        print(f"\n{PROG}: Ctrl-C came after the outputs were written; they are complete", file=sys.stderr, flush=True)
+    return status
 
 
 def _main(argv: list[str] | None) -> int:
@@ -522,7 +527,7 @@ def run_refine_batch(args: argparse.Namespace) -> int:
         raise UsageError("give either SCENE_DIR or --batch LIST, not both")
     if args.init is not None or args.click is not None:
         raise UsageError("--init and --click are one scene's: put them after that scene's folder in the --batch list")
-    from autoalign.batch import read_scene_list, refine_many
+    from autoalign.batch import BATCH_RECORDS, read_records, read_scene_list, refine_many, refine_tasks
 
     shared: list[str] = []
     for name in BATCH_SHARED:
@@ -531,18 +536,27 @@ def run_refine_batch(args: argparse.Namespace) -> int:
             shared += ["--" + name.replace("_", "-"), str(value)]
     shared += ["--" + f.replace("_", "-") for f in BATCH_FLAGS if getattr(args, f, False)]
     scenes = read_scene_list(args.batch)
-    summary = refine_many([s for s, _ in scenes], shared, args.out, args.workers, args.scheduler, not args.quiet,
-                          extra={str(s): e for s, e in scenes})
-    if not args.quiet:
-        print(f"{summary.done} scene(s) refined, {summary.skipped} already done, {summary.failed} failed, "
-              f"{summary.seconds:.1f} s; records in {Path(args.out) / 'batch.jsonl'}", flush=True)
-    if summary.failed:
-        warn(f"{summary.failed} scene(s) failed: see {Path(args.out) / 'errors.jsonl'}; fix them and run the same "
-             "command again (finished scenes are skipped)")
-        return 2
-    from autoalign.batch import BATCH_RECORDS, read_records
-
-    flagged = [r for r in read_records(Path(args.out) / BATCH_RECORDS) if r.get("status") == EXIT_FLAGGED]
+    records = Path(args.out) / BATCH_RECORDS
+    listed = {t["id"] for t in refine_tasks([s for s, _ in scenes], shared, args.out)}
+    try:
+        summary = refine_many([s for s, _ in scenes], shared, args.out, args.workers, args.scheduler, not args.quiet,
+                              extra={str(s): e for s, e in scenes})
+    except KeyboardInterrupt:
+        done = len(listed & {r["id"] for r in read_records(records)})
+        if done < len(listed):
+            print(f"\n{PROG}: interrupted; {done} of {len(listed)} scene(s) done (records in {records}); run the "
+                  f"same command again to finish the other {len(listed) - done}", file=sys.stderr, flush=True)
+            return 130
+        # every scene was done: main() says that the Ctrl-C came after the outputs were written
+    else:
+        if not args.quiet:
+            print(f"{summary.done} scene(s) refined, {summary.skipped} already done, {summary.failed} failed, "
+                  f"{summary.seconds:.1f} s; records in {records}", flush=True)
+        if summary.failed:
+            warn(f"{summary.failed} scene(s) failed: see {Path(args.out) / 'errors.jsonl'}; fix them and run the "
+                 "same command again (finished scenes are skipped)")
+            return 2
+    flagged = [r for r in read_records(records) if r["id"] in listed and r.get("status") == EXIT_FLAGGED]
     if flagged:
         warn(f"{len(flagged)} scene(s) have doubtful labels (exit 3): " + ", ".join(Path(r["scene"]).name for r in flagged[:10]))
         return EXIT_FLAGGED
@@ -727,6 +741,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
         "overlay.png": encode_png(overlay),
     }
     paths = write_outputs(out, files)
+    Interrupts.outputs_written()
     elapsed = time.perf_counter() - t_start
 
     # ---------------------------------------------------------------- report
@@ -770,8 +785,8 @@ def entry() -> None:
     without Python's finalization: drjit's worker threads, still busy, crashed it (SIGSEGV, an abort
     on the GIL) in about one interrupted run in ten, and a late SIGINT could still raise there."""
     status = main()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the status is decided: Ctrl-C from here on changes nothing
     if status == 130:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(130)

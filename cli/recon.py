@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from autoalign.errors import AutoalignError
+from autoalign.interrupts import Interrupts, preload
 
 _DESCRIPTION = """\
 Reconstruct the cameras of a capture (a folder of frames or a video file, optionally with aligned
@@ -88,7 +89,6 @@ def run_recon(args: argparse.Namespace) -> int:
     """``autoalign recon``: see ``autoalign recon --help``."""
     import importlib.util
 
-    from autoalign.interrupts import preload
 
     if importlib.util.find_spec("pycolmap") is None:
         raise AutoalignError("autoalign recon needs pycolmap; install it with: pip install 'autoalign[recon]'")
@@ -115,6 +115,7 @@ def run_recon(args: argparse.Namespace) -> int:
             bar.close()
         files = scene_files(rec)
     write_folder(out, files)
+    Interrupts.outputs_written()
     report = json.loads(files["recon.json"])
     if not args.quiet:
         scale = (f"scale {report['scale_mm_per_unit']:.4g} mm/unit (spread {report['scale_spread']:.2%})"

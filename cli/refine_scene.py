@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from autoalign import __version__
+from autoalign.interrupts import Interrupts
 from autoalign.cli.main import (EXIT_FLAGGED, WARNINGS, ProgressBar, jsonable, one_line, pose_record, uncertainty_record,
                                 warn, write_outputs)
 
@@ -160,6 +161,7 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
                          for im, E in attempt.corrections.items()}}
     files["refine.json"] = json.dumps(jsonable(report), indent=1, allow_nan=False).encode()
     write_outputs(out, files)
+    Interrupts.outputs_written()
     elapsed = time.perf_counter() - t_start
     if args.json:
         print(json.dumps(jsonable({"instances": [{k: rec[k] for k in ("instance", "obj_id", "verdict", "reasons",

@@ -160,7 +160,20 @@ def _bad_click_syntax(d, tmp):
 
 
 def _bad_click_unknown_image(d, tmp):
-    return {"seed": ["--click", "99:100,100"]}, "--click"
+    return {"seed": ["--click", "99:100,100"]}, "image 99 is not a view of the scene"
+
+
+def _bad_click_in_view_with_empty_mask(d, tmp):
+    """The mask of the clicked view is empty: said so, not that the image is no view of the scene."""
+    s = _copy_scene(d, tmp)
+    cv2.imwrite(str(_mask(s, 3)), np.zeros((H, W), np.uint8))
+    return {"scene": s, "seed": ["--click", "3:160,120"]}, "mask in image 3 is empty"
+
+
+def _bad_click_in_view_without_mask_file(d, tmp):
+    s = _copy_scene(d, tmp)
+    _mask(s, 4).unlink()
+    return {"scene": s, "seed": ["--click", "4:160,120"]}, "image 4 has no mask file"
 
 
 def _write_init(tmp, content) -> Path:
@@ -662,19 +675,30 @@ def test_empty_masks_are_missing_views_not_an_absent_object(data, tmp_path, caps
     assert rec["pixel_convention"]["files"].startswith("OpenCV/BOP")
 
 
-@pytest.mark.parametrize("kind", ["0/1", "colour"])
-def test_masks_stored_as_0_1_or_in_colour_read_like_0_255(data, tmp_path, kind):
+@pytest.mark.parametrize("kind", ["0/1", "colour", "alpha only", "cut-out", "colour, opaque alpha"])
+def test_masks_stored_as_0_1_in_colour_or_in_alpha_read_like_0_255(data, tmp_path, kind):
+    """Every way of storing a mask gives the same masks. RGBA: an alpha channel that varies is the
+    mask, whatever the colours (a cut-out's colours are the photo's); an opaque one says nothing."""
     from autoalign.bop import read_scene
 
     scene = _copy_scene(data, tmp_path)
+    photo = np.random.default_rng(0).integers(1, 256, (H, W, 3), dtype=np.uint8)  # no zero anywhere
     for im in range(N_VIEWS):
         m = cv2.imread(str(_mask(scene, im)), cv2.IMREAD_GRAYSCALE) > 0
+        img = np.zeros((H, W, 4), np.uint8)
         if kind == "0/1":
             img = m.astype(np.uint8)
-        else:  # the instance painted in a colour with a zero red channel, on black
+        elif kind == "colour":  # the instance painted in a colour with a zero red channel, on black
             img = np.zeros((H, W, 3), np.uint8)
             img[m] = (200, 40, 0)
+        elif kind == "alpha only":  # black everywhere, the mask in the alpha channel
+            img[..., 3] = 255 * m
+        elif kind == "cut-out":  # the photo's colours everywhere, transparent off the object
+            img[..., :3], img[..., 3] = photo, 255 * m
+        else:
+            img[m, :3], img[..., 3] = (0, 40, 200), 255
         cv2.imwrite(str(_mask(scene, im)), img)
+        assert cv2.imread(str(_mask(scene, im)), cv2.IMREAD_UNCHANGED).shape == img.shape  # RGBA stays RGBA
     ref, got = read_scene(data.scene), read_scene(scene)
     assert got.image_ids == ref.image_ids
     for a, b in zip(ref.masks, got.masks):
@@ -755,6 +779,34 @@ def test_ctrl_c_at_any_moment_exits_130_and_writes_nothing(tmp_path):
         assert p.returncode == 130, (delay, p.returncode, lines)
         assert [x for x in lines if x.strip()] == ["autoalign: interrupted"], (delay, lines)
         assert not out.exists() and stdout == "", delay
+
+
+@pytest.mark.parametrize("delay", [0.0, 0.05, 0.1])
+def test_ctrl_c_after_the_outputs_are_written_keeps_the_result(data, tmp_path, delay):
+    """SIGINT just after ``wrote ...``: the outputs are complete, so the run keeps its own exit status
+    (0 here) and, if the signal came before the command ended, says that it came after the outputs
+    were written. (Before: exit 130 with no message, the outputs complete.)"""
+    import signal
+    import time
+
+    out = tmp_path / "out"
+    p = subprocess.Popen([sys.executable, "-m", "autoalign.cli.main", "refine", str(data.scene), "--model",
+                          str(data.model), "--out", str(out), "--init", str(data.init)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    for line in p.stdout:
+        if line.startswith("wrote "):
+            break
+    time.sleep(delay)
+    p.send_signal(signal.SIGINT)
+    p.stdout.read()
+    stderr = p.stderr.read()
+    p.wait(timeout=60)
+    assert p.returncode == 0, (p.returncode, stderr)
+    said = [x for x in stderr.splitlines() if x.startswith("autoalign:")]  # the rest is the progress bar
+    assert said in ([], ["autoalign: Ctrl-C came after the outputs were written; they are complete"]), stderr
+    assert "Traceback" not in stderr
+    assert all((out / name).is_file() for name in ("scene_gt.json", "refine.json", "overlay.png"))
+    assert json.loads((out / "refine.json").read_text())["verdict"] == "ok"
 
 
 def test_large_images_are_read_downscaled_with_their_cameras(data, tmp_path):
