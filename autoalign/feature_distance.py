@@ -350,7 +350,8 @@ def read_photo_scaled(path: Path, max_pixels: int | None = MAX_IMAGE_PIXELS) -> 
     f = downscale_factor(W, H, max_pixels)
     if f > 1:
         h, w = -(-H // f), -(-W // f)
-        img = cv2.copyMakeBorder(img, 0, h * f - H, 0, w * f - W, cv2.BORDER_REPLICATE)
+        if (h * f, w * f) != (H, W):
+            img = cv2.copyMakeBorder(img, 0, h * f - H, 0, w * f - W, cv2.BORDER_REPLICATE)
         img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)  # exact block means at a whole factor
     return ScaledPhoto(img, f, (H, W))
 

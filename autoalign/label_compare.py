@@ -119,7 +119,8 @@ def comparison_figure(labels: CheckReport, reference: CheckReport, comparisons: 
             photo = read_photo_scaled(photo_path(labels.scene_dir, im), labels.max_pixels).bgr
             lines = {"labels": outline[(im, c.instance)], "reference": outline_ref[(im, c.instance)]}
             p = mask_path(labels.scene_dir, im, c.instance)
-            mask = read_masks({(im, c.instance): p}, labels.max_pixels).masks.get((im, c.instance)) if p.is_file() else None
+            key = (im, c.instance)
+            mask = read_masks({key: p}, labels.max_pixels).masks.get(key) if p.is_file() else None
             lines["mask"] = outline_pixels(mask.astype(np.int32), 1) if mask is not None else np.zeros((0, 2), int)
             tiles.append(_tile(photo, lines, f"obj {c.obj_id} inst {c.instance}, image {im}", tile))
         tiles += [np.zeros((tile, tile, 3), np.uint8)] * (views - len(tiles))

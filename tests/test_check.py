@@ -14,9 +14,10 @@
   about 3 px more and offsets 2-5 px to the left; a transposed rotation loses most matches and
   IoU; a half-pixel shift of the principal point changes the distance by under a pixel. The edge
   distance judges the untextured driller too and grows with both mistakes.
-* Large photos: a 2400 x 1800 photo moved by (4, -2) px is checked at half size (masks and cam_K
-  with it) and gives the shift, the feature distance and a grey sphere's edge distance of the
-  full-size check, in its own pixels (the pixel grid kept exact: a half-pixel error would show).
+* Large photos: read as exact 2 x 2 block means; a 2400 x 1800 photo moved by (4, -2) px is checked
+  at half size (masks and cam_K with it) and gives the shift, the feature distance and a grey
+  sphere's edge distance of the full-size check, in its own pixels (the pixel grid kept exact: a
+  half-pixel error would show).
 * Comparison (``--against``): paired views by hand; on LM-O the dataset's labels against the same
   labels moved 8 mm are judged closer for most objects, and the other way round; identical labels
   give no difference; the figure's tiles show the three outlines in their colours.
@@ -50,7 +51,7 @@ from autoalign.experiments.shared_data import REAL_SCENES
 from autoalign.experiments.synthetic import random_rotation, raycast_masks
 from autoalign.feature_distance import (
     MIN_MATCHES, CheckReport, ColouredMesh, Label, ViewInstanceCheck, check_image, check_scene, load_coloured_mesh,
-    load_models, photo_sift, read_labels, render_labels, select_images, summarize,
+    load_models, photo_sift, read_labels, read_photo_scaled, render_labels, select_images, summarize,
 )
 from autoalign.bop import photo_path, read_photo
 from autoalign.edge_distance import MAX_EDGE_PX, outline_edge_distances, outline_pixels, photo_edges
@@ -296,6 +297,20 @@ def _circle_edge_px(radius_px: float, shift: NDArray) -> float:
     return float(np.mean(np.abs(np.linalg.norm(radius_px * n - shift, axis=1) - radius_px)))
 
 
+@pytest.mark.parametrize("size", [(1800, 2400), (1802, 2401)])
+def test_large_photo_is_read_as_block_means(tmp_path: Path, size: tuple[int, int]) -> None:
+    """A photo over MAX_IMAGE_PIXELS is read at 1/2: each pixel the mean of a 2 x 2 block of the file
+    (numpy here, within the uint8 rounding), the last blocks of an odd size padded with the edge."""
+    H, W = size
+    img = np.random.default_rng(0).integers(0, 256, (H, W, 3), dtype=np.uint8)
+    cv2.imwrite(str(tmp_path / "p.png"), img)
+    photo = read_photo_scaled(tmp_path / "p.png")
+    h, w = -(-H // 2), -(-W // 2)
+    padded = np.pad(img.astype(np.float64), ((0, 2 * h - H), (0, 2 * w - W), (0, 0)), mode="edge")
+    assert (photo.factor, photo.size, photo.bgr.shape) == (2, (H, W), (h, w, 3))
+    assert np.abs(photo.bgr - padded.reshape(h, 2, w, 2, 3).mean(axis=(1, 3))).max() <= 0.5
+
+
 def test_large_photo_is_checked_downscaled_with_the_full_size_distances(tmp_path: Path) -> None:
     """A 2400 x 1800 photo (4.3 megapixels, over MAX_IMAGE_PIXELS) of a textured sphere and a grey one
     on a dark floor, moved by (4, -2) px from the labels. Checked as shipped it is read at half size
@@ -311,7 +326,8 @@ def test_large_photo_is_checked_downscaled_with_the_full_size_distances(tmp_path
     K = np.array([[1500.0, 0.0, 1203.3], [0.0, 1500.0, 897.8], [0.0, 0.0, 1.0]])
     textured = _textured_sphere(rng, blob_mm=2.0)
     grey = ColouredMesh(textured.vertices, textured.faces, np.full((len(textured.vertices), 3), 0.6, np.float32), True)
-    (R, t), (R2, t2) = (random_rotation(rng), np.array([20.0, -10.0, 300.0])), (np.eye(3), np.array([-90.0, 40.0, 330.0]))
+    R, t = random_rotation(rng), np.array([20.0, -10.0, 300.0])
+    R2, t2 = np.eye(3), np.array([-90.0, 40.0, 330.0])
     r = render_labels([(0, textured, R, t), (1, grey, R2, t2)], K, W, H)
     move = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
     photo = cv2.warpAffine(np.where((r.instance >= 0)[..., None], r.rgb[..., ::-1], np.uint8(50)), move, (W, H),
@@ -643,7 +659,8 @@ def test_cli_bad_number_in_the_reference_or_labels_stops_before_any_image(tmp_pa
         r = _run_cli("check", str(REAL), *argv, *common, "--out", str(out))
         assert r.returncode == 2 and r.stdout == ""
         (line,) = r.stderr.strip().splitlines()
-        assert line.startswith(f"autoalign: error: {bad}: image 695 entry 2 'cam_t_m2c' must be 3 finite numbers; "), line
+        expected = f"autoalign: error: {bad}: image 695 entry 2 'cam_t_m2c' must be 3 finite numbers; "
+        assert line.startswith(expected), line
         assert '"cam_t_m2c": 3 numbers (mm)' in line  # the fix: what an entry must hold
         assert "checking" not in r.stderr and not out.exists()
 
