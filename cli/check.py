@@ -157,6 +157,8 @@ def run_check(args: argparse.Namespace) -> int:
     preload("numpy", "cv2", "open3d", "trimesh")  # extension modules, with Ctrl-C deferred
     from autoalign.cli.main import ProgressBar, remove_empty_dirs, prepare_out_dir, warn
 
+    _keep_freed_memory()
+
     scene, labels, models = Path(args.scene), Path(args.labels), Path(args.models)
     against = Path(args.against) if getattr(args, "against", None) is not None else None
     out = Path(args.out) if getattr(args, "out", None) is not None else None
@@ -216,6 +218,22 @@ def run_check(args: argparse.Namespace) -> int:
         for name, p in paths.items():
             print(f"wrote {p}")
     return 0
+
+
+def _keep_freed_memory(trim_mb: int = 256) -> None:
+    """Let glibc's malloc keep up to ``trim_mb`` MB of freed memory for reuse instead of handing it
+    back at once: SIFT allocates and frees its image pyramids (about 100 MB) twice per photo, and
+    taking those pages back from the system cost more than SIFT's own work (24 photos of 12 MP:
+    2.2 million page faults and 7.8 s of system time in a 20 s run; 0.16 million and 1.2 s in 15 s
+    with this, the same peak memory). Does nothing without glibc."""
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-1, trim_mb << 20)  # M_TRIM_THRESHOLD
+        libc.mallopt(-3, 32 << 20)  # M_MMAP_THRESHOLD: blocks up to 32 MB from the heap (glibc's own upper bound)
+    except (OSError, AttributeError):
+        pass
 
 
 def _prepare_reference(scene: Path, against: Path, models: Path, inputs: Any) -> Any:
