@@ -18,7 +18,7 @@ import signal
 import threading
 from typing import TYPE_CHECKING, Any
 
-from autoalign.interrupts import Interrupts, is_command_process
+from autoalign.runtime.interrupts import Interrupts, is_command_process
 
 # Until the command's main() takes over; a process that ignores Ctrl-C (a batch worker, nohup) keeps ignoring it.
 if (is_command_process() and threading.current_thread() is threading.main_thread()
@@ -35,21 +35,21 @@ if os.path.isfile(os.path.join(_checkout, "pyproject.toml")) and os.path.isdir(o
     __path__.append(_checkout)  # noqa: F821 - the package's own __path__
 
 _LAZY = {
-    "refine": "autoalign.engine", "RefineOptions": "autoalign.engine", "RefineResult": "autoalign.engine",
-    "read_scene": "autoalign.bop", "Scene": "autoalign.bop", "read_init_pose": "autoalign.bop",
-    "load_mesh": "autoalign.mesh", "Mesh": "autoalign.mesh", "mesh_from_trimesh": "autoalign.mesh",
-    "Camera": "autoalign.camera", "Click": "autoalign.seeding", "AutoalignError": "autoalign.errors",
-    "Level": "autoalign.objective",
+    "refine": "autoalign.engine.refine", "RefineOptions": "autoalign.engine.refine", "RefineResult": "autoalign.engine.refine",
+    "read_scene": "autoalign.io.bop", "Scene": "autoalign.io.bop", "read_init_pose": "autoalign.io.bop",
+    "load_mesh": "autoalign.geometry.mesh", "Mesh": "autoalign.geometry.mesh", "mesh_from_trimesh": "autoalign.geometry.mesh",
+    "Camera": "autoalign.geometry.camera", "Click": "autoalign.engine.seeding", "AutoalignError": "autoalign.errors",
+    "Level": "autoalign.engine.objective",
 }
 
 if TYPE_CHECKING:  # pragma: no cover
-    from autoalign.bop import Scene, read_init_pose, read_scene  # noqa: F401
-    from autoalign.camera import Camera  # noqa: F401
-    from autoalign.engine import RefineOptions, RefineResult, refine  # noqa: F401
+    from autoalign.engine.objective import Level  # noqa: F401
+    from autoalign.engine.refine import RefineOptions, RefineResult, refine  # noqa: F401
+    from autoalign.engine.seeding import Click  # noqa: F401
     from autoalign.errors import AutoalignError  # noqa: F401
-    from autoalign.mesh import Mesh, load_mesh, mesh_from_trimesh  # noqa: F401
-    from autoalign.objective import Level  # noqa: F401
-    from autoalign.seeding import Click  # noqa: F401
+    from autoalign.geometry.camera import Camera  # noqa: F401
+    from autoalign.geometry.mesh import Mesh, load_mesh, mesh_from_trimesh  # noqa: F401
+    from autoalign.io.bop import Scene, read_init_pose, read_scene  # noqa: F401
 
 
 def __getattr__(name: str) -> Any:

@@ -39,9 +39,9 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
-from autoalign.atomic_files import write_bytes_atomic
 from autoalign.errors import AutoalignError
-from autoalign.interrupts import Interrupts, held_signals
+from autoalign.io.atomic_files import write_bytes_atomic
+from autoalign.runtime.interrupts import Interrupts, held_signals
 
 Task = dict[str, Any]
 TaskFn = Callable[[Task], dict[str, Any]]
@@ -82,7 +82,7 @@ def init_worker(threads: int) -> None:
     a worker that handled it would end its task as interrupted and take the next one), and its
     share of the cores (drjit defaults to all of them).
 
-    The worker was started with SIGINT blocked (:func:`~autoalign.interrupts.held_signals`), so a
+    The worker was started with SIGINT blocked (:func:`~autoalign.runtime.interrupts.held_signals`), so a
     Ctrl-C pressed while it started is dropped here rather than raised in its start-up code. SIGTERM,
     with which the parent stops it, unwinds a task in progress before the process ends (:func:`_on_sigterm`).
     """
@@ -91,7 +91,7 @@ def init_worker(threads: int) -> None:
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     os.environ.setdefault("OMP_NUM_THREADS", str(threads))
     try:
-        from autoalign.backend import drjit
+        from autoalign.runtime.backend import drjit
 
         drjit().set_thread_count(max(1, threads))
     except Exception:  # pragma: no cover - reported by the first task instead

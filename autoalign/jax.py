@@ -33,10 +33,14 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.bop import Scene
-from autoalign.camera import Camera
-from autoalign.mesh import Mesh
-from autoalign.rasterizers.pose_jacobian import RenderedPose, image_size, render_with_vertex_jacobian
+from autoalign.geometry.camera import Camera
+from autoalign.geometry.mesh import Mesh
+from autoalign.io.bop import Scene
+from autoalign.rasterizers.pose_jacobian import (
+    RenderedPose,
+    image_size,
+    render_with_vertex_jacobian,
+)
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
 _CACHE: OrderedDict[tuple, tuple[NDArray[np.float64], RenderedPose]] = OrderedDict()
@@ -144,7 +148,7 @@ def pixel_silhouettes(op: SilhouetteOp, pixels: Pixels, T: jax.Array) -> jax.Arr
 
 def twist_pose(xi: jax.Array, T0: jax.Array, centre_w: jax.Array) -> jax.Array:
     """``exp(hat(xi')) @ T0`` with the twist ``xi = (v [mm], w [rad])`` turning about the world point
-    ``centre_w`` (:func:`autoalign.se3.apply_twist`, in JAX)."""
+    ``centre_w`` (:func:`autoalign.geometry.se3.apply_twist`, in JAX)."""
     v, w = xi[:3], xi[3:]
     Xi = jnp.zeros((4, 4), dtype=xi.dtype)
     Xi = Xi.at[0, 1].set(-w[2]).at[0, 2].set(w[1]).at[1, 0].set(w[2]).at[1, 2].set(-w[0])

@@ -13,7 +13,7 @@ quaternion and translation. The gradient w.r.t. a matrix is exact for any change
 rows (rotation, translation, and the affine directions a rigid pose never takes), with the outline
 and the hard mask held fixed, as in autoalign's own Gauss-Newton steps; the bottom row gets zero.
 Each object is rendered alone: objects do not hide each other here (the occlusion-aware loss is
-:mod:`autoalign.occlusion`).
+:mod:`autoalign.scene.occlusion`).
 
 The loss follows kornia's style: a functional op (:func:`silhouette_loss`) and a thin
 ``nn.Module`` (:class:`SilhouetteLoss`). Example (a pose fitted with ``torch.optim``)::
@@ -42,8 +42,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from autoalign.camera import Camera
-from autoalign.rasterizers.pose_jacobian import Renderers, image_size, render_with_vertex_jacobian, renderers_for
+from autoalign.geometry.camera import Camera
+from autoalign.rasterizers.pose_jacobian import (
+    Renderers,
+    image_size,
+    render_with_vertex_jacobian,
+    renderers_for,
+)
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
 
@@ -86,7 +91,7 @@ def silhouettes(meshes: Renderers, poses: Any, cameras: Sequence[Camera], sigma:
     """Soft silhouettes of posed meshes, differentiable w.r.t. the poses.
 
     Args:
-        meshes: one :class:`~autoalign.mesh.Mesh` (or its renderer) for all poses, or one per pose
+        meshes: one :class:`~autoalign.geometry.mesh.Mesh` (or its renderer) for all poses, or one per pose
             (build renderers once and pass them again: they cache the mesh's ray-casting scene).
         poses: world-from-model (mm): ``(4, 4)``, ``(N, 4, 4)`` or a kornia ``Se3``.
         cameras: the views (one image size), world frame, mm.

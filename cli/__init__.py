@@ -1,1 +1,8 @@
-"""placeholder"""
+"""The ``autoalign`` command: ``refine`` (``main``, one object; ``refine_scene``, several),
+``recon``, ``export``, ``check``, ``label`` (``label``, its HTTP server ``label_http``, the 3D view
+``label_3d`` and the page in ``label_page/``) and ``simulate`` (the study in
+``autoalign.experiments.studies``). Each parses its arguments, calls the core and prints; errors
+in the user's input are one line and exit status 2.
+
+May import: anything. Nothing in ``autoalign/`` imports it.
+"""

@@ -110,7 +110,7 @@ def _ci(ci: tuple[float, float] | None) -> str:
 
 
 def format_table(report: Any) -> str:
-    """The per-instance table of a :class:`autoalign.feature_distance.CheckReport`, and a total line."""
+    """The per-instance table of a :class:`autoalign.quality.feature_distance.CheckReport`, and a total line."""
     head = (f"{'obj':>4} {'inst':>4} {'views':>5} {'median IoU':>10}  {'feature distance px (95% CI)':<30} "
             f"{'matches':>7}  {'edge distance px (95% CI)':<26}")
     lines = [head, "-" * len(head)]
@@ -137,7 +137,7 @@ def format_table(report: Any) -> str:
 
 
 def format_comparison(comparisons: list[Any]) -> str:
-    """The per-instance table of :func:`autoalign.label_compare.compare_reports`."""
+    """The per-instance table of :func:`autoalign.quality.label_compare.compare_reports`."""
     head = (f"{'obj':>4} {'inst':>4} {'views':>5}  {'edge px labels':>14} {'edge px reference':>17}  "
             f"{'labels closer in':>16}  {'reference - labels px (95% CI)':<31} verdict")
     lines = ["labels against the reference (edge distance, paired views):", head, "-" * len(head)]
@@ -152,10 +152,10 @@ def format_comparison(comparisons: list[Any]) -> str:
 
 def run_check(args: argparse.Namespace) -> int:
     """``autoalign check``: see ``autoalign check --help``. Returns 0 once the check ran."""
-    from autoalign.interrupts import preload
+    from autoalign.runtime.interrupts import preload
 
     preload("numpy", "cv2", "open3d", "trimesh")  # extension modules, with Ctrl-C deferred
-    from autoalign.cli.main import ProgressBar, remove_empty_dirs, prepare_out_dir, warn
+    from autoalign.cli.main import ProgressBar, prepare_out_dir, remove_empty_dirs, warn
 
     _keep_freed_memory()
 
@@ -169,7 +169,7 @@ def run_check(args: argparse.Namespace) -> int:
                 raise AutoalignError(f"--out {out}: writing {name} there would replace the input file {out / name}; "
                                      "choose another folder with --out")
     as_json = bool(getattr(args, "json", False))
-    from autoalign import feature_distance as fd
+    from autoalign.quality import feature_distance as fd
 
     # every input file is read and validated before any photo is checked (a bad --against file
     # was found only after the labels' whole check) and before --out is created
@@ -177,7 +177,7 @@ def run_check(args: argparse.Namespace) -> int:
     ref_inputs = _prepare_reference(scene, against, models, inputs) if against is not None else None
     created = prepare_out_dir(out) if out is not None else []
     try:
-        from autoalign.overlay import encode_png
+        from autoalign.quality.overlay import encode_png
 
         bar = ProgressBar(enabled=not getattr(args, "quiet", False))
         try:
@@ -193,7 +193,7 @@ def run_check(args: argparse.Namespace) -> int:
         record = report.record()
         comparison = None
         if reference is not None:
-            from autoalign import label_compare
+            from autoalign.quality import label_compare
 
             comparison = label_compare.compare_reports(report, reference)
             record["against"] = {"labels": str(against), "report": reference.record(),
@@ -237,10 +237,10 @@ def _keep_freed_memory(trim_mb: int = 256) -> None:
 
 
 def _prepare_reference(scene: Path, against: Path, models: Path, inputs: Any) -> Any:
-    """The validated inputs of the reference's check (:func:`autoalign.feature_distance.prepare_check`):
+    """The validated inputs of the reference's check (:func:`autoalign.quality.feature_distance.prepare_check`):
     the images of ``inputs`` that the reference labels too."""
-    from autoalign import feature_distance as fd
-    from autoalign.bop import read_labels
+    from autoalign.io.bop import read_labels
+    from autoalign.quality import feature_distance as fd
 
     ref_labels = read_labels(against)
     common = [i for i in inputs.image_ids if ref_labels.get(i)]
@@ -252,8 +252,8 @@ def _prepare_reference(scene: Path, against: Path, models: Path, inputs: Any) ->
 
 def _write(files: dict[Path, bytes], out: Path) -> None:
     """Write the report files atomically (all or none); a failure names ``--out``."""
-    from autoalign.atomic_files import write_files_atomic
-    from autoalign.interrupts import Interrupts
+    from autoalign.io.atomic_files import write_files_atomic
+    from autoalign.runtime.interrupts import Interrupts
 
     Interrupts.check()
     try:

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from autoalign.errors import AutoalignError
-from autoalign.interrupts import Interrupts, preload
+from autoalign.runtime.interrupts import Interrupts, preload
 
 _DESCRIPTION = """\
 Export BOP labels for every frame of a scene: for each image and each labelled object in view,
@@ -81,8 +81,8 @@ def run_export(args: argparse.Namespace) -> int:
 
     preload("numpy", "cv2", "trimesh")  # extension modules, with Ctrl-C deferred
     from autoalign.cli.main import ProgressBar, write_folder
-    from autoalign.export import cameras_to_export, export_dataset
-    from autoalign.models import ModelSet
+    from autoalign.io.export import cameras_to_export, export_dataset
+    from autoalign.io.models import ModelSet
 
     t0 = time.perf_counter()
     scene, labels_path, out = Path(args.scene), Path(args.labels), Path(args.out)

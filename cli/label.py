@@ -71,14 +71,14 @@ def add_label_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run_label(args: argparse.Namespace) -> int:
     """``autoalign label``: see ``autoalign label --help``."""
-    from autoalign.interrupts import preload
+    from autoalign.runtime.interrupts import preload
 
     preload("numpy", "cv2", "trimesh")  # extension modules, with Ctrl-C deferred
-    from autoalign.bop import check_scene_dir
     from autoalign.cli.label_http import LabelServer
     from autoalign.cli.main import check_outputs_spare_inputs, warn
-    from autoalign.label_session import LabelSession
-    from autoalign.models import ModelSet
+    from autoalign.io.bop import check_scene_dir
+    from autoalign.io.models import ModelSet
+    from autoalign.label.session import LabelSession
 
     scene = check_scene_dir(args.scene)
     out = Path(args.out) if args.out else scene / "label_session"
@@ -86,7 +86,7 @@ def run_label(args: argparse.Namespace) -> int:
     if not 0 <= args.port < 65536:
         raise AutoalignError(f"--port {args.port}: a port is 0 (any free one) to 65535")
     models = ModelSet.read(args.models, args.units)
-    from autoalign.backend import mitsuba
+    from autoalign.runtime.backend import mitsuba
 
     mitsuba()  # the renderer loads here, on the main thread (Ctrl-C safe), not on the first click
     session = LabelSession(scene, models, out, Path(args.instances) if args.instances else None)
@@ -121,9 +121,9 @@ def run_label(args: argparse.Namespace) -> int:
 def export_session(session: Any, progress: Any = None) -> Path:
     """The page's "Export": the accepted labels to ``OUT_DIR/scene_gt.json`` (with the decisions in
     ``labels.json``), then ``autoalign export`` of them into ``OUT_DIR/bop`` (all or none)."""
-    from autoalign.atomic_files import write_files_atomic
     from autoalign.cli.main import write_folder
-    from autoalign.export import cameras_to_export, export_dataset
+    from autoalign.io.atomic_files import write_files_atomic
+    from autoalign.io.export import cameras_to_export, export_dataset
 
     out = session.out_dir
     labels_path = out / "scene_gt.json"

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.cli.label_http import HOST, instance_rgb
-from autoalign.label_session import LabelSession
+from autoalign.label.session import LabelSession
 
 MM_PER_UNIT = 1000.0
 MAX_CLOUD_POINTS = 200_000
@@ -62,7 +62,7 @@ class SceneViewer:
     def _add_cameras(self) -> None:
         import viser.transforms as tf
 
-        from autoalign.overlay import photo_at
+        from autoalign.quality.overlay import photo_at
 
         s = self.session
         for im, cam in zip(s.image_ids, s.views):
@@ -89,7 +89,7 @@ class SceneViewer:
 
     def _frame_view(self) -> None:
         """Start the browser's camera above the ring of views, looking at where they look."""
-        from autoalign.seeding import closest_point_to_rays
+        from autoalign.engine.seeding import closest_point_to_rays
 
         s = self.session
         centres = np.array([c.centre for c in s.views]) / MM_PER_UNIT

@@ -1,5 +1,5 @@
 """The web server of ``autoalign label``: the page, the views' images, and a small JSON API over a
-:class:`~autoalign.label_session.LabelSession`.
+:class:`~autoalign.label.session.LabelSession`.
 
 Standard library ``http.server`` (threaded): one local user, a handful of requests a second, no
 dependency to keep up to date; the 3D view is viser's own server (:mod:`autoalign.cli.label_3d`).
@@ -41,7 +41,7 @@ import cv2
 import numpy as np
 
 from autoalign.errors import AutoalignError
-from autoalign.label_session import LabelSession, Progress
+from autoalign.label.session import LabelSession, Progress
 
 HOST = "127.0.0.1"
 POLL_S = 10.0
@@ -93,7 +93,7 @@ class LabelServer(ThreadingHTTPServer):
             return self._images[key]
 
     def view_photo(self, image_id: int) -> bytes:
-        from autoalign.overlay import photo_at
+        from autoalign.quality.overlay import photo_at
 
         s = self.session
         cam = s.views[s.image_ids.index(image_id)]

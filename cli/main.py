@@ -23,9 +23,9 @@ from pathlib import Path
 from typing import Any, Callable
 
 from autoalign import __version__
-from autoalign.atomic_files import write_files_atomic
 from autoalign.errors import AutoalignError
-from autoalign.interrupts import Interrupts, is_command_process, preload
+from autoalign.io.atomic_files import write_files_atomic
+from autoalign.runtime.interrupts import Interrupts, is_command_process, preload
 
 PROG = "autoalign"
 OUTPUT_FILES = ("scene_gt.json", "refine.json", "overlay.png", "scene_camera.json")
@@ -245,7 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_export_parser(sub)
     add_label_parser(sub)
     try:
-        from autoalign.experiments import simulate
+        from autoalign.experiments.studies import simulate
     except ImportError:
         simulate = None
     if simulate is not None and hasattr(simulate, "add_simulate_parser"):
@@ -383,7 +383,7 @@ def remove_empty_dirs(created: list[Path]) -> None:
 
 
 def write_outputs(out: Path, files: dict[str, bytes]) -> dict[str, Path]:
-    """Write every ``name -> bytes`` into ``out`` atomically (:mod:`autoalign.atomic_files`): all or none.
+    """Write every ``name -> bytes`` into ``out`` atomically (:mod:`autoalign.io.atomic_files`): all or none.
 
     If any write fails no temporary file is left behind and no target file is touched. Nothing is
     written after Ctrl-C (see :class:`Interrupts`).
@@ -487,7 +487,7 @@ def jsonable(obj: Any) -> Any:
 
 
 def uncertainty_record(u: Any) -> dict[str, Any] | None:
-    """The ``uncertainty`` entry of ``refine.json`` (see :mod:`autoalign.uncertainty`)."""
+    """The ``uncertainty`` entry of ``refine.json`` (see :mod:`autoalign.engine.uncertainty`)."""
     if u is None:
         return None
     return {"sigma_mm": u.sigma_mm, "sigma_deg": u.sigma_deg, "axes": "along / about the model's x, y, z",
@@ -506,8 +506,8 @@ def pose_record(T: Any) -> dict[str, Any]:
 
 def _all_cameras(scene: Any) -> tuple[list[Any], list[int]]:
     """Cameras and ids of every image in scene_camera.json (also those skipped for lack of a mask)."""
-    from autoalign.bop import read_cameras
-    from autoalign.camera import Camera
+    from autoalign.geometry.camera import Camera
+    from autoalign.io.bop import read_cameras
 
     if scene.path is None:
         return list(scene.cameras), list(scene.image_ids)
@@ -527,7 +527,13 @@ def run_refine_batch(args: argparse.Namespace) -> int:
         raise UsageError("give either SCENE_DIR or --batch LIST, not both")
     if args.init is not None or args.click is not None:
         raise UsageError("--init and --click are one scene's: put them after that scene's folder in the --batch list")
-    from autoalign.batch import BATCH_RECORDS, read_records, read_scene_list, refine_many, refine_tasks
+    from autoalign.batch import (
+        BATCH_RECORDS,
+        read_records,
+        read_scene_list,
+        refine_many,
+        refine_tasks,
+    )
 
     shared: list[str] = []
     for name in BATCH_SHARED:
@@ -586,7 +592,7 @@ def run_refine(args: argparse.Namespace) -> int:
     preload("numpy", "cv2", "scipy.spatial", "trimesh")  # extension modules, with Ctrl-C deferred
     click = None
     if args.click is not None:
-        from autoalign.seeding import Click
+        from autoalign.engine.seeding import Click
 
         click = Click.parse(args.click)
     out = Path(args.out)
@@ -615,8 +621,8 @@ def run_refine(args: argparse.Namespace) -> int:
 def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float) -> int:
     import numpy as np
 
-    from autoalign.bop import read_init_pose, read_scene, scene_gt_dict
-    from autoalign.mesh import load_mesh
+    from autoalign.geometry.mesh import load_mesh
+    from autoalign.io.bop import read_init_pose, read_scene, scene_gt_dict
 
     scene = read_scene(args.scene, args.instance)
     mesh = load_mesh(args.model, units=args.units)
@@ -626,8 +632,8 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
         seed = read_init_pose(args.init, scene, args.obj_id, args.instance)
         seed_info.update(kind="init", init_file=str(Path(args.init).absolute()), pose=pose_record(seed))
     elif click is not None:
-        from autoalign.camera import uv_to_opencv
-        from autoalign.seeding import check_click
+        from autoalign.engine.seeding import check_click
+        from autoalign.geometry.camera import uv_to_opencv
 
         u, v = uv_to_opencv(np.array([click.u, click.v]))  # as typed: OpenCV pixels of the image files
         seed_info.update(kind="click", click={"image_id": click.image_id, "u": float(u), "v": float(v)})
@@ -635,11 +641,11 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
         check_click(scene, click)  # fail now, before the slow start-up of the renderer
         seed = click
 
-    from autoalign.camera import PIXEL_CONVENTION
-    from autoalign.engine import RefineOptions, refine
-    from autoalign.overlay import encode_png, render_overlay
+    from autoalign.engine.refine import RefineOptions, refine
+    from autoalign.geometry.camera import PIXEL_CONVENTION
+    from autoalign.geometry.se3 import rotation_angle_deg, transform_points
+    from autoalign.quality.overlay import encode_png, render_overlay
     from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
-    from autoalign.se3 import rotation_angle_deg, transform_points
 
     options = RefineOptions(loss=args.loss, optimizer=args.optimizer, robust=not args.no_robust)
     progress = ProgressBar(enabled=not args.quiet)
@@ -692,7 +698,7 @@ def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float
     if scene.skipped:
         notes.append(f"{len(scene.skipped)} image(s) without a mask were skipped: ids "
                      + ", ".join(str(i) for i in scene.skipped[:20]) + (" ..." if len(scene.skipped) > 20 else ""))
-    from autoalign.verdict import judge
+    from autoalign.quality.verdict import judge
 
     verdict = judge(iou_a, weights, ids, scene.empty, bool(result.ambiguous), uncertainty=result.uncertainty,
                     turn_gap=result.turn_gap)

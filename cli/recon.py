@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from autoalign.errors import AutoalignError
-from autoalign.interrupts import Interrupts, preload
+from autoalign.runtime.interrupts import Interrupts, preload
 
 _DESCRIPTION = """\
 Reconstruct the cameras of a capture (a folder of frames or a video file, optionally with aligned

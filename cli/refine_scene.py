@@ -1,6 +1,6 @@
 """``autoalign refine SCENE --models DIR``: every instance of a multi-object scene, with verdicts.
 
-Reads the instances (:mod:`autoalign.instances`), refines each (:mod:`autoalign.scene_refine`),
+Reads the instances (:mod:`autoalign.io.instances`), refines each (:mod:`autoalign.scene.refine`),
 and writes ``scene_gt.json`` (every instance in every image), ``refine.json`` (per instance: pose,
 per-view IoU and weights, verdict and reasons, timings) and ``overlay.png`` (every instance in its
 own colour, labelled with its verdict) atomically. A ``check`` or ``failed`` verdict is printed
@@ -17,9 +17,18 @@ from pathlib import Path
 from typing import Any
 
 from autoalign import __version__
-from autoalign.interrupts import Interrupts
-from autoalign.cli.main import (EXIT_FLAGGED, WARNINGS, ProgressBar, jsonable, one_line, pose_record, uncertainty_record,
-                                warn, write_outputs)
+from autoalign.cli.main import (
+    EXIT_FLAGGED,
+    WARNINGS,
+    ProgressBar,
+    jsonable,
+    one_line,
+    pose_record,
+    uncertainty_record,
+    warn,
+    write_outputs,
+)
+from autoalign.runtime.interrupts import Interrupts
 
 SCALE_SIGMA_WARN = 0.01
 """A solved scene scale with a relative sigma above this is reported as uncertain."""
@@ -29,10 +38,14 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
     """Run the multi-object refinement of ``args`` and write its outputs into ``out``."""
     import numpy as np
 
-    from autoalign.camera import PIXEL_CONVENTION
-    from autoalign.engine import RefineOptions
-    from autoalign.instances import read_init_poses, read_instance_scenes, read_instances
-    from autoalign.models import ModelSet
+    from autoalign.engine.refine import RefineOptions
+    from autoalign.geometry.camera import PIXEL_CONVENTION
+    from autoalign.io.instances import (
+        read_init_poses,
+        read_instance_scenes,
+        read_instances,
+    )
+    from autoalign.io.models import ModelSet
 
     scene_dir = Path(args.scene)
     instances = read_instances(scene_dir, Path(args.instances) if args.instances else None)
@@ -40,7 +53,12 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
     models = ModelSet.read(args.models, args.units)
     for inst in found.instances:
         models.mesh(inst.obj_id)  # every model present and readable before the slow part
-    from autoalign.scene_scale import cameras_up_to_scale, rescaled, scale_by_overlap, scale_from_masks
+    from autoalign.scene.scale import (
+        cameras_up_to_scale,
+        rescaled,
+        scale_by_overlap,
+        scale_from_masks,
+    )
 
     solve_scale = args.solve_scale or cameras_up_to_scale(scene_dir)
     seeds = read_init_poses(args.init, found) if args.init is not None else {}
@@ -61,8 +79,8 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
         warn(f"{args.init} gives no pose for instance(s) {', '.join(map(str, missing))}; they are searched "
              "from their masks instead")
 
-    from autoalign.overlay import encode_png
-    from autoalign.scene_refine import refine_scene
+    from autoalign.quality.overlay import encode_png
+    from autoalign.scene.refine import refine_scene
 
     options = RefineOptions(loss=args.loss, optimizer=args.optimizer, robust=not args.no_robust)
     progress = ProgressBar(enabled=not args.quiet)
@@ -78,8 +96,8 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
         progress.close()
     t_overlay = time.perf_counter() - t0
 
-    from autoalign.bop import scene_gt_of
-    from autoalign.se3 import rotation_angle_deg
+    from autoalign.geometry.se3 import rotation_angle_deg
+    from autoalign.io.bop import scene_gt_of
 
     scene_gt = scene_gt_of([(r.instance.obj_id, r.result.T_wm) for r in results], found.cameras, found.image_ids)
     records = []
@@ -115,7 +133,7 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
     }
     files = {"scene_gt.json": json.dumps(jsonable(scene_gt), indent=1).encode(),
              "overlay.png": encode_png(overlay)}
-    from autoalign.camera_refine import MIN_MISFIT_GAIN
+    from autoalign.scene.cameras import MIN_MISFIT_GAIN
 
     if joint is not None:
         report["joint"] = {"iterations": joint.iterations, "loss_before": joint.loss_before,
@@ -138,7 +156,7 @@ def refine_scene_into(args: argparse.Namespace, out: Path, t_start: float) -> in
             warn(f"the scene's scale is uncertain: {mm_per_unit:.4g} mm per unit, sigma {refined.scale_sigma:.1%}; "
                  "more views of the objects from different distances, or depth (recon --depth), pin it down")
     if attempt is not None or guess is not None:
-        from autoalign.bop import read_cameras
+        from autoalign.io.bop import read_cameras
 
         final = found.camera_by_id
         corrected = {}
@@ -189,7 +207,7 @@ def _overlay(found: Any, models: Any, results: list, scene_dir: Path) -> Any:
     """The overlay of every instance in up to 9 views spread over the scene."""
     import numpy as np
 
-    from autoalign.overlay import instance_label, render_instances_overlay
+    from autoalign.quality.overlay import instance_label, render_instances_overlay
     from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
     n = len(found.image_ids)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.camera import Camera
+from autoalign.geometry.camera import Camera
 
 
 @dataclass

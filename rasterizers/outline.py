@@ -13,10 +13,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.mesh import Mesh
+from autoalign.geometry.mesh import Mesh
+from autoalign.geometry.se3 import invert, transform_points
 from autoalign.rasterizers.camera_batch import CameraBatch, per_view_matvec
 from autoalign.rasterizers.ray_casting import RayCaster
-from autoalign.se3 import invert, transform_points
 
 NEAR_MM = 1.0
 """Points closer than this to a camera plane are not projected."""

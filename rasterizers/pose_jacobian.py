@@ -15,8 +15,8 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.camera import Camera
-from autoalign.mesh import Mesh
+from autoalign.geometry.camera import Camera
+from autoalign.geometry.mesh import Mesh
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
 Renderers = Mesh | SoftSilhouetteRasterizer | Sequence[Mesh | SoftSilhouetteRasterizer]

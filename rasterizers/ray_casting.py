@@ -13,10 +13,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.backend import drjit, jit_array, mitsuba
-from autoalign.mesh import Mesh
+from autoalign.geometry.mesh import Mesh
+from autoalign.geometry.se3 import invert
 from autoalign.rasterizers.camera_batch import CameraBatch
-from autoalign.se3 import invert
+from autoalign.runtime.backend import drjit, jit_array, mitsuba
 
 
 class RayCaster:

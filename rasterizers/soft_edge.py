@@ -7,7 +7,7 @@ vertices (a twist, a 4x4 matrix, a deformation) follows from them by the chain r
 Twist convention: ``xi = (v [mm], w [rad])`` moves every world point ``X`` of the object to
 ``X + v + w x (X - c)`` to first order, ``c`` being the object centre in the world frame: the
 paper's left-multiplied exponential ``exp(hat(xi')) T`` with ``xi' = (v - w x c, w)``
-(:func:`autoalign.se3.apply_twist`).
+(:func:`autoalign.geometry.se3.apply_twist`).
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.backend import drjit, jit_array, mitsuba
 from autoalign.rasterizers.camera_batch import CameraBatch
+from autoalign.runtime.backend import drjit, jit_array, mitsuba
 
 
 def smoothstep_edge(z: NDArray[np.float64] | float) -> NDArray[np.float64]:

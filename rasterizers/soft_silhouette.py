@@ -23,14 +23,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.camera import Camera
-from autoalign.mesh import Mesh
+from autoalign.geometry.camera import Camera
+from autoalign.geometry.mesh import Mesh
+from autoalign.geometry.se3 import transform_points
 from autoalign.rasterizers.band import find_band, hard_mask
 from autoalign.rasterizers.camera_batch import CameraBatch
 from autoalign.rasterizers.outline import NEAR_MM, OutlineFinder
 from autoalign.rasterizers.ray_casting import RayCaster
 from autoalign.rasterizers.soft_edge import soft_edge_values
-from autoalign.se3 import transform_points
 
 
 @dataclass

@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.bop import read_depth_png, read_json_file
 from autoalign.errors import AutoalignError
+from autoalign.io.bop import read_depth_png, read_json_file
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 INTRINSICS_FIX = ('an intrinsics file is JSON {"cam_K": 9 numbers (row-major, px, OpenCV convention: the centre '

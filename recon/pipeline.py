@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.camera import Camera
+from autoalign.geometry.camera import Camera
 from autoalign.recon.capture import Capture
 from autoalign.recon.fusion import fuse_depth
 from autoalign.recon.plane import TablePlane, fit_table_plane, table_frame

@@ -8,7 +8,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.errors import AutoalignError
-from autoalign.se3 import make_pose
+from autoalign.geometry.se3 import make_pose
 
 INLIER_FRACTION_OF_EXTENT = 0.01
 """A point is on the plane when it is closer than this fraction of the points' median distance

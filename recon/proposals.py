@@ -20,7 +20,7 @@ from typing import Any, Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.camera import Camera
+from autoalign.geometry.camera import Camera
 
 ABOVE_TABLE_MM = 4.0
 EPS_MM = 8.0

@@ -23,8 +23,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.errors import AutoalignError
+from autoalign.geometry.se3 import make_pose
 from autoalign.recon.capture import Capture
-from autoalign.se3 import make_pose
 
 if TYPE_CHECKING:
     import pycolmap

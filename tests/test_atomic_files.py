@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from autoalign.atomic_files import write_files_atomic, write_json_atomic
+from autoalign.io.atomic_files import write_files_atomic, write_json_atomic
 
 
 def _umask() -> int:

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from autoalign import backend
 from autoalign.errors import BackendError
+from autoalign.runtime import backend
 
 
 def test_llvm_major_parses_debian_and_generic_names() -> None:
@@ -51,7 +51,7 @@ def test_no_llvm_anywhere_names_the_fix(monkeypatch: pytest.MonkeyPatch) -> None
 
 def test_fresh_process_finds_llvm_without_env() -> None:
     env = {k: v for k, v in os.environ.items() if k != "DRJIT_LIBLLVM_PATH"}
-    code = ("from autoalign.backend import mitsuba; import os; mi = mitsuba(); "
+    code = ("from autoalign.runtime.backend import mitsuba; import os; mi = mitsuba(); "
             "print(mi.variant(), os.environ['DRJIT_LIBLLVM_PATH'])")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     variant, path = out.stdout.split()

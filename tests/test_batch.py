@@ -14,12 +14,21 @@ import numpy as np
 import pytest
 
 from autoalign.batch import BATCH_RECORDS, read_records, refine_many
-from autoalign.bop import scene_gt_of
-from autoalign.atomic_files import write_json_atomic
-from autoalign.experiments.procedural_models import procedural_models, write_models
-from autoalign.experiments.synthetic import default_K, perturb_pose, random_rotation, ring_cameras, write_multi_scene
-from autoalign.models import ModelSet
-from autoalign.se3 import make_pose
+from autoalign.experiments.scenes.procedural_models import (
+    procedural_models,
+    write_models,
+)
+from autoalign.experiments.scenes.synthetic import (
+    default_K,
+    perturb_pose,
+    random_rotation,
+    ring_cameras,
+    write_multi_scene,
+)
+from autoalign.geometry.se3 import make_pose
+from autoalign.io.atomic_files import write_json_atomic
+from autoalign.io.bop import scene_gt_of
+from autoalign.io.models import ModelSet
 
 N_SCENES = 20
 
@@ -49,6 +58,7 @@ def batch(tmp_path_factory) -> Path:
 
 def test_batch_on_a_local_dask_cluster(batch, tmp_path):
     import dask.distributed as distributed  # installed by the test command: a missing one must fail
+
     from autoalign.batch import read_scene_list
 
     scenes = read_scene_list(batch / "list.txt")

@@ -13,9 +13,9 @@ import cv2
 import numpy as np
 import pytest
 
-from autoalign.experiments.make_example import DEFAULT_OUT, PARTS, main
+from autoalign.experiments.scenes.make_example import DEFAULT_OUT, PARTS, main
 
-MODULE = [sys.executable, "-m", "autoalign.experiments.make_example"]
+MODULE = [sys.executable, "-m", "autoalign.experiments.scenes.make_example"]
 
 
 def test_help_is_help_not_a_folder(tmp_path: Path) -> None:
@@ -86,7 +86,7 @@ def _numbers(data: object) -> list[float]:
 def test_the_bundled_example_is_small_and_textured() -> None:
     """Package data stays small (photos a few hundred KB), and the model has vertex colours, so
     ``autoalign check`` has texture to match."""
-    from autoalign.feature_distance import load_coloured_mesh
+    from autoalign.quality.feature_distance import load_coloured_mesh
 
     photos = sum(p.stat().st_size for p in (DEFAULT_OUT / "scene" / "rgb").iterdir())
     assert photos < 400_000, photos

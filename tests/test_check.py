@@ -1,8 +1,8 @@
-"""Tests of the ground-truth-free label check (``autoalign check``, :mod:`autoalign.feature_distance`).
+"""Tests of the ground-truth-free label check (``autoalign check``, :mod:`autoalign.quality.feature_distance`).
 
 * Renderer: the colour of every pixel equals an independent barycentric computation of the ray
   through ``K^-1 [j, i, 1]`` (OpenCV / BOP pixel centres), the silhouette equals
-  :func:`autoalign.experiments.synthetic.raycast_masks` (autoalign's internal convention, via
+  :func:`autoalign.experiments.scenes.synthetic.raycast_masks` (autoalign's internal convention, via
   ``Camera.from_opencv``) pixel for pixel, the nearest instance wins.
 * Pipeline: a photo that is the rendering moved by (3, -2) px gives a feature distance of
   sqrt(13) px and a mean offset of (3, -2) px; an uncoloured (grey) mesh gives too few matches.
@@ -44,20 +44,44 @@ import pytest
 import trimesh
 from numpy.typing import NDArray
 
-from autoalign.bop import mask_path, read_cameras, read_mask
-from autoalign.camera import Camera
 from autoalign.errors import AutoalignError
-from autoalign.experiments.shared_data import REAL_SCENES
-from autoalign.experiments.synthetic import random_rotation, raycast_masks
-from autoalign.feature_distance import (
-    MIN_MATCHES, CheckReport, ColouredMesh, Label, ViewInstanceCheck, check_image, check_scene, load_coloured_mesh,
-    load_models, photo_sift, read_labels, read_photo_scaled, render_labels, select_images, summarize,
+from autoalign.experiments.scenes.synthetic import random_rotation, raycast_masks
+from autoalign.experiments.studies.shared_data import REAL_SCENES
+from autoalign.geometry.camera import Camera
+from autoalign.geometry.mesh import load_mesh
+from autoalign.geometry.se3 import make_pose
+from autoalign.io.bop import mask_path, photo_path, read_cameras, read_mask, read_photo
+from autoalign.quality.edge_distance import (
+    MAX_EDGE_PX,
+    outline_edge_distances,
+    outline_pixels,
+    photo_edges,
 )
-from autoalign.bop import photo_path, read_photo
-from autoalign.edge_distance import MAX_EDGE_PX, outline_edge_distances, outline_pixels, photo_edges
-from autoalign.label_compare import COLOURS, FIGURE_VIEWS, TILE_PX, compare_reports, compare_views, comparison_figure
-from autoalign.mesh import load_mesh
-from autoalign.se3 import make_pose
+from autoalign.quality.feature_distance import (
+    MIN_MATCHES,
+    CheckReport,
+    ColouredMesh,
+    Label,
+    ViewInstanceCheck,
+    check_image,
+    check_scene,
+    load_coloured_mesh,
+    load_models,
+    photo_sift,
+    read_labels,
+    read_photo_scaled,
+    render_labels,
+    select_images,
+    summarize,
+)
+from autoalign.quality.label_compare import (
+    COLOURS,
+    FIGURE_VIEWS,
+    TILE_PX,
+    compare_reports,
+    compare_views,
+    comparison_figure,
+)
 
 REAL = REAL_SCENES / "lmo_im0480_0695"
 N_IMAGES = 15  # 15 of the 29 images, spread evenly (4 give only 0-3 matches per object on LM-O)
@@ -703,7 +727,7 @@ def test_cli_starts_without_torch_or_jax() -> None:
             "p.parse_args(['check', 'S', '--labels', 'L', '--models', 'M'])\n"
             "bad = [m for m in ('torch', 'jax', 'numpy', 'cv2', 'open3d') if m in sys.modules]\n"
             "assert not bad, bad\n"
-            "import autoalign.feature_distance\n"
+            "import autoalign.quality.feature_distance\n"
             "assert 'torch' not in sys.modules and 'jax' not in sys.modules\n")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)

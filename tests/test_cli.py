@@ -16,15 +16,20 @@ import cv2
 import numpy as np
 import pytest
 
-from autoalign.atomic_files import write_json_atomic
-from autoalign.bop import scene_gt_dict
 from autoalign.cli.main import OUTPUT_FILES, main
-from autoalign.experiments.procedural_models import procedural_models
-from autoalign.experiments.synthetic import (
-    default_K, perturb_pose, random_rotation, sphere_cameras, translate_mask, write_synthetic_scene,
+from autoalign.experiments.scenes.procedural_models import procedural_models
+from autoalign.experiments.scenes.synthetic import (
+    default_K,
+    perturb_pose,
+    random_rotation,
+    sphere_cameras,
+    translate_mask,
+    write_synthetic_scene,
 )
-from autoalign.mesh import load_mesh
-from autoalign.se3 import make_pose, rotation_angle_deg
+from autoalign.geometry.mesh import load_mesh
+from autoalign.geometry.se3 import make_pose, rotation_angle_deg
+from autoalign.io.atomic_files import write_json_atomic
+from autoalign.io.bop import scene_gt_dict
 
 N_VIEWS, W, H, F = 12, 320, 240, 300.0
 ERROR_PREFIX = "autoalign: error:"
@@ -363,12 +368,12 @@ def test_no_command_is_an_error(capsys):
 
 def test_internal_error_keeps_traceback_and_leaves_nothing(data, tmp_path, monkeypatch):
     """A bug (not a user mistake) propagates as an exception; the run's outputs and folder are removed."""
-    import autoalign.engine
+    import autoalign.engine.refine
 
     def broken(*args, **kwargs):
         raise RuntimeError("engine bug")
 
-    monkeypatch.setattr(autoalign.engine, "refine", broken)
+    monkeypatch.setattr(autoalign.engine.refine, "refine", broken)
     out = tmp_path / "a" / "out"
     with pytest.raises(RuntimeError, match="engine bug"):
         main(["refine", str(data.scene), "--model", str(data.model), "--out", str(out), "--init", str(data.init),
@@ -411,7 +416,7 @@ def test_startup_imports_no_heavy_modules():
         "with contextlib.redirect_stdout(io.StringIO()):\n"
         "    rcs = [m.main(['--help']), m.main(['refine', '--help'])]\n"
         "heavy = sorted(k for k in sys.modules if k.split('.')[0] in ('torch', 'jax', 'jaxlib', 'mitsuba', 'drjit')\n"
-        "               or k in ('autoalign.engine', 'autoalign.rasterizers.soft_silhouette'))\n"
+        "               or k in ('autoalign.engine.refine', 'autoalign.rasterizers.soft_silhouette'))\n"
         "print(json.dumps({'rcs': rcs, 'heavy': heavy}))\n"
     )
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
@@ -425,7 +430,7 @@ def test_simulate_subcommand_registered_when_available(monkeypatch, capsys):
 
     import autoalign.experiments
 
-    fake = types.ModuleType("autoalign.experiments.simulate")
+    fake = types.ModuleType("autoalign.experiments.studies.simulate")
 
     def add_simulate_parser(subparsers):
         p = subparsers.add_parser("simulate", help="fake simulate")
@@ -433,7 +438,7 @@ def test_simulate_subcommand_registered_when_available(monkeypatch, capsys):
         p.set_defaults(func=lambda args: 0 if args.n == 3 else 1)
 
     fake.add_simulate_parser = add_simulate_parser
-    monkeypatch.setitem(sys.modules, "autoalign.experiments.simulate", fake)
+    monkeypatch.setitem(sys.modules, "autoalign.experiments.studies.simulate", fake)
     monkeypatch.setattr(autoalign.experiments, "simulate", fake, raising=False)
     assert main(["simulate", "--n", "3"]) == 0
     assert main(["simulate", "--n", "x"]) == 2
@@ -505,7 +510,7 @@ def test_refine_json_report(json_run, data):
 
 
 def test_overlay_png(json_run):
-    from autoalign.overlay import GAP, LEGEND_H, TILE_H, TILE_W
+    from autoalign.quality.overlay import GAP, LEGEND_H, TILE_H, TILE_W
 
     _, out = json_run
     img = cv2.imread(str(out / "overlay.png"), cv2.IMREAD_COLOR)
@@ -592,7 +597,7 @@ def test_write_outputs_leaves_nothing_on_failure(tmp_path, monkeypatch):
 
 
 def test_overlay_views_include_the_worst():
-    from autoalign.overlay import choose_views
+    from autoalign.quality.overlay import choose_views
 
     for n, worst in ((30, 5), (30, 28), (12, 7), (5, 2), (40, 0)):
         iou = np.full(n, 0.99)
@@ -679,7 +684,7 @@ def test_empty_masks_are_missing_views_not_an_absent_object(data, tmp_path, caps
 def test_masks_stored_as_0_1_in_colour_or_in_alpha_read_like_0_255(data, tmp_path, kind):
     """Every way of storing a mask gives the same masks. RGBA: an alpha channel that varies is the
     mask, whatever the colours (a cut-out's colours are the photo's); an opaque one says nothing."""
-    from autoalign.bop import read_scene
+    from autoalign.io.bop import read_scene
 
     scene = _copy_scene(data, tmp_path)
     photo = np.random.default_rng(0).integers(1, 256, (H, W, 3), dtype=np.uint8)  # no zero anywhere
@@ -707,8 +712,8 @@ def test_masks_stored_as_0_1_in_colour_or_in_alpha_read_like_0_255(data, tmp_pat
 
 def test_stl_loads_as_the_same_mesh_as_ply(data, tmp_path):
     """An STL stores each triangle's corners apart: loading merges them, so it renders like the PLY."""
+    from autoalign.experiments.scenes.synthetic import sphere_cameras as cams_on_sphere
     from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
-    from autoalign.experiments.synthetic import sphere_cameras as cams_on_sphere
 
     ply = load_mesh(data.model)
     stl_path = tmp_path / "model.stl"
@@ -745,7 +750,7 @@ def test_ctrl_c_at_any_moment_exits_130_and_writes_nothing(tmp_path):
     import threading
     import time
 
-    from autoalign.experiments.make_example import DEFAULT_OUT as example
+    from autoalign.experiments.scenes.make_example import DEFAULT_OUT as example
 
     if not (example / "scene").is_dir():  # installed without the source tree: the packaged copy
         import autoalign
@@ -812,10 +817,10 @@ def test_ctrl_c_after_the_outputs_are_written_keeps_the_result(data, tmp_path, d
 def test_large_images_are_read_downscaled_with_their_cameras(data, tmp_path):
     """Images above the pixel budget are read at a whole-factor reduction, cameras scaled with them
     (here a budget of a quarter of the image: factor 2), and the pose is still found; a click is
-    typed in the files' pixels. The 12-megapixel case is measured in experiments/bench_memory.py."""
-    from autoalign.bop import read_scene
-    from autoalign.engine import refine
-    from autoalign.seeding import Click, check_click
+    typed in the files' pixels. The 12-megapixel case is measured in experiments/benchmarks/bench_memory.py."""
+    from autoalign.engine.refine import refine
+    from autoalign.engine.seeding import Click, check_click
+    from autoalign.io.bop import read_scene
 
     full = read_scene(data.scene)
     half = read_scene(data.scene, max_pixels=W * H // 4)

@@ -1,5 +1,5 @@
 """Conventions (BOP poses, pixel centres, camera rays) checked against hand-written formulas and an
-independent renderer (open3d ray casting in :mod:`autoalign.experiments.synthetic`)."""
+independent renderer (open3d ray casting in :mod:`autoalign.experiments.scenes.synthetic`)."""
 
 from __future__ import annotations
 
@@ -10,12 +10,18 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from autoalign.bop import Scene, pose_in_camera, read_init_pose, read_scene, write_scene
-from autoalign.camera import Camera, look_at
-from autoalign.experiments.synthetic import raycast_masks
-from autoalign.mesh import mesh_from_trimesh
+from autoalign.experiments.scenes.synthetic import raycast_masks
+from autoalign.geometry.camera import Camera, look_at
+from autoalign.geometry.mesh import mesh_from_trimesh
+from autoalign.geometry.se3 import make_pose, transform_points
+from autoalign.io.bop import (
+    Scene,
+    pose_in_camera,
+    read_init_pose,
+    read_scene,
+    write_scene,
+)
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
-from autoalign.se3 import make_pose, transform_points
 
 
 def _random_camera(rng: np.random.Generator, width: int = 64, height: int = 48) -> Camera:

@@ -21,14 +21,23 @@ import numpy as np
 import pytest
 from pycocotools import mask as coco_mask
 
-from autoalign.bop import read_labels
-from autoalign.camera import Camera
-from autoalign.experiments.procedural_models import procedural_models, write_models
-from autoalign.experiments.synthetic import (default_K, random_rotation, raycast_masks, raycast_visible_masks,
-                                             ring_cameras, write_multi_scene)
-from autoalign.export import bop_files, coco_annotations, export_frames
-from autoalign.models import ModelSet
-from autoalign.se3 import make_pose
+from autoalign.experiments.scenes.procedural_models import (
+    procedural_models,
+    write_models,
+)
+from autoalign.experiments.scenes.synthetic import (
+    default_K,
+    random_rotation,
+    raycast_masks,
+    raycast_visible_masks,
+    ring_cameras,
+    write_multi_scene,
+)
+from autoalign.geometry.camera import Camera
+from autoalign.geometry.se3 import make_pose
+from autoalign.io.bop import read_labels
+from autoalign.io.export import bop_files, coco_annotations, export_frames
+from autoalign.io.models import ModelSet
 
 W, H, VIEWS = 320, 240, 8
 

@@ -14,16 +14,23 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 import autoalign
-from autoalign.experiments.metrics import Symmetries, pose_errors
-from autoalign.experiments.protocol import ImageSetup, make_trial
-from autoalign.experiments.runner import get_model, model_ids
-from autoalign.experiments.shared_data import REAL_SCENES
-from autoalign.experiments.synthetic import make_scene, translate_mask
-from autoalign.hypotheses import best_poses, flips, orbit, polish_poses, poses_at, score_poses
-from autoalign.mesh import mesh_from_trimesh
+from autoalign.engine.hypotheses import (
+    best_poses,
+    flips,
+    orbit,
+    polish_poses,
+    poses_at,
+    score_poses,
+)
+from autoalign.engine.seeding import hull_centre, rotation_grid
+from autoalign.experiments.scenes.synthetic import make_scene, translate_mask
+from autoalign.experiments.studies.metrics import Symmetries, pose_errors
+from autoalign.experiments.studies.protocol import ImageSetup, make_trial
+from autoalign.experiments.studies.runner import get_model, model_ids
+from autoalign.experiments.studies.shared_data import REAL_SCENES
+from autoalign.geometry.mesh import mesh_from_trimesh
+from autoalign.geometry.se3 import make_pose, rotation_angle_deg, transform_points
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
-from autoalign.se3 import make_pose, rotation_angle_deg, transform_points
-from autoalign.seeding import hull_centre, rotation_grid
 
 
 def _trial(name: str, trial: int):
@@ -123,7 +130,7 @@ def test_recentring_stays_near_the_seed_it_is_anchored_to() -> None:
     """Masks whose centroids pull away from the seed (here: the object really sits 1.5 radii from
     it) move the poses at most ANCHOR_REACH radii from an anchor through the whole search, and
     further without one (each step re-centres again)."""
-    from autoalign.hypotheses import ANCHOR_REACH
+    from autoalign.engine.hypotheses import ANCHOR_REACH
 
     mesh, _, geo, scene = _trial("mug", 0)
     rast = SoftSilhouetteRasterizer(mesh.simplified(1500))
@@ -145,7 +152,7 @@ def test_recentring_leaves_out_masks_on_another_object(monkeypatch: pytest.Monke
     """A quarter of the masks on another object 120 px away: the true orientation, placed 20 mm
     off, is re-centred close to the truth; with every view in the least squares (no outlier
     rule) those views pull it several times further away."""
-    import autoalign.hypotheses as hyp
+    import autoalign.engine.hypotheses as hyp
 
     mesh, _, geo, scene = _trial("mug", 0)
     wrong = set(range(0, len(scene), 4))
@@ -244,8 +251,8 @@ def test_search_finds_real_objects_not_their_half_turns(obj_id: int) -> None:
     estimated lower than the best was left unpolished."""
     import json
 
-    from autoalign.instances import Instance, read_instance_scenes
-    from autoalign.models import ModelSet
+    from autoalign.io.instances import Instance, read_instance_scenes
+    from autoalign.io.models import ModelSet
 
     world = json.loads((REAL_SCENE / "gt_world.json").read_text())
     first = json.loads((REAL_SCENE / "scene_gt.json").read_text())

@@ -5,11 +5,10 @@
 
 from __future__ import annotations
 
-import numpy as np
-import pytest
-
 import jax  # noqa: E402 - the test command installs every extra: a missing one must fail, not skip
+import numpy as np
 import optimistix  # noqa: E402,F401 - autoalign.jax.refine needs it
+import pytest
 
 jax.config.update("jax_enable_x64", True)  # noqa: E402 - the solve needs double precision (see autoalign.jax.refine)
 
@@ -18,13 +17,18 @@ from jax.test_util import check_grads  # noqa: E402
 
 import autoalign  # noqa: E402
 import autoalign.jax as aj  # noqa: E402
-from autoalign.bop import Scene  # noqa: E402
-from autoalign.experiments.procedural_models import procedural_models  # noqa: E402
-from autoalign.experiments.synthetic import (default_K, perturb_pose, random_rotation, raycast_masks,  # noqa: E402
-                                             ring_cameras)
-from autoalign.mesh import mesh_from_trimesh  # noqa: E402
-from autoalign.objective import Level  # noqa: E402
-from autoalign.se3 import make_pose, rotation_angle_deg  # noqa: E402
+from autoalign.engine.objective import Level  # noqa: E402
+from autoalign.experiments.scenes.procedural_models import procedural_models  # noqa: E402
+from autoalign.experiments.scenes.synthetic import (  # noqa: E402
+    default_K,
+    perturb_pose,
+    random_rotation,
+    raycast_masks,
+    ring_cameras,
+)
+from autoalign.geometry.mesh import mesh_from_trimesh  # noqa: E402
+from autoalign.geometry.se3 import make_pose, rotation_angle_deg  # noqa: E402
+from autoalign.io.bop import Scene  # noqa: E402
 
 POOL = {pm.name: pm for pm in procedural_models()}
 

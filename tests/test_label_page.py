@@ -23,13 +23,20 @@ import numpy as np
 import pytest
 from playwright.sync_api import sync_playwright
 
-from autoalign.experiments.bench_scene import make_bench_scene
-from autoalign.experiments.label_page_driver import (LabelServerProcess, click_view, launch_browser, mask_pixel,
-                                                     open_page, wait_drawn, wait_job_done)
-from autoalign.experiments.synthetic import shaded_photos
-from autoalign.instances import Instance, read_instance_scenes
-from autoalign.models import ModelSet
-from autoalign.se3 import rotation_angle_deg
+from autoalign.experiments.benchmarks.bench_scene import make_bench_scene
+from autoalign.experiments.pages.label_page_driver import (
+    LabelServerProcess,
+    click_view,
+    launch_browser,
+    mask_pixel,
+    open_page,
+    wait_drawn,
+    wait_job_done,
+)
+from autoalign.experiments.scenes.synthetic import shaded_photos
+from autoalign.geometry.se3 import rotation_angle_deg
+from autoalign.io.instances import Instance, read_instance_scenes
+from autoalign.io.models import ModelSet
 
 N_VIEWS = 12
 W, H = 640, 480
@@ -123,7 +130,7 @@ def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
         rev = wait_drawn(page, 0, rev + 2)
         nudged = session_instance(out, 0)
         T0, T1 = np.array(placed["T_wm"]), np.array(nudged["T_wm"])
-        from autoalign.bop import read_cameras
+        from autoalign.io.bop import read_cameras
 
         _, R_w2c, _ = read_cameras(labelled.scene)[0]
         np.testing.assert_allclose(T1[:3, 3] - T0[:3, 3], R_w2c.T @ [3.0, 0.0, 0.0], atol=1e-6)
@@ -263,7 +270,7 @@ def test_restart_two_tabs_binding_and_paths(labelled, tmp_path):
             tab_b.evaluate(f"window.sent = {nudges % 1}")
             tab_a.evaluate("window.sent.then(rs => rs.every(r => r.ok))")
             tab_b.evaluate("window.sent.then(rs => rs.every(r => r.ok))")
-            from autoalign.bop import read_cameras
+            from autoalign.io.bop import read_cameras
 
             _, R_w2c, _ = read_cameras(labelled.scene)[0]
             for k in (0, 1):
@@ -321,9 +328,9 @@ def test_nudge_turns_about_the_object_centre_in_camera_axes():
     """nudged_pose against scipy: a turn of 3 degrees about the camera's y axis, and a move along its z."""
     from scipy.spatial.transform import Rotation
 
-    from autoalign.camera import Camera
-    from autoalign.label_session import nudged_pose
-    from autoalign.se3 import make_pose
+    from autoalign.geometry.camera import Camera
+    from autoalign.geometry.se3 import make_pose
+    from autoalign.label.session import nudged_pose
 
     rng = np.random.default_rng(4)
     R_w2c = Rotation.random(random_state=5).as_matrix()
@@ -342,12 +349,11 @@ def test_3d_view_draws_the_session_and_its_gizmo_moves_the_object(labelled, tmp_
     """In-process: the viser scene follows the session, and a drag of the gizmo becomes the instance's pose."""
     import time
 
+    import open3d as o3d
     from scipy.spatial.transform import Rotation
 
     from autoalign.cli.label_3d import SceneViewer
-    from autoalign.label_session import LabelSession
-
-    import open3d as o3d
+    from autoalign.label.session import LabelSession
 
     models = ModelSet.read(labelled.models)
     session = LabelSession(labelled.scene, models, tmp_path / "session")
@@ -399,7 +405,7 @@ def test_3d_view_draws_the_session_and_its_gizmo_moves_the_object(labelled, tmp_
 def test_refine_together_puts_moved_instances_back_and_keeps_decisions(labelled, tmp_path):
     """In-process: two placed instances, one moved 3 mm and turned 3 degrees by hand; refining them
     together (occlusion-aware) brings both within 1 mm / 1 degree, judged, their decisions kept."""
-    from autoalign.label_session import LabelSession
+    from autoalign.label.session import LabelSession
 
     models = ModelSet.read(labelled.models)
     session = LabelSession(labelled.scene, models, tmp_path / "session")

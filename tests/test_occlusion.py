@@ -15,15 +15,29 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from autoalign.experiments.procedural_models import procedural_models, write_models
-from autoalign.experiments.synthetic import default_K, perturb_pose, random_rotation, ring_cameras, write_multi_scene
-from autoalign.instances import read_instance_scenes, read_instances
-from autoalign.joint_refine import refine_jointly
-from autoalign.models import ModelSet
-from autoalign.objective import Level
-from autoalign.occlusion import JointEvaluation, OcclusionObjective
+from autoalign.engine.objective import Level
+from autoalign.experiments.scenes.procedural_models import (
+    procedural_models,
+    write_models,
+)
+from autoalign.experiments.scenes.synthetic import (
+    default_K,
+    perturb_pose,
+    random_rotation,
+    ring_cameras,
+    write_multi_scene,
+)
+from autoalign.geometry.se3 import (
+    apply_twist,
+    make_pose,
+    rotation_angle_deg,
+    transform_points,
+)
+from autoalign.io.instances import read_instance_scenes, read_instances
+from autoalign.io.models import ModelSet
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
-from autoalign.se3 import apply_twist, make_pose, rotation_angle_deg, transform_points
+from autoalign.scene.joint import refine_jointly
+from autoalign.scene.occlusion import JointEvaluation, OcclusionObjective
 
 W, H, VIEWS = 320, 240, 8
 FULL = Level(1.0, 0.5, 0)
@@ -108,7 +122,7 @@ def test_joint_refinement_labels_an_instance_whose_occluders_masks_are_missing(p
     whose own masks are in one view only, is held in place by the other's contours."""
     import shutil
 
-    from autoalign.engine import refine
+    from autoalign.engine.refine import refine
 
     root, models, truth = pair
     scene = tmp_path / "scene"

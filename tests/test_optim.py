@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from autoalign.experiments.protocol import ImageSetup, make_trial
-from autoalign.experiments.runner import get_model
-from autoalign.experiments.synthetic import make_scene
-from autoalign.objective import Level, SilhouetteObjective
-from autoalign.optim import Stop, levenberg_marquardt
+from autoalign.engine.objective import Level, SilhouetteObjective
+from autoalign.engine.solver import Stop, levenberg_marquardt
+from autoalign.experiments.scenes.synthetic import make_scene
+from autoalign.experiments.studies.protocol import ImageSetup, make_trial
+from autoalign.experiments.studies.runner import get_model
+from autoalign.geometry.se3 import apply_twist, rotation_angle_deg, transform_points
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
-from autoalign.se3 import apply_twist, rotation_angle_deg, transform_points
 
 
 def _max_reprojection_px(T: np.ndarray, T_gt: np.ndarray, vertices_m: np.ndarray, scene) -> float:

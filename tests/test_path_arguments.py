@@ -33,7 +33,7 @@ def two_image_labels(folder: Path) -> str:
 
 
 def test_top_level_and_bop_readers_take_str(scene: autoalign.Scene, tmp_path: Path) -> None:
-    from autoalign import bop
+    from autoalign.io import bop
 
     assert len(scene) == 24 and scene.image_ids[0] == 0
     assert autoalign.load_mesh(MODEL).faces.shape == (1176, 3)
@@ -55,9 +55,13 @@ def test_top_level_and_bop_readers_take_str(scene: autoalign.Scene, tmp_path: Pa
 
 
 def test_instances_and_models_take_str(tmp_path: Path) -> None:
-    from autoalign.instances import read_init_poses, read_instance_scenes, read_instances
-    from autoalign.models import ModelSet
-    from autoalign.scene_scale import cameras_up_to_scale
+    from autoalign.io.instances import (
+        read_init_poses,
+        read_instance_scenes,
+        read_instances,
+    )
+    from autoalign.io.models import ModelSet
+    from autoalign.scene.scale import cameras_up_to_scale
 
     instances = read_instances(SCENE)  # the reported TypeError
     assert [(i.index, i.obj_id) for i in instances] == [(0, 1)]
@@ -73,9 +77,9 @@ def test_instances_and_models_take_str(tmp_path: Path) -> None:
 
 
 def test_export_takes_str(tmp_path: Path) -> None:
-    from autoalign import export
-    from autoalign.bop import read_labels
-    from autoalign.models import ModelSet
+    from autoalign.io import export
+    from autoalign.io.bop import read_labels
+    from autoalign.io.models import ModelSet
 
     labels = two_image_labels(tmp_path)
     models = ModelSet.read(MODELS)
@@ -96,8 +100,12 @@ def test_export_takes_str(tmp_path: Path) -> None:
 
 
 def test_check_and_overlays_take_str(scene: autoalign.Scene, tmp_path: Path) -> None:
-    from autoalign.feature_distance import check_scene, load_coloured_mesh, load_models
-    from autoalign.overlay import draw_overlay, photo_at
+    from autoalign.quality.feature_distance import (
+        check_scene,
+        load_coloured_mesh,
+        load_models,
+    )
+    from autoalign.quality.overlay import draw_overlay, photo_at
 
     labels = two_image_labels(tmp_path)
     report = check_scene(SCENE, labels, MODELS)

@@ -16,12 +16,12 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from autoalign.bop import read_scene, write_scene
-from autoalign.camera import Camera, K_from_opencv, K_to_opencv, uv_from_opencv
-from autoalign.mesh import mesh_from_trimesh
+from autoalign.engine.seeding import Click
+from autoalign.geometry.camera import Camera, K_from_opencv, K_to_opencv, uv_from_opencv
+from autoalign.geometry.mesh import mesh_from_trimesh
+from autoalign.geometry.se3 import make_pose
+from autoalign.io.bop import read_scene, write_scene
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
-from autoalign.se3 import make_pose
-from autoalign.seeding import Click
 
 W, H = 64, 48
 
@@ -108,7 +108,7 @@ def test_cam_K_round_trips_and_scaling_keeps_pixel_edges():
 
 def test_written_cam_K_is_opencv(tmp_path):
     """write_scene writes the OpenCV intrinsics, and reading them back gives the same camera."""
-    from autoalign.bop import Scene
+    from autoalign.io.bop import Scene
 
     rng = np.random.default_rng(2)
     K, R, t = _bop_camera(rng)

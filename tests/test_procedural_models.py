@@ -10,10 +10,13 @@ import open3d as o3d
 import pytest
 from scipy.spatial import cKDTree
 
-from autoalign.mesh import load_mesh, mesh_from_trimesh, weld
-from autoalign.experiments.procedural_models import (
-    ProceduralModel, load_bop_models_info, procedural_models, write_models,
+from autoalign.experiments.scenes.procedural_models import (
+    ProceduralModel,
+    load_bop_models_info,
+    procedural_models,
+    write_models,
 )
+from autoalign.geometry.mesh import load_mesh, mesh_from_trimesh, weld
 
 
 @pytest.fixture(scope="module")

@@ -14,14 +14,18 @@ import numpy as np
 import pytest
 import trimesh
 
-from autoalign.camera import Camera
-from autoalign.experiments.procedural_models import procedural_models
-from autoalign.experiments.refine_study import LM_DIR
-from autoalign.experiments.synthetic import random_rotation, raycast_masks, sphere_cameras
-from autoalign.mesh import Mesh, load_mesh, mesh_from_trimesh
+from autoalign.experiments.scenes.procedural_models import procedural_models
+from autoalign.experiments.scenes.synthetic import (
+    random_rotation,
+    raycast_masks,
+    sphere_cameras,
+)
+from autoalign.experiments.studies.refine_study import LM_DIR
+from autoalign.geometry.camera import Camera
+from autoalign.geometry.mesh import Mesh, load_mesh, mesh_from_trimesh
+from autoalign.geometry.se3 import apply_twist, make_pose, transform_points
 from autoalign.rasterizers.soft_edge import smoothstep_edge
 from autoalign.rasterizers.soft_silhouette import Silhouettes, SoftSilhouetteRasterizer
-from autoalign.se3 import apply_twist, make_pose, transform_points
 
 W, H = 640, 480
 LM_MODEL = LM_DIR / "obj_000001.ply"

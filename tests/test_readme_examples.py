@@ -218,7 +218,7 @@ def truth_and(scene_gt: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def assert_close(T: np.ndarray, T_true: np.ndarray, mm: float = 0.5, deg: float = 0.5) -> None:
     """``T`` within ``mm`` (at the mug's centre) and ``deg`` of ``T_true``."""
-    from autoalign.se3 import rotation_angle_deg
+    from autoalign.geometry.se3 import rotation_angle_deg
 
     c = autoalign.load_mesh(EXAMPLE / "model.ply").centre
     err_mm = float(np.linalg.norm(T[:3, :3] @ c + T[:3, 3] - T_true[:3, :3] @ c - T_true[:3, 3]))
@@ -353,7 +353,7 @@ def test_every_block_is_marked_and_every_example_is_checked() -> None:
 
 
 def test_the_instances_file_shown_is_one_refine_takes(tmp_path: Path) -> None:
-    from autoalign.instances import Instance, read_instances
+    from autoalign.io.instances import Instance, read_instances
 
     (block,) = [b for b in readme_blocks() if b.lang == "json"]
     (tmp_path / "instances.json").write_text(block.code)
@@ -429,8 +429,8 @@ def test_stored_simulation_report_says_which_search_its_trials_ran() -> None:
     """The stored results.md is what the report makes of the stored trials, and says that their
     search polished the best 8 orientations (the engine keeps 16 now, as the README says)."""
     from autoalign.batch import read_records
-    from autoalign.engine import RefineOptions
-    from autoalign.experiments.report import markdown
+    from autoalign.engine.refine import RefineOptions
+    from autoalign.experiments.studies.report import markdown
 
     folder = REPO / "experiments" / "results" / "simulate"
     if not (folder / "trials.jsonl").is_file():

@@ -1,7 +1,7 @@
 """``autoalign recon`` (issue 14) on a synthetic hand-held RGB-D stream rendered with mitsuba
-(``experiments/stream.py``: textured objects on a textured table, true cameras known): frames
+(``experiments/scenes/stream.py``: textured objects on a textured table, true cameras known): frames
 registered, the trajectory after alignment (open3d's point-to-point estimation, Sim(3) and SE(3),
-``experiments/bench_pipeline.py``),
+``experiments/benchmarks/bench_pipeline.py``),
 the scale from depth and the table frame; RGB only is flagged; bad inputs are one-line errors."""
 
 from __future__ import annotations
@@ -17,11 +17,14 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from autoalign.bop import read_cameras
-from autoalign.experiments.bench_pipeline import aligned_camera_errors, rigid_alignment
-from autoalign.experiments.stream import DEPTH_SCALE, Stream, render_stream
-from autoalign.experiments.synthetic import raycast_visible_masks
-from autoalign.overlap import mask_iou
+from autoalign.experiments.benchmarks.bench_pipeline import (
+    aligned_camera_errors,
+    rigid_alignment,
+)
+from autoalign.experiments.scenes.stream import DEPTH_SCALE, Stream, render_stream
+from autoalign.experiments.scenes.synthetic import raycast_visible_masks
+from autoalign.io.bop import read_cameras
+from autoalign.quality.overlap import mask_iou
 
 FRAMES = 30
 
@@ -76,8 +79,8 @@ def check_proposals(rendered: Stream, out: Path, T: np.ndarray) -> None:
     (``ABOVE_TABLE_MM``: what touches the table is the table's). With open3d's default TSDF
     truncation (8 voxels) surfaces grew by up to 5 px at occluding contours and this failed
     (``recon/fusion.py``, ``TRUNCATION_VOXELS``)."""
+    from autoalign.geometry.se3 import transform_points
     from autoalign.recon.proposals import EPS_MM
-    from autoalign.se3 import transform_points
 
     props = json.loads((out / "proposals.json").read_text())["instances"]
     surface = [transform_points(P, m.sample_points(3000)) for m, P in zip(rendered.meshes, rendered.poses)]

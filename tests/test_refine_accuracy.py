@@ -1,6 +1,6 @@
 """Refinement accuracy on synthetic scenes whose masks come from open3d ray casting (issue #2, 1-3).
 
-The full-size study (20+ scenes per seed, with timings) is ``experiments/refine_study.py``; these
+The full-size study (20+ scenes per seed, with timings) is ``experiments/studies/refine_study.py``; these
 tests run a smaller sample of the same scenes with the same thresholds.
 """
 
@@ -11,14 +11,25 @@ import pytest
 import trimesh
 
 import autoalign
-from autoalign.experiments.bench_refine import blob_mesh
-from autoalign.experiments.refine_study import (TOLERANCES, make_study_scene, pose_errors, run_in_process,
-                                                study_meshes, summarise)
-from autoalign.experiments.synthetic import make_scene, perturb_pose, random_rotation, sphere_cameras
-from autoalign.engine import refine
-from autoalign.experiments.procedural_models import procedural_models
-from autoalign.mesh import mesh_from_trimesh
-from autoalign.se3 import make_pose
+from autoalign.engine.refine import refine
+from autoalign.experiments.benchmarks.bench_refine import blob_mesh
+from autoalign.experiments.scenes.procedural_models import procedural_models
+from autoalign.experiments.scenes.synthetic import (
+    make_scene,
+    perturb_pose,
+    random_rotation,
+    sphere_cameras,
+)
+from autoalign.experiments.studies.refine_study import (
+    TOLERANCES,
+    make_study_scene,
+    pose_errors,
+    run_in_process,
+    study_meshes,
+    summarise,
+)
+from autoalign.geometry.mesh import mesh_from_trimesh
+from autoalign.geometry.se3 import make_pose
 
 
 @pytest.fixture(scope="module")
@@ -96,9 +107,9 @@ def test_search_keeps_a_slowly_descending_hypothesis_under_eroded_masks() -> Non
     With the search stopping at ``FTOL / scale`` (0.8% predicted gain) it was dropped and the
     answer was the upside-down mug (180 degrees off); with the full-resolution ``FTOL`` it is
     found to 1 mm and 1 degree."""
-    from autoalign.experiments.protocol import ImageSetup, make_trial, noise_rng
-    from autoalign.experiments.runner import get_model
-    from autoalign.experiments.synthetic import corrupt_views
+    from autoalign.experiments.scenes.synthetic import corrupt_views
+    from autoalign.experiments.studies.protocol import ImageSetup, make_trial, noise_rng
+    from autoalign.experiments.studies.runner import get_model
 
     entry = get_model("procedural44", 3)
     geo = make_trial(entry.mesh.centre, entry.mesh.diameter, 0, 3, 0, 40, 100.0, ImageSetup())
@@ -113,8 +124,8 @@ def test_empty_masks_in_memory_are_left_out_not_targets() -> None:
     """A segmentation dropout (2 of 24 masks empty) through the Python API: the views are left out.
 
     Compared as "object absent" targets they pulled this mug 50 degrees off."""
-    from autoalign.bop import Scene
-    from autoalign.experiments.synthetic import ring_cameras
+    from autoalign.experiments.scenes.synthetic import ring_cameras
+    from autoalign.io.bop import Scene
 
     rng = np.random.default_rng(3)
     pm = next(m for m in procedural_models() if m.name == "mug")

@@ -19,17 +19,31 @@ import cv2
 import numpy as np
 import pytest
 
-from autoalign.bop import pose_in_camera, scene_gt_of
-from autoalign.engine import refine
+from autoalign.engine.refine import refine
 from autoalign.errors import AutoalignError
-from autoalign.experiments.metrics import Symmetries, pose_errors
-from autoalign.experiments.procedural_models import load_bop_models_info, procedural_models, write_models
-from autoalign.experiments.synthetic import (default_K, perturb_pose, random_rotation, ring_cameras,
-                                             write_multi_scene)
-from autoalign.instances import Instance, read_init_poses, read_instance_scenes, read_instances
-from autoalign.mesh import load_mesh
-from autoalign.se3 import make_pose
-from autoalign.verdict import judge
+from autoalign.experiments.scenes.procedural_models import (
+    load_bop_models_info,
+    procedural_models,
+    write_models,
+)
+from autoalign.experiments.scenes.synthetic import (
+    default_K,
+    perturb_pose,
+    random_rotation,
+    ring_cameras,
+    write_multi_scene,
+)
+from autoalign.experiments.studies.metrics import Symmetries, pose_errors
+from autoalign.geometry.mesh import load_mesh
+from autoalign.geometry.se3 import make_pose
+from autoalign.io.bop import pose_in_camera, scene_gt_of
+from autoalign.io.instances import (
+    Instance,
+    read_init_poses,
+    read_instance_scenes,
+    read_instances,
+)
+from autoalign.quality.verdict import judge
 
 N_OBJ, N_VIEWS, W, H = 5, 24, 480, 360
 
@@ -213,8 +227,8 @@ def test_verdict_rules():
 def test_nearly_symmetric_is_a_reason_unless_turning_clearly_worsens_the_fit():
     """A weakly observed turn (not about an axis of continuous symmetry) flags the pose, unless
     the pose's turns about it were tried and fit clearly worse (``turn_gap``)."""
-    from autoalign.uncertainty import Uncertainty
-    from autoalign.verdict import NEAR_SYMMETRY_GAP
+    from autoalign.engine.uncertainty import Uncertainty
+    from autoalign.quality.verdict import NEAR_SYMMETRY_GAP
 
     ids = list(range(10))
     cov = np.diag([0.01, 0.01, 0.01, 1e-6, 1e-6, np.radians(0.3) ** 2])
@@ -231,8 +245,13 @@ def test_masks_failing_like_sam_leave_poses_right_or_flagged(tmp_path):
     """A five-object scene whose masks fail at the rates measured on the real scenes (42% of the
     masks: empty, another object's, a part missed, leaking, shifted): every instance is within
     2 mm / 2 deg or its verdict is not ok (here a flashlight 11 deg off in roll is 'check')."""
-    from autoalign.experiments.sam_failures import MEASURED_RATES, measure_rates, run_scene, within
-    from autoalign.experiments.shared_data import REAL_SCENES
+    from autoalign.experiments.studies.sam_failures import (
+        MEASURED_RATES,
+        measure_rates,
+        run_scene,
+        within,
+    )
+    from autoalign.experiments.studies.shared_data import REAL_SCENES
 
     real = REAL_SCENES
     if real.is_dir():  # the rates replayed are those of the real scenes
@@ -247,7 +266,7 @@ def test_masks_failing_like_sam_without_a_seed_leave_poses_right_or_flagged(tmp_
     """The same kind of scene with no seed: the search finds every object (5 of 5 within 2 mm /
     2 deg measured), and none is wrong with verdict ok. With 8 hypotheses kept from the
     orientation scores instead of 16 (``RefineOptions.n_coarse``) one was 180 deg off, 'ok'."""
-    from autoalign.experiments.sam_failures import run_scene, within
+    from autoalign.experiments.studies.sam_failures import run_scene, within
 
     rows = run_scene(tmp_path, 104, seeds=("none",))
     assert sum(within(r) for r in rows) >= 4, rows
@@ -259,8 +278,8 @@ def test_a_runner_up_with_the_better_iou_makes_the_result_ambiguous(tmp_path):
     ends half a turn off, at a robust loss 9% lower than its right pose's, the runner-up, but at a
     lower mean IoU (0.7103 against 0.7130). The loss and the IoU disagreeing, the result is
     ambiguous (it was 'ok')."""
-    from autoalign.experiments.sam_failures import make_sam_scene
-    from autoalign.models import ModelSet
+    from autoalign.experiments.studies.sam_failures import make_sam_scene
+    from autoalign.io.models import ModelSet
 
     truth, _, names = make_sam_scene(tmp_path, 7)
     found = read_instance_scenes(tmp_path / "scene", read_instances(tmp_path / "scene"))
@@ -278,9 +297,9 @@ def test_refine_cameras_corrects_perturbed_cameras(multi, tmp_path):
     way: with --refine-cameras the corrected cameras in the written scene_camera.json are several
     times closer to the true ones, the objects closer to the truth than refined alone, and the
     median per-view misfit lower."""
-    from autoalign.bop import read_cameras
-    from autoalign.camera import Camera
-    from autoalign.se3 import rotation_angle_deg, transform_points
+    from autoalign.geometry.camera import Camera
+    from autoalign.geometry.se3 import rotation_angle_deg, transform_points
+    from autoalign.io.bop import read_cameras
 
     scene = tmp_path / "scene"
     shutil.copytree(multi.scene, scene)

@@ -1,6 +1,6 @@
 """The scene scale of cameras known only up to scale (issue 14: RGB-only captures), solved by
-``autoalign refine`` from the objects' known size (:mod:`autoalign.scene_scale`, the 7th parameter
-of :func:`autoalign.joint_refine.refine_jointly`).
+``autoalign refine`` from the objects' known size (:mod:`autoalign.scene.scale`, the 7th parameter
+of :func:`autoalign.scene.joint.refine_jointly`).
 
 Scenes: the scene benchmark's (procedural objects, 40 views of 640x480, masks ray-cast by open3d)
 with every camera translation divided by a unit that only the test knows.
@@ -17,15 +17,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from autoalign.experiments.bench_scene import make_bench_scene, symmetries
-from autoalign.experiments.metrics import pose_errors
-from autoalign.instances import read_instance_scenes, read_instances
-from autoalign.models import ModelSet
-from autoalign.scene_scale import grown_pose, rescaled, scale_from_masks, scaled_cameras
-from autoalign.se3 import make_pose, transform_points
-
-from autoalign.camera import look_at
-from autoalign.experiments.synthetic import default_K, random_rotation, translate_mask
+from autoalign.experiments.benchmarks.bench_scene import make_bench_scene, symmetries
+from autoalign.experiments.scenes.synthetic import (
+    default_K,
+    random_rotation,
+    translate_mask,
+)
+from autoalign.experiments.studies.metrics import pose_errors
+from autoalign.geometry.camera import look_at
+from autoalign.geometry.se3 import make_pose, transform_points
+from autoalign.io.instances import read_instance_scenes, read_instances
+from autoalign.io.models import ModelSet
+from autoalign.scene.scale import grown_pose, rescaled, scale_from_masks, scaled_cameras
 
 UNIT_MM = 173.0  # mm per unit of the cameras as written
 
@@ -92,7 +95,7 @@ def test_scale_guess_leaves_out_masks_on_another_object(tmp_path, monkeypatch):
     masks' centroids, leaves those rays out, and the guess in its true orientation stays within 1%
     (-0.4%); with every ray in the least squares it is 3.1% off. The first guess (no orientation)
     sees the cameras in their own unit: it must leave out the same rays there as in mm."""
-    from autoalign import scene_scale
+    from autoalign.scene import scale as scene_scale
 
     truth = unscaled_scene(tmp_path, 1)
     found = read_instance_scenes(tmp_path / "scene", read_instances(tmp_path / "scene"))
@@ -191,8 +194,8 @@ def test_a_scale_that_does_not_settle_flags_every_instance(tmp_path, monkeypatch
     """With one round allowed, a scene started 10% off cannot settle (the joint stage moves the
     scale by more than SCALE_SETTLED): every label's depth follows the scale, so every instance is
     flagged; with the default rounds the same start settles and stays ok."""
-    from autoalign import scene_refine
-    from autoalign.instances import read_init_poses
+    from autoalign.io.instances import read_init_poses
+    from autoalign.scene import refine as scene_refine
 
     unscaled_scene(tmp_path, 1)
     found = read_instance_scenes(tmp_path / "scene", read_instances(tmp_path / "scene"))

@@ -7,9 +7,18 @@ import pytest
 from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
-from autoalign.se3 import (
-    apply_twist, hat3, invert, make_pose, rotation_angle_deg, se3_exp, se3_log, so3_exp, so3_log,
-    transform_points, twist_about,
+from autoalign.geometry.se3 import (
+    apply_twist,
+    hat3,
+    invert,
+    make_pose,
+    rotation_angle_deg,
+    se3_exp,
+    se3_log,
+    so3_exp,
+    so3_log,
+    transform_points,
+    twist_about,
 )
 
 RNG_SEED = 1234

@@ -5,15 +5,24 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from autoalign.mesh import mesh_from_trimesh
-from autoalign.se3 import make_pose, se3_exp, transform_points
-from autoalign.experiments.metrics import Symmetries, pose_errors, success
-from autoalign.experiments.paper_method import (
-    DISCRETISATIONS, CandidateScorer, PaperOptions, candidate_parameters, candidate_poses, refine_paper,
+from autoalign.experiments.scenes.procedural_models import procedural_models
+from autoalign.experiments.scenes.synthetic import (
+    make_scene,
+    perturb_pose,
+    random_rotation,
 )
-from autoalign.experiments.procedural_models import procedural_models
-from autoalign.experiments.protocol import ImageSetup, make_trial
-from autoalign.experiments.synthetic import make_scene, perturb_pose, random_rotation
+from autoalign.experiments.studies.metrics import Symmetries, pose_errors, success
+from autoalign.experiments.studies.paper_method import (
+    DISCRETISATIONS,
+    CandidateScorer,
+    PaperOptions,
+    candidate_parameters,
+    candidate_poses,
+    refine_paper,
+)
+from autoalign.experiments.studies.protocol import ImageSetup, make_trial
+from autoalign.geometry.mesh import mesh_from_trimesh
+from autoalign.geometry.se3 import make_pose, se3_exp, transform_points
 
 SETUP = ImageSetup(width=320, height=240, focal=300.0)
 

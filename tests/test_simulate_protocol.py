@@ -5,15 +5,29 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from autoalign.se3 import make_pose
-from autoalign.experiments.metrics import (
-    Symmetries, add_mm, adds_mm, auc, axis_dot_axis_angle, axis_dot_columns, closest_equivalent, label_difference,
-    pose_errors, success, track_fit,
+from autoalign.experiments.scenes.synthetic import axis_angle_matrix, random_rotation
+from autoalign.experiments.studies.metrics import (
+    Symmetries,
+    add_mm,
+    adds_mm,
+    auc,
+    axis_dot_axis_angle,
+    axis_dot_columns,
+    closest_equivalent,
+    label_difference,
+    pose_errors,
+    success,
+    track_fit,
 )
-from autoalign.experiments.protocol import (
-    ALT_SIGMA_MM, PAPER_SIGMA_MM, ImageSetup, make_trial, origin_cameras, sphere_radius,
+from autoalign.experiments.studies.protocol import (
+    ALT_SIGMA_MM,
+    PAPER_SIGMA_MM,
+    ImageSetup,
+    make_trial,
+    origin_cameras,
+    sphere_radius,
 )
-from autoalign.experiments.synthetic import axis_angle_matrix, random_rotation
+from autoalign.geometry.se3 import make_pose
 
 CENTRE = np.array([3.0, -2.0, 5.0])  # a model whose bbox centre is not its origin
 
@@ -213,7 +227,7 @@ def test_track_fit_finds_the_one_camera_that_is_off():
     import cv2
     from scipy.spatial.transform import Rotation
 
-    from autoalign.camera import look_at
+    from autoalign.geometry.camera import look_at
 
     rng = np.random.default_rng(3)
     K = np.array([[572.4, 0.0, 325.3], [0.0, 573.6, 242.0], [0.0, 0.0, 1.0]])

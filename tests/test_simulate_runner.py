@@ -14,11 +14,16 @@ import time
 import numpy as np
 import pytest
 
-from autoalign.errors import AutoalignError
-from autoalign.experiments.protocol import ImageSetup
 from autoalign.batch import read_records, repair_jsonl
-from autoalign.experiments.runner import ALL_METHODS, StudyConfig, build_tasks, run_study
-from autoalign.experiments.simulate import main as simulate_main
+from autoalign.errors import AutoalignError
+from autoalign.experiments.studies.protocol import ImageSetup
+from autoalign.experiments.studies.runner import (
+    ALL_METHODS,
+    StudyConfig,
+    build_tasks,
+    run_study,
+)
+from autoalign.experiments.studies.simulate import main as simulate_main
 
 TINY = ["--width", "160", "--height", "120", "--focal", "150", "--views", "8", "--trials", "1", "--no-progress"]
 
@@ -81,7 +86,7 @@ def test_kill_and_resume(tmp_path):
     script = tmp_path / "slow_study.py"
     script.write_text(textwrap.dedent(f"""
         import sys, time
-        from autoalign.experiments.runner import StudyConfig, run_study
+        from autoalign.experiments.studies.runner import StudyConfig, run_study
         def slow(task):
             time.sleep(0.4)
             return {{"id": task["id"], "method": task["method"], "condition": task["condition"]}}

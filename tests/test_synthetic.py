@@ -7,15 +7,26 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from autoalign.bop import read_init_pose, read_scene
-from autoalign.camera import Camera
-from autoalign.mesh import mesh_from_trimesh
-from autoalign.se3 import make_pose, transform_points
-from autoalign.experiments.synthetic import (
-    corrupt_views, default_K, dilate_mask, erode_mask, make_scene, occluder_blob, perturb_pose,
-    random_rotation, raycast_masks, ring_cameras, shift_mask, sphere_cameras, translate_mask,
+from autoalign.experiments.scenes.synthetic import (
+    corrupt_views,
+    default_K,
+    dilate_mask,
+    erode_mask,
+    make_scene,
+    occluder_blob,
+    perturb_pose,
+    random_rotation,
+    raycast_masks,
+    ring_cameras,
+    shift_mask,
+    sphere_cameras,
+    translate_mask,
     write_synthetic_scene,
 )
+from autoalign.geometry.camera import Camera
+from autoalign.geometry.mesh import mesh_from_trimesh
+from autoalign.geometry.se3 import make_pose, transform_points
+from autoalign.io.bop import read_init_pose, read_scene
 
 
 def _check_rotation(R: np.ndarray) -> None:
@@ -332,7 +343,7 @@ def test_default_K():
 
 
 def test_pixel_rays_pass_through_pixel_centres():
-    from autoalign.experiments.synthetic import pixel_rays
+    from autoalign.experiments.scenes.synthetic import pixel_rays
 
     K = np.array([[600.0, 0.4, 320.2], [0.0, 610.0, 240.7], [0.0, 0.0, 1.0]])
     cam = sphere_cameras(1, np.random.default_rng(14), K=K)[0]

@@ -7,17 +7,20 @@ Scenes: procedural meshes in views around them (small images, to keep the finite
 
 from __future__ import annotations
 
+import kornia.geometry.liegroup as kornia_liegroup  # noqa: E402 - installed by the test command: never skipped
 import numpy as np
 import pytest
-
-import kornia.geometry.liegroup as kornia_liegroup  # noqa: E402 - installed by the test command: never skipped
 import torch  # noqa: E402
 
-from autoalign.experiments.procedural_models import procedural_models  # noqa: E402
-from autoalign.experiments.synthetic import default_K, random_rotation, ring_cameras  # noqa: E402
-from autoalign.mesh import mesh_from_trimesh  # noqa: E402
+from autoalign.experiments.scenes.procedural_models import procedural_models  # noqa: E402
+from autoalign.experiments.scenes.synthetic import (  # noqa: E402
+    default_K,
+    random_rotation,
+    ring_cameras,
+)
+from autoalign.geometry.mesh import mesh_from_trimesh  # noqa: E402
+from autoalign.geometry.se3 import make_pose  # noqa: E402
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer  # noqa: E402
-from autoalign.se3 import make_pose  # noqa: E402
 from autoalign.torch import SilhouetteLoss, silhouette_loss, silhouettes  # noqa: E402
 
 POOL = {pm.name: pm for pm in procedural_models()}

@@ -7,15 +7,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from autoalign.bop import Scene
-from autoalign.engine import refine
-from autoalign.experiments.procedural_models import procedural_models
-from autoalign.experiments.refine_study import study_meshes
-from autoalign.experiments.synthetic import (make_scene, perturb_pose, random_rotation, ring_cameras, sphere_cameras,
-                                             wiggle_mask)
-from autoalign.mesh import mesh_from_trimesh
-from autoalign.se3 import make_pose, so3_log
-from autoalign.uncertainty import weak_directions
+from autoalign.engine.refine import refine
+from autoalign.engine.uncertainty import weak_directions
+from autoalign.experiments.scenes.procedural_models import procedural_models
+from autoalign.experiments.scenes.synthetic import (
+    make_scene,
+    perturb_pose,
+    random_rotation,
+    ring_cameras,
+    sphere_cameras,
+    wiggle_mask,
+)
+from autoalign.experiments.studies.refine_study import study_meshes
+from autoalign.geometry.mesh import mesh_from_trimesh
+from autoalign.geometry.se3 import make_pose, so3_log
+from autoalign.io.bop import Scene
 
 
 def _noisy_scene(mesh, k: int, views: int = 24):
@@ -91,9 +97,9 @@ def test_init_turned_about_the_weak_axis_is_not_returned(k):
     """A flashlight started 3 mm / 3 deg off the truth and then rolled 100-140 deg about its axis
     settles where its button is out of sight (97 and 138 deg off with the turns switched off); the
     turns about the weakly observed roll axis find the true one."""
-    from autoalign.engine import RefineOptions
-    from autoalign.hypotheses import turns
-    from autoalign.se3 import rotation_angle_deg
+    from autoalign.engine.hypotheses import turns
+    from autoalign.engine.refine import RefineOptions
+    from autoalign.geometry.se3 import rotation_angle_deg
 
     mesh, scene, T, rng = _flashlight_scene([5, k])
     T0 = turns(perturb_pose(T, 3.0, 3.0, rng, mesh.centre), np.array([0.0, 0.0, 1.0]), mesh.centre, (100.0 + 40 * k,))[0]

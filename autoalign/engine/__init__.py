@@ -1,0 +1,9 @@
+"""Refining one object's pose against its masks: the multi-view objective and its levels
+(``objective``), the least-squares solver (``solver``: Levenberg-Marquardt, Gauss-Newton, Adam),
+seeds from a click or the visual hull (``seeding``), orientation hypotheses (``hypotheses``), the
+pose's uncertainty (``uncertainty``) and ``refine()`` itself (``refine``: seed -> search -> polish
+-> disambiguate).
+
+May import: ``geometry``, ``io``, ``runtime``, ``errors``, ``autoalign.losses`` (the mask term),
+``autoalign.rasterizers`` (the soft silhouettes), ``quality.overlap`` (IoU).
+"""

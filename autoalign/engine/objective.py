@@ -1,0 +1,140 @@
+"""The multi-view silhouette objective at one resolution level: render, compare, weight."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.geometry.camera import Camera
+from autoalign.io.bop import Scene
+from autoalign.losses import LOSSES, ViewTerms, robust_view_weights, targets_in_crops
+from autoalign.rasterizers.soft_silhouette import Silhouettes, SoftSilhouetteRasterizer
+
+
+@dataclass(frozen=True)
+class Level:
+    """One stage of the coarse-to-fine schedule.
+
+    Attributes:
+        scale: image resolution relative to the input (0.25 = a quarter of the width).
+        sigma: edge softness in pixels of that resolution.
+        max_iters: iteration budget of the stage.
+        max_views: use at most this many views, spread through the scene (``None``: all).
+        ftol: Levenberg-Marquardt stops before a step predicted to decrease the objective by
+            less than this fraction of it (``None``: ``optim.FTOL / scale``, the loss's own noise
+            growing as the resolution drops; see :func:`~autoalign.engine.solver.levenberg_marquardt`).
+    """
+
+    scale: float
+    sigma: float
+    max_iters: int
+    max_views: int | None = None
+    ftol: float | None = None
+
+
+@dataclass(frozen=True)
+class LevelViews:
+    """The views of one resolution level: cameras, area-resampled targets in [0, 1], per-view
+    target sums, and the pixels not compared (``None``: all are), all at that resolution."""
+
+    cameras: list[Camera]
+    targets: list[NDArray[np.float32]]
+    totals: NDArray[np.float64]
+    ignore: list[NDArray[np.bool_]] | None
+
+
+@dataclass
+class Evaluation:
+    """Objective value and derivatives at one pose. ``value = sum_i w_i loss_i``; ``grad``/``gn`` alike."""
+
+    value: float
+    grad: NDArray[np.float64]
+    gn: NDArray[np.float64]
+    terms: ViewTerms
+    weights: NDArray[np.float64]
+    silhouettes: Silhouettes
+
+
+class SilhouetteObjective:
+    """Weighted multi-view silhouette loss of one scene, with resampled targets per scale.
+
+    Args:
+        rasterizer: renders the object mesh (used at full resolution).
+        coarse_rasterizer: renders a simplified mesh at levels below full resolution (optional).
+        search_rasterizer: an even simpler mesh for levels at 1/8 resolution or less (optional).
+        scene: cameras and target masks.
+        loss: one of :data:`autoalign.losses.LOSSES`.
+        robust: re-weight views with Cauchy weights on ``1 - IoU`` (see :func:`~autoalign.losses.robust_view_weights`).
+    """
+
+    def __init__(self, rasterizer: SoftSilhouetteRasterizer, scene: Scene, loss: str = "l2",
+                 robust: bool = True, coarse_rasterizer: SoftSilhouetteRasterizer | None = None,
+                 search_rasterizer: SoftSilhouetteRasterizer | None = None) -> None:
+        if loss not in LOSSES:
+            raise ValueError(f"unknown loss {loss!r}; choose one of {sorted(LOSSES)}")
+        self.rasterizer = rasterizer
+        self.coarse_rasterizer = coarse_rasterizer or rasterizer
+        self.search_rasterizer = search_rasterizer or self.coarse_rasterizer
+        self.centre_m = rasterizer.mesh.centre  # the point twists turn about, model frame (mm)
+        self.scene = scene
+        self.loss_name = loss
+        self.loss_fn = LOSSES[loss]
+        self.robust = robust
+        self._levels: dict[tuple[float, int | None], LevelViews] = {}
+        self.renders = 0
+
+    def at_scale(self, scale: float, max_views: int | None = None) -> LevelViews:
+        """The views at ``scale`` (cached), at most ``max_views`` of them spread through the scene
+        (see :meth:`Scene.spread`); a resampled pixel is ignored when most of it was."""
+        key = (scale, max_views)
+        if key not in self._levels:
+            scene = self.scene if max_views is None else self.scene.subset(self.scene.spread(max_views))
+            cams = [c.scaled(scale) for c in scene.cameras]
+
+            def resampled(m: NDArray, c: Camera) -> NDArray[np.float32]:
+                if scale == 1.0:
+                    return np.asarray(m, dtype=np.float32)  # no copy: targets are only read
+                return cv2.resize(np.asarray(m, dtype=np.float32), (c.width, c.height), interpolation=cv2.INTER_AREA)
+
+            tg = [resampled(m, c) for m, c in zip(scene.masks, cams)]
+            ignore = None if scene.ignore is None else [resampled(g, c) > 0.5 for g, c in zip(scene.ignore, cams)]
+            self._levels[key] = LevelViews(cams, tg, np.array([float(t.sum()) for t in tg]), ignore)
+        return self._levels[key]
+
+    def use_cameras(self, cameras: list[Camera]) -> None:
+        """Render through ``cameras`` (one per view of the scene, e.g. corrected ones) from now on."""
+        self.scene = replace(self.scene, cameras=list(cameras))
+        self._levels.clear()
+
+    def evaluate(self, T_wm: NDArray[np.float64], level: Level, weights: NDArray[np.float64] | None = None,
+                 with_derivatives: bool = True) -> Evaluation:
+        """Render at ``level`` and compare. Without ``weights`` they are computed here (robust or 1)."""
+        views = self.at_scale(level.scale, level.max_views)
+        rast = (self.rasterizer if level.scale >= 1.0 else
+                self.coarse_rasterizer if level.scale > 0.125 else self.search_rasterizer)
+        sil = rast.render(T_wm, views.cameras, level.sigma, with_jacobian=with_derivatives)
+        self.renders += 1
+        if views.ignore is not None:
+            sil = sil.without(targets_in_crops(views.ignore, sil) > 0.5)
+        terms = self.loss_fn(sil, targets_in_crops(views.targets, sil), views.totals)
+        return self.combine(terms, sil, weights)
+
+    def combine(self, terms: ViewTerms, sil: Silhouettes, weights: NDArray[np.float64] | None = None) -> Evaluation:
+        """Weighted sums of per-view terms; without ``weights`` they are computed from the fit."""
+        if weights is None:
+            weights = self.view_weights(terms)
+        value = float(weights @ terms.loss)
+        grad = np.einsum("i,ij->j", weights, terms.grad)
+        gn = np.einsum("i,ijk->jk", weights, terms.gn)
+        return Evaluation(value, grad, gn, terms, weights, sil)
+
+    def reweighted(self, ev: Evaluation) -> Evaluation:
+        """The same render with weights re-computed from its own fit (IRLS step; no new render)."""
+        return self.combine(ev.terms, ev.silhouettes) if self.robust else ev
+
+    def view_weights(self, terms: ViewTerms) -> NDArray[np.float64]:
+        """Per-view weights for the current fit (:func:`~autoalign.losses.robust_view_weights`; 1 if not robust)."""
+        return robust_view_weights(terms.iou) if self.robust else np.ones(len(terms.iou))

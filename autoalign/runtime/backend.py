@@ -1,0 +1,121 @@
+"""Start drjit/mitsuba on the LLVM (CPU) backend, finding a usable libLLVM by itself.
+
+drjit's LLVM backend needs a *shared* libLLVM of version 16 or newer; versions 14/15 crash.
+When ``DRJIT_LIBLLVM_PATH`` is unset we look for the newest ``libLLVM*.so*`` in the usual
+library folders and set it before drjit is imported. Import this module (never ``drjit``
+directly) from the rest of the package.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import re
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, DTypeLike, NDArray
+
+from autoalign.errors import BackendError
+from autoalign.runtime.interrupts import Interrupts
+
+MIN_LLVM_MAJOR = 16
+_SEARCH_DIRS = (
+    "/usr/lib/x86_64-linux-gnu",
+    "/usr/lib/aarch64-linux-gnu",
+    "/usr/lib64",
+    "/usr/lib",
+    "/usr/local/lib",
+    "/opt/homebrew/opt/llvm/lib",
+    "/usr/local/opt/llvm/lib",
+)
+_FIX = ("install a shared libLLVM >= 16, e.g. `apt-get install libllvm19` on Debian/Ubuntu, "
+        "or set DRJIT_LIBLLVM_PATH to its libLLVM*.so")
+
+_mi: ModuleType | None = None
+JIT_ALIGN = 128  # bytes; drjit calls a buffer aligned at 64 and then loads it with `align 128`
+
+
+def llvm_major(path: str) -> int | None:
+    """Major LLVM version encoded in a library file name (``libLLVM-19.so``, ``libLLVM.so.19.1``)."""
+    name = os.path.basename(path)
+    m = re.search(r"libLLVM[-.]?(?:so\.)?(\d+)", name)
+    return int(m.group(1)) if m else None
+
+
+def find_libllvm(search_dirs: tuple[str, ...] | None = None) -> str | None:
+    """Newest shared libLLVM of version >= 16 found in ``search_dirs`` (default: the usual folders), or None."""
+    found: list[tuple[int, str]] = []
+    for d in _SEARCH_DIRS if search_dirs is None else search_dirs:
+        for p in glob.glob(os.path.join(d, "libLLVM*.so*")) + glob.glob(os.path.join(d, "libLLVM*.dylib")):
+            major = llvm_major(p)
+            if major is not None and major >= MIN_LLVM_MAJOR and os.path.isfile(p):
+                found.append((major, p))
+    if not found:
+        return None
+    return sorted(found)[-1][1]
+
+
+def configure_libllvm() -> str:
+    """Make sure ``DRJIT_LIBLLVM_PATH`` points at a usable libLLVM; return that path."""
+    path = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if path:
+        if not os.path.isfile(path):
+            raise BackendError(f"DRJIT_LIBLLVM_PATH={path}: no such file; {_FIX}")
+        major = llvm_major(path)
+        if major is not None and major < MIN_LLVM_MAJOR:
+            raise BackendError(f"DRJIT_LIBLLVM_PATH={path} is LLVM {major}, too old (drjit crashes); {_FIX}")
+        return path
+    path = find_libllvm()
+    if path is None:
+        raise BackendError(f"no shared libLLVM >= {MIN_LLVM_MAJOR} found in {', '.join(_SEARCH_DIRS[:3])}; {_FIX}")
+    os.environ["DRJIT_LIBLLVM_PATH"] = path
+    return path
+
+
+def mitsuba() -> ModuleType:
+    """The ``mitsuba`` module with the ``llvm_ad_rgb`` variant set (imported once)."""
+    global _mi
+    if _mi is None:
+        configure_libllvm()
+        with Interrupts.deferred():  # Ctrl-C inside drjit's module init aborts the process
+            import drjit as dr  # noqa: F401  (imported after the libLLVM path is set)
+            import mitsuba as mi
+
+            try:
+                mi.set_variant("llvm_ad_rgb")
+            except Exception as exc:  # pragma: no cover - depends on the machine
+                raise BackendError(f"mitsuba cannot start its LLVM backend ({exc}); {_FIX}") from None
+        _mi = mi
+    return _mi
+
+
+def drjit() -> ModuleType:
+    """The ``drjit`` module, configured for the LLVM backend."""
+    mitsuba()
+    import drjit as dr
+
+    return dr
+
+
+def aligned_copy(a: ArrayLike, dtype: DTypeLike) -> NDArray[Any]:
+    """A C-contiguous copy of ``a`` as ``dtype`` whose data starts on a ``JIT_ALIGN``-byte boundary."""
+    a = np.asarray(a, dtype=dtype)
+    buf = np.empty(a.nbytes + JIT_ALIGN, dtype=np.uint8)
+    start = -buf.ctypes.data % JIT_ALIGN
+    out = buf[start:start + a.nbytes].view(a.dtype).reshape(a.shape)
+    out[...] = a
+    return out
+
+
+def jit_array(array_type: Any, a: ArrayLike, dtype: DTypeLike) -> Any:
+    """``array_type(a)`` for a drjit array type (``mi.Float``, ``mi.UInt32``, ...), built from an aligned copy.
+
+    drjit's LLVM backend takes a numpy buffer without copying and compiles every kernel for the
+    alignment of its inputs (whether each starts on a 64-byte boundary). numpy only promises 16
+    bytes, so the same kernel was compiled again (about 0.1 s each) for every new pattern of input
+    alignments: 5-22 times per refinement of the simulation study, and more on a machine whose
+    kernel cache is empty. Inputs that are all aligned give one kernel per computation.
+    """
+    return array_type(aligned_copy(a, dtype))

@@ -1,0 +1,288 @@
+"""The silhouette loss of every instance of a scene at once, occlusion-aware.
+
+In a view a pixel belongs to the nearest surface among all the instances' meshes. Instance ``i``'s
+*visible* soft silhouette is
+
+    V_i(p) = S_i(p) * prod over j in front of i at p of (1 - S_j(p))
+
+with ``S`` each mesh's own soft silhouette (:class:`SoftSilhouetteRasterizer`). Which of two meshes
+is in front at a pixel is decided by ray casting both where both are hit there; on their soft
+edges (one of them missed) by the order of the pair over the view's pixels where both are hit,
+or, where they nowhere overlap, by which is hit nearer. ``V_i`` is compared with ``i``'s mask (the
+L2 loss of :func:`autoalign.losses.l2`), and its derivatives are kept w.r.t. the twists of ``i``
+and of every instance in front of it: a silhouette part a modelled object hides costs nothing,
+and the contour between two objects moves with both.
+
+Pixels another instance's mask claims and ``i``'s does not stay ignored for ``i`` (a mask that
+strayed onto it, an unmodelled occluder), except under the soft silhouette of a modelled instance
+in front of it: there the models say the pixel is hidden and its comparison with ``i``'s mask
+(0) is what makes the shared contour pull on both objects.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.engine.objective import Level, LevelViews, SilhouetteObjective
+from autoalign.geometry.camera import Camera
+from autoalign.geometry.se3 import transform_points
+from autoalign.io.instances import InstanceScenes
+from autoalign.losses import robust_view_weights
+from autoalign.quality.overlap import iou_from_counts
+from autoalign.rasterizers.camera_batch import CameraBatch
+from autoalign.rasterizers.soft_silhouette import Silhouettes, SoftSilhouetteRasterizer
+
+
+@dataclass
+class ViewFit:
+    """One instance in one view.
+
+    Attributes:
+        instances: (m,) the instances whose twists the view's loss depends on, this one first.
+        loss: ``0.5 sum_p (V(p) - t(p))^2 / area(t)`` over the view (L2).
+        grad: (6m,) its gradient w.r.t. the twists ``(v [mm], w [rad])`` of ``instances``, in order.
+        gn: (6m, 6m) its Gauss-Newton matrix.
+        iou: soft IoU of the visible silhouette with the mask.
+        hard_iou: the same with the ray-cast visible silhouette and the mask thresholded at 0.5.
+        n_band: pixels whose value depends on a pose.
+    """
+
+    instances: NDArray[np.int64]
+    loss: float
+    grad: NDArray[np.float64]
+    gn: NDArray[np.float64]
+    iou: float
+    hard_iou: float
+    n_band: int
+
+
+@dataclass
+class JointEvaluation:
+    """The loss of every instance in every one of its views, with per-view robust weights.
+
+    ``fits[i][k]`` is instance ``i`` in its ``k``-th view; ``weights[i]`` (one per view, mean 1)
+    weigh them; ``value = sum_i sum_k weights[i][k] fits[i][k].loss``.
+    """
+
+    fits: list[list[ViewFit]]
+    weights: list[NDArray[np.float64]]
+    value: float
+    robust: bool = True
+
+    def iou(self, i: int) -> NDArray[np.float64]:
+        return np.array([f.iou for f in self.fits[i]])
+
+    def hard_iou(self, i: int) -> NDArray[np.float64]:
+        return np.array([f.hard_iou for f in self.fits[i]])
+
+    def reweighted(self) -> "JointEvaluation":
+        """The same fits with the weights computed from their own IoU (an IRLS step; none if not robust)."""
+        if not self.robust:
+            return self
+        w = [robust_view_weights(self.iou(i)) for i in range(len(self.fits))]
+        return JointEvaluation(self.fits, w, _weighted_value(self.fits, w), self.robust)
+
+
+def _weighted_value(fits: list[list[ViewFit]], weights: list[NDArray[np.float64]]) -> float:
+    return float(sum(float(w @ np.array([f.loss for f in fs])) for fs, w in zip(fits, weights)))
+
+
+@dataclass
+class _Pair:
+    """Instance ``j`` and ``i`` both soft-covering pixels of view ``g``: ``pi``/``pj`` index them in
+    ``i``'s and ``j``'s crops, ``uv`` are their centres (internal pixel convention)."""
+
+    i: int
+    j: int
+    g: int
+    pi: NDArray[np.int64]
+    pj: NDArray[np.int64]
+    uv: NDArray[np.float64]
+    front: NDArray[np.bool_] | None = None  # j in front of i at each pixel
+
+
+class OcclusionObjective:
+    """The occlusion-aware silhouette loss of all instances of ``found`` (see module doc).
+
+    Args:
+        found: the instances and their views (:func:`~autoalign.io.instances.read_instance_scenes`).
+        rasterizers: one per instance, in ``found.instances`` order.
+        robust: weigh views by their fit (:func:`~autoalign.losses.robust_view_weights`); else all 1.
+    """
+
+    def __init__(self, found: InstanceScenes, rasterizers: list[SoftSilhouetteRasterizer], robust: bool = True) -> None:
+        self.rasterizers = rasterizers
+        self.robust = robust
+        self.objectives = [SilhouetteObjective(r, s) for r, s in zip(rasterizers, found.scenes)]
+        used = sorted({im for s in found.scenes for im in s.image_ids})
+        by_id = dict(zip(found.image_ids, found.cameras))
+        self.image_ids = used
+        self.cameras = [by_id[im] for im in used]
+        pos = {im: g for g, im in enumerate(used)}
+        self.views_of = [np.array([pos[im] for im in s.image_ids], dtype=np.int64) for s in found.scenes]
+        self.centres_m = [r.mesh.centre for r in rasterizers]
+        self._hard_totals: dict[float, list[NDArray[np.float64]]] = {}
+
+    def use_cameras(self, cameras: dict[int, Camera]) -> None:
+        """Render through ``cameras`` (by image id) from now on."""
+        self.cameras = [cameras[im] for im in self.image_ids]
+        for o in self.objectives:
+            o.use_cameras([cameras[im] for im in o.scene.image_ids])
+
+    def evaluate(self, poses: list[NDArray[np.float64]], level: Level,
+                 weights: list[NDArray[np.float64]] | None = None) -> JointEvaluation:
+        """Render every instance at its pose (world from model, mm) in every view and compare;
+        without ``weights`` they are computed from the fit (robust)."""
+        cams = [c.scaled(level.scale) for c in self.cameras]
+        batch = CameraBatch.of(cams)
+        sils = [r.render(T, cams, level.sigma) for r, T in zip(self.rasterizers, poses)]
+        views = [o.at_scale(level.scale) for o in self.objectives]
+        pairs = self._overlaps(sils)
+        self._order(pairs, poses, batch, sils)
+        by_view: dict[tuple[int, int], list[_Pair]] = {}
+        for p in pairs:
+            by_view.setdefault((p.i, p.g), []).append(p)
+        band_rows = [_BandRows(s) for s in sils]
+        fits = []
+        for i, (sil, lv) in enumerate(zip(sils, views)):
+            fits.append([self._fit(i, k, int(g), sil, lv, sils, band_rows, by_view.get((i, int(g)), []), level)
+                         for k, g in enumerate(self.views_of[i])])
+        if weights is None:
+            weights = [robust_view_weights(np.array([f.iou for f in fs])) if self.robust else np.ones(len(fs))
+                       for fs in fits]
+        return JointEvaluation(fits, weights, _weighted_value(fits, weights), self.robust)
+
+    # -------------------------------------------------------------------------------- steps
+    def _overlaps(self, sils: list[Silhouettes]) -> list[_Pair]:
+        """Every (i, j, view of i) where both soft silhouettes cover some pixel."""
+        out = []
+        for i, si in enumerate(sils):
+            for g in self.views_of[i]:
+                xi, yi, wi, hi = si.crops[g]
+                for j, sj in enumerate(sils):
+                    if j == i:
+                        continue
+                    xj, yj, wj, hj = sj.crops[g]
+                    x0, y0 = max(xi, xj), max(yi, yj)
+                    x1, y1 = min(xi + wi, xj + wj), min(yi + hi, yj + hj)
+                    if x1 <= x0 or y1 <= y0:
+                        continue
+                    yy, xx = np.mgrid[y0:y1, x0:x1]
+                    pi = ((yy - yi) * wi + (xx - xi)).ravel()
+                    pj = ((yy - yj) * wj + (xx - xj)).ravel()
+                    both = (si.soft[si.offsets[g] + pi] > 0) & (sj.soft[sj.offsets[g] + pj] > 0)
+                    if both.any():
+                        uv = np.column_stack([xx.ravel()[both], yy.ravel()[both]]) + 0.5
+                        out.append(_Pair(i, j, int(g), pi[both], pj[both], uv))
+        return out
+
+    def _order(self, pairs: list[_Pair], poses: list[NDArray[np.float64]], batch: CameraBatch,
+               sils: list[Silhouettes]) -> None:
+        """Set ``front`` of every pair: one depth ray cast per instance for all its pixels."""
+        queries: dict[int, list[tuple[_Pair, bool]]] = {}
+        for p in pairs:
+            queries.setdefault(p.i, []).append((p, True))
+            queries.setdefault(p.j, []).append((p, False))
+        depth: dict[tuple[int, bool], NDArray[np.float64]] = {}
+        for inst, qs in queries.items():
+            view = np.concatenate([np.full(len(p.uv), p.g, dtype=np.int64) for p, _ in qs])
+            t = self.rasterizers[inst].caster.pixel_depths(poses[inst], batch, view, np.concatenate([p.uv for p, _ in qs]))
+            for (p, own), part in zip(qs, np.split(t, np.cumsum([len(p.uv) for p, _ in qs])[:-1])):
+                depth[(id(p), own)] = part
+        for p in pairs:
+            di, dj = depth[(id(p), True)], depth[(id(p), False)]
+            both = np.isfinite(di) & np.isfinite(dj)
+            if both.any():
+                default = bool(np.mean(dj[both] < di[both]) > 0.5)
+            elif np.isfinite(di).any() and np.isfinite(dj).any():
+                default = bool(dj[np.isfinite(dj)].min() < di[np.isfinite(di)].min())
+            else:
+                zi, zj = (batch.R_w2c[p.g] @ transform_points(poses[k], self.centres_m[k][None])[0] for k in (p.i, p.j))
+                default = bool(zj[2] < zi[2])
+            p.front = np.where(both, dj < di, default)
+
+    def _fit(self, i: int, k: int, g: int, sil: Silhouettes, lv: LevelViews, sils: list[Silhouettes],
+             band_rows: list["_BandRows"], pairs: list[_Pair], level: Level) -> ViewFit:
+        """Instance ``i`` in its ``k``-th view (global view ``g``): the loss and its derivatives."""
+        x0, y0, w, h = sil.crops[g]
+        o = sil.offsets[g]
+        s = sil.soft[o:o + w * h]
+        t = lv.targets[k][y0:y0 + h, x0:x0 + w].ravel().astype(np.float64)
+        ignored = (lv.ignore[k][y0:y0 + h, x0:x0 + w].ravel() if lv.ignore is not None
+                   else np.zeros(w * h, dtype=bool))
+        hidden = np.ones(w * h)  # prod of (1 - S_j) over instances in front
+        hidden_hard = np.zeros(w * h, dtype=bool)
+        occluders = []  # (j, pixels of i's crop, S_j there, rows of j's band or -1)
+        for p in pairs:
+            px, pj = p.pi[p.front], p.pj[p.front]
+            if len(px) == 0:
+                continue
+            sj = sils[p.j].soft[sils[p.j].offsets[g] + pj]
+            hidden[px] *= 1.0 - sj
+            hidden_hard[px] |= sils[p.j].hard[sils[p.j].offsets[g] + pj]
+            occluders.append((p.j, px, sj, band_rows[p.j].rows(g, pj)))
+        ignored &= hidden == 1.0
+        V = np.where(ignored, 0.0, s * hidden)
+        e = V - t
+        total = float(lv.totals[k])
+        norm = max(total, 1.0)
+        outside = max(total - float(t.sum()), 0.0)
+        loss = 0.5 * (float(e @ e) + outside) / norm
+        iou = float(iou_from_counts(V @ t, V.sum(), total))  # soft counts
+
+        # Jacobian rows: i's own band (times what hides it), and the occluders' bands (times -V_i / (1 - S_j))
+        r0, r1 = band_rows[i].range(g)
+        own_px = sil.band[r0:r1] - o
+        own = (own_px, hidden[own_px] * ~ignored[own_px], sil.jac[r0:r1])
+        terms = [(i,) + own]
+        for j, px, sj, rows in occluders:
+            keep = rows >= 0
+            if not keep.any():
+                continue
+            others = np.ones(keep.sum())
+            for j2, px2, sj2, _ in occluders:  # the product over the other occluders at these pixels
+                if j2 != j:
+                    lut = np.ones(w * h)
+                    lut[px2] = 1.0 - sj2
+                    others *= lut[px[keep]]
+            terms.append((j, px[keep], -s[px[keep]] * others, sils[j].jac[rows[keep]]))
+        involved = list(dict.fromkeys(term[0] for term in terms))
+        col = {inst: c for c, inst in enumerate(involved)}
+        pix = np.unique(np.concatenate([term[1] for term in terms]))
+        J = np.zeros((len(pix), 6 * len(involved)))
+        for inst, px, coeff, jac in terms:
+            r = np.searchsorted(pix, px)
+            c = 6 * col[inst]
+            np.add.at(J, (r[:, None], c + np.arange(6)[None]), coeff[:, None] * jac)
+        grad = J.T @ e[pix] / norm
+        gn = J.T @ J / norm
+        hard_iou = np.nan
+        if level.scale == 1.0:
+            hv = sil.hard[o:o + w * h] & ~hidden_hard & ~ignored
+            hard_iou = float(iou_from_counts(np.count_nonzero(hv & (t > 0.5)), np.count_nonzero(hv),
+                                             np.count_nonzero(lv.targets[k] > 0.5)))
+        return ViewFit(np.array(involved, dtype=np.int64), loss, grad, gn, iou, hard_iou, len(pix))
+
+
+class _BandRows:
+    """Where a view's pixels are in a :class:`Silhouettes`' band (its rows of ``jac``)."""
+
+    def __init__(self, sil: Silhouettes) -> None:
+        self.sil = sil
+        # band indices are grouped by view and increase within one (row-major crops)
+        self.bounds = np.searchsorted(sil.band, sil.offsets)
+
+    def range(self, g: int) -> tuple[int, int]:
+        return int(self.bounds[g]), int(self.bounds[g + 1])
+
+    def rows(self, g: int, local: NDArray[np.int64]) -> NDArray[np.int64]:
+        """The band row of each crop pixel ``local`` of view ``g``, -1 where it is off the band."""
+        r0, r1 = self.range(g)
+        flat = self.sil.band[r0:r1]
+        k = np.searchsorted(flat, self.sil.offsets[g] + local)
+        k = np.minimum(k, max(len(flat) - 1, 0))
+        hit = (len(flat) > 0) & (flat[k] == self.sil.offsets[g] + local) if len(flat) else np.zeros(len(local), bool)
+        return np.where(hit, r0 + k, -1)

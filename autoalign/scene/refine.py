@@ -1,0 +1,187 @@
+"""Refine every instance of a multi-object scene, each with a verdict, in two stages.
+
+1. **Alone.** Each instance from its seed (or its masks' visual hull) through the engine's search
+   and polish, against its own masks, its views' pixels that other instances' masks claim being
+   ignored (:mod:`autoalign.io.instances`): where another object hides it, or another mask strayed
+   onto it, its silhouette costs nothing. On a synthetic five-object scene with mutual occlusion
+   this took the errors from 0.26-6.9 mm to 0.02-0.09 mm (README, "Several objects").
+2. **Together.** All poses (and, if asked, a correction of every camera) from there on the
+   occlusion-aware loss (:mod:`autoalign.scene.occlusion`, :mod:`autoalign.scene.joint`): what a
+   modelled object hides is predicted, not only what another mask claims, so an instance whose
+   occluder's masks are missing is not pulled, and the contour between two objects holds both.
+
+Cameras known only up to scale (``solve_scale``) come in scaled by a first guess
+(:mod:`autoalign.scene.scale`); the joint stage solves the scale with the poses, and while it moves
+the scale by more than :data:`SCALE_SETTLED` the scene is rescaled and both stages run again from
+there (the instances seeded with their joint poses), at most :data:`SCALE_ROUNDS` times. The joint
+stage converges from a scale 30-40% off when the orientations are right, but the alone stage fits
+each instance in cameras of the wrong scale, so a round first re-guesses the scale from the
+orientations it found (:data:`SCALE_REGUESS`). Only the instances whose alone stage ended ``ok``
+decide the scale, in the joint stage and in that guess (all, if none did): a mask that misses parts
+of its object asks for a larger scene, one on another object for anything. On the real LM-O scene
+``lmo_im0115_0389`` (the driller's SAM masks miss its dark handle, the egg box's and glue's are
+mostly another object's), with the scene's own metric cameras taken as unscaled, the guesses from
+all four instances kept the rounds from settling, at 5.2% too large; from the ``ok`` ones (the cat)
+the scale settles 1.4% too large.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from typing import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.engine.hypotheses import weak_turn_scores
+from autoalign.engine.refine import RefineOptions, RefineResult, refine
+from autoalign.io.instances import Instance, InstanceScenes
+from autoalign.io.models import ModelSet
+from autoalign.quality.verdict import Verdict, judge
+from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+from autoalign.scene.cameras import corrections_accepted
+from autoalign.scene.joint import JointRefinement, refine_jointly
+from autoalign.scene.scale import grown_pose, rescaled, scale_from_masks, scaled_cameras
+
+Progress = Callable[[str, int, int], None]
+
+SCALE_SETTLED = 0.005
+"""A joint stage that moves the scene's scale by less than this fraction ends the rounds: at the
+start of a round the alone stage fits each instance with the cameras at the round's scale."""
+SCALE_ROUNDS = 4
+SCALE_REGUESS = 0.02
+"""After an alone stage, a first guess of the scale from the orientations it found
+(:func:`~autoalign.scene.scale.scale_from_masks`) that differs by more than this fraction rescales
+the scene and starts the round again, before the joint stage solves the scale exactly."""
+
+
+@dataclass
+class InstanceResult:
+    """One instance's refined pose (``result.T_wm``, world from model, mm), its verdict and time (s)."""
+
+    instance: Instance
+    result: RefineResult
+    verdict: Verdict
+    seconds: float
+
+
+def verdict_of(result: RefineResult, empty: tuple[int, ...], models: ModelSet, obj_id: int) -> Verdict:
+    """The verdict on an instance's result, with its model's symmetries (:func:`~autoalign.quality.verdict.judge`)."""
+    return judge(result.iou_after, result.weights, result.image_ids, empty, result.ambiguous, models.symmetric(obj_id),
+                 result.uncertainty, models.continuous_axes(obj_id), result.turn_gap)
+
+
+def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArray[np.float64]],
+                     options: RefineOptions | None = None, progress: Progress | None = None) -> list[InstanceResult]:
+    """Refine every instance of ``found`` from its seed (``seeds[index]``: 4x4 world-from-model, mm;
+    an instance without one is searched from the visual hull of its masks)."""
+    out = []
+    n = len(found.instances)
+    for k, (inst, scene) in enumerate(zip(found.instances, found.scenes)):
+        t0 = time.perf_counter()
+        label = f"obj {inst.obj_id} (instance {inst.index}, {k + 1}/{n})"
+
+        def step(stage: str, done: int, total: int, label: str = label) -> None:
+            if progress is not None:
+                progress(f"{label}: {stage}", done, total)
+
+        result = refine(scene, models.mesh(inst.obj_id), seeds.get(inst.index), options, progress=step)
+        out.append(InstanceResult(inst, result, verdict_of(result, scene.empty, models, inst.obj_id),
+                                  time.perf_counter() - t0))
+    return out
+
+
+@dataclass
+class SceneRefinement:
+    """What :func:`refine_scene` found: every instance's result (after the joint stage), the joint
+    stage itself, the joint stage with camera corrections if they were asked for (``joint`` when
+    they were kept), the scenes (through the cameras used at the end), and with ``solve_scale``
+    the factor by which the given cameras' translations were scaled, its relative sigma, and
+    whether it settled (if not, every instance is at least ``check``)."""
+
+    results: list[InstanceResult]
+    joint: JointRefinement | None
+    with_cameras: JointRefinement | None
+    found: InstanceScenes
+    scale: float = 1.0
+    scale_sigma: float = 0.0
+    scale_settled: bool = True
+
+    @property
+    def cameras_accepted(self) -> bool:
+        return self.with_cameras is not None and self.with_cameras is self.joint
+
+
+def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArray[np.float64]],
+                 options: RefineOptions | None = None, refine_cameras: bool = False, solve_scale: bool = False,
+                 progress: Progress | None = None) -> SceneRefinement:
+    """Every instance alone (seed, search, polish: :func:`refine_instances`), then all of them
+    together, occlusion-aware (:func:`~autoalign.scene.joint.refine_jointly`), with a correction
+    of every camera if ``refine_cameras``. Corrections that explain too little of the misfit to be
+    trusted (:func:`~autoalign.scene.cameras.corrections_accepted`) are dropped with the poses
+    solved along with them, and the joint stage runs again without them. Each instance's pose,
+    per-view fit, uncertainty and verdict are then those of the joint stage. A single instance
+    without camera refinement has nothing to be solved with: its own result is kept.
+
+    With ``solve_scale`` the cameras' translations are taken to be in an unknown unit, already
+    scaled by a first guess (:func:`~autoalign.scene.scale.scale_from_masks`); the scale is solved
+    with the poses (see module doc)."""
+    opts = options or RefineOptions()
+    scale, scale_sigma, settled = 1.0, 0.0, not solve_scale
+    rounds = SCALE_ROUNDS if solve_scale else 1
+    for round_ in range(rounds):
+        alone = refine_instances(found, models, seeds, opts, progress)
+        if len(alone) == 1 and not refine_cameras and not solve_scale:
+            return SceneRefinement(alone, None, None, found)
+        fits = [r.verdict.status == "ok" for r in alone]
+        scale_from = fits if any(fits) else None  # the instances whose masks decide the scale (all if none fit)
+        if solve_scale and round_ < rounds - 1:  # the scale again, from the orientations found at this one
+            rotations = {r.instance.index: r.result.T_wm[:3, :3] for r in alone}
+            guess = scale_from_masks(found, models, rotations, scale_from)
+            if abs(guess.factor - 1.0) > SCALE_REGUESS:
+                found, scale = rescaled(found, guess.factor), scale * guess.factor
+                seeds = {r.instance.index: grown_pose(r.result.T_wm, models.mesh(r.instance.obj_id).centre, guess.factor)
+                         for r in alone}
+                continue
+        meshes = [models.mesh(r.instance.obj_id) for r in alone]
+        start = [r.result.T_wm for r in alone]
+        t0 = time.perf_counter()
+        attempt = (refine_jointly(found, meshes, start, with_cameras=True, robust=opts.robust, with_scale=solve_scale,
+                                  scale_from=scale_from, progress=progress) if refine_cameras else None)
+        if attempt is not None and corrections_accepted(attempt.view_misfit_before, attempt.view_misfit_after):
+            joint = attempt
+        else:
+            joint = refine_jointly(found, meshes, start, robust=opts.robust, with_scale=solve_scale,
+                                   scale_from=scale_from, progress=progress)
+        if solve_scale:
+            found = found.through({**scaled_cameras(found.camera_by_id, joint.scale), **joint.cameras})
+            scale, scale_sigma = scale * joint.scale, joint.scale_sigma
+            seeds = {r.instance.index: T for r, T in zip(alone, joint.poses)}  # already grown with the scene
+            if abs(joint.scale - 1.0) < SCALE_SETTLED:
+                settled = True
+                break
+        elif joint is attempt:
+            found = found.through(joint.cameras)
+    after = []
+    for k, r in enumerate(alone):
+        unc = joint.uncertainties[k]
+        gap = None
+        if unc.weak_turn_axes and opts.weak_turns:  # the joint system's weak turns, tried at its pose
+            own, scores, _ = weak_turn_scores(SoftSilhouetteRasterizer(meshes[k].simplified(opts.coarse_faces)),
+                                              found.scenes[k], joint.poses[k], unc.weak_turn_axes, meshes[k].centre,
+                                              opts.weak_turns)
+            gap = own - float(scores.max())
+        after.append(replace(r.result, T_wm=joint.poses[k], iou_after=joint.evaluation.hard_iou(k),
+                             weights=joint.evaluation.weights[k], uncertainty=unc, turn_gap=gap))
+    seconds = (time.perf_counter() - t0) / max(len(alone), 1)
+    results = [InstanceResult(r.instance, replace(res, timings={**res.timings, "joint": seconds}),
+                              verdict_of(res, found.scenes[k].empty, models, r.instance.obj_id), r.seconds + seconds)
+               for k, (r, res) in enumerate(zip(alone, after))]
+    if not settled:  # every label's depth in its camera follows the scale: none can be trusted
+        reason = (f"the scene's scale did not settle in {rounds} rounds: the objects' masks and their fit disagree "
+                  "on it")
+        results = [replace(r, verdict=replace(r.verdict, status="failed" if r.verdict.status == "failed" else "check",
+                                              reasons=r.verdict.reasons + [reason])) for r in results]
+    return SceneRefinement(results, joint, attempt, found, scale, scale_sigma, settled)
+

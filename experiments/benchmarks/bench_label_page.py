@@ -1,0 +1,117 @@
+"""Benchmark of ``autoalign label``: time from a click on an object to its outlines on screen in
+every view, measured in the page itself (``performance.now()`` at the click to the second
+animation frame after the outlines were drawn), in a real headless Chromium.
+
+A synthetic scene of ``--objects`` procedural objects that hide each other, 40 views of 640x480
+(masks ray-cast by open3d, as ``bench_scene``); each object is clicked once, in the first view
+where its mask is largest. With the 3D view closed (the page's default) and then open: without
+a GPU, Chromium draws viser's WebGL in software on the same cores as the refinement. The server
+and the browser share the machine's cores. Results: ``experiments/results/bench_label_page.md``.
+
+``python -m autoalign.experiments.benchmarks.bench_label_page [--objects 5] [--views 40]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from autoalign.experiments import RESULTS
+from autoalign.experiments.benchmarks.bench_scene import make_bench_scene, symmetries
+from autoalign.experiments.pages.label_page_driver import (
+    LabelServerProcess,
+    launch_browser,
+    open_page,
+    place_in_largest_view,
+)
+from autoalign.experiments.studies.metrics import pose_errors
+from autoalign.io.atomic_files import write_json_atomic, write_text_atomic
+from autoalign.io.models import ModelSet
+
+
+def measure(root: Path, n_obj: int, n_views: int, open_3d: bool, truth: list[np.ndarray]) -> list[dict]:
+    """Click every object once; one row per click."""
+    from playwright.sync_api import sync_playwright
+
+    models = ModelSet.read(root / "models")
+    out = root / f"session_{'3d' if open_3d else 'plain'}"
+    rows = []
+    with LabelServerProcess(root / "scene", root / "models", out) as server, sync_playwright() as pw:
+        browser = launch_browser(pw)
+        page = open_page(browser, server.url, n_views)
+        if open_3d:
+            page.click("#viewer-box summary")
+            page.frame_locator("#viewer").locator("canvas").first.wait_for(timeout=60_000)
+        for k in range(n_obj):
+            placed = place_in_largest_view(page, root / "scene", k, k + 1)
+            im, state, inst = placed.image_id, placed.state, placed.instance(k)
+            err = pose_errors(np.array(inst["T_wm"]), truth[k], models.mesh(k + 1).centre, None,
+                              symmetries(models, k + 1))
+            rows.append({"object": k + 1, "view": im, "click_to_outlines_s": placed.click_to_outlines_s,
+                         "server_job_s": state["job"]["seconds"], "verdict": inst["verdict"],
+                         "reasons": inst["reasons"],
+                         "error_mm": err.pos_err_mm, "error_deg": err.rot_err_deg,
+                         "outlined_views": page.evaluate(
+                             f"new Set([...document.querySelectorAll('polyline[data-instance=\"{k}\"]')]"
+                             ".map(p => p.closest('.view').dataset.imageId)).size")})
+            print(f"{'3D open' if open_3d else '3D closed'}: object {k + 1}: {rows[-1]['click_to_outlines_s']:.2f} s "
+                  f"(server {rows[-1]['server_job_s']:.2f} s), {rows[-1]['error_mm']:.2f} mm / "
+                  f"{rows[-1]['error_deg']:.2f} deg", flush=True)
+        browser.close()
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--objects", type=int, default=5)
+    ap.add_argument("--views", type=int, default=40)
+    args = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        truth = make_bench_scene(root, args.objects, views=args.views)
+        (root / "scene" / "scene_gt.json").unlink()
+        results = {"closed": measure(root, args.objects, args.views, False, truth),
+                   "open": measure(root, args.objects, args.views, True, truth)}
+    summary = {name: {"median_s": statistics.median(r["click_to_outlines_s"] for r in rows),
+                      "max_s": max(r["click_to_outlines_s"] for r in rows),
+                      "server_median_s": statistics.median(r["server_job_s"] for r in rows)}
+               for name, rows in results.items()}
+    meta = {"objects": args.objects, "views": args.views, "image": "640x480", "cpus": os.cpu_count(),
+            "machine": platform.machine(), "python": platform.python_version(),
+            "date": time.strftime("%Y-%m-%d %H:%M")}
+    write_json_atomic(RESULTS / "bench_label_page.json", {"meta": meta, "summary": summary, "rows": results})
+    lines = ["# autoalign label: click to outlines on screen", "",
+             f"`python -m autoalign.experiments.benchmarks.bench_label_page --objects {args.objects} --views {args.views}`; "
+             f"{args.objects} objects that hide each other, {args.views} views of 640x480, headless Chromium "
+             f"(software WebGL) and the server on the same {os.cpu_count()} cores, {meta['date']}.", "",
+             "Time from the click (in the page) to the outlines drawn in every view (the second animation frame "
+             "after), and the server's part (place: seed from the click, orientation search, refinement, "
+             "verdict, outlines).", "",
+             "Errors against the truth, modulo each model's symmetries (models_info.json).", "",
+             "| 3D view | object | view clicked | click to outlines (s) | server (s) | error (mm / deg) | verdict | "
+             "views outlined |", "|---|---|---|---|---|---|---|---|"]
+    for name, rows in results.items():
+        for r in rows:
+            lines.append(f"| {name} | {r['object']} | {r['view']} | {r['click_to_outlines_s']:.2f} | "
+                         f"{r['server_job_s']:.2f} | {r['error_mm']:.2f} / {r['error_deg']:.2f} | {r['verdict']} | "
+                         f"{r['outlined_views']} |")
+    reasons = {(r["object"], "; ".join(r["reasons"])) for rows in results.values() for r in rows if r["reasons"]}
+    lines += ["", "Reasons given with the verdicts:", ""] + [f"* object {o}: {why}" for o, why in sorted(reasons)]
+    lines += ["", "| 3D view | median (s) | max (s) | server median (s) |", "|---|---|---|---|"]
+    lines += [f"| {name} | {s['median_s']:.2f} | {s['max_s']:.2f} | {s['server_median_s']:.2f} |"
+              for name, s in summary.items()]
+    write_text_atomic(RESULTS / "bench_label_page.md", "\n".join(lines) + "\n")
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

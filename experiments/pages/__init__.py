@@ -1,0 +1,1 @@
+"""The label page driven in a real headless browser (Playwright + Debian's chromium)."""

@@ -1,0 +1,1 @@
+"""Studies: the simulated convergence study and the real/synthetic scene studies (see ``autoalign.experiments``)."""
