@@ -137,7 +137,7 @@ def shell(code: str, cwd: Path, timeout: float = 300) -> str:
 
 def setup_block() -> Block:
     """The Set up block that refines the bundled example into ``out/example``."""
-    (block,) = [b for b in readme_blocks() if b.lang == "bash" and "autoalign refine" in b.code]
+    (block,) = [b for b in readme_blocks() if b.lang == "bash" and b.code.startswith(INSTALL + "autoalign refine")]
     return block
 
 
@@ -236,6 +236,50 @@ def check_refine(root: Path, stdout: str) -> None:
     assert "wrote scene_gt.json, refine.json, overlay.png to out/example" in stdout
 
 
+def check_click(root: Path, stdout: str) -> None:
+    """Seeded by one click in image 0, the mug is found as from no seed."""
+    out = root / "out" / "example_click"
+    T_true, T = truth_and(out / "scene_gt.json")
+    assert_close(T, T_true)
+    record = json.loads((out / "refine.json").read_text())
+    assert record["verdict"] == "ok" and record["seed"]["kind"] == "click"
+    assert record["seed"]["click"] == {"image_id": 0, "u": 320.0, "v": 240.0}
+    assert "wrote scene_gt.json, refine.json, overlay.png to out/example_click" in stdout
+
+
+def check_models(root: Path, stdout: str) -> None:
+    """Every instance of the scene (the mug) refined from the coarse poses and judged ``ok``."""
+    out = root / "out" / "example_models"
+    T_true, T = truth_and(out / "scene_gt.json")
+    assert_close(T, T_true)
+    (rec,) = json.loads((out / "refine.json").read_text())["instances"]
+    assert rec["obj_id"] == 1 and rec["verdict"] == "ok", rec["verdict"]
+    assert cv2.imread(str(out / "overlay.png")) is not None
+    assert "obj   1 (instance 0): ok" in stdout
+
+
+def check_batch(root: Path, stdout: str) -> None:
+    """The listed scene refined into ``OUT/scene`` with its own ``--init``, and recorded as done."""
+    out = root / "out" / "example_batch"
+    (rec,) = [json.loads(line) for line in (out / "batch.jsonl").read_text().splitlines()]
+    assert rec["status"] == 0 and rec["out"] == "out/example_batch/scene"
+    assert not (out / "errors.jsonl").is_file() or not (out / "errors.jsonl").read_text().strip()
+    T_true, T = truth_and(out / "scene" / "scene_gt.json")
+    assert_close(T, T_true)
+    assert "1 scene(s) refined, 0 already done, 0 failed" in stdout
+
+
+def check_recon(root: Path, stdout: str) -> None:
+    """Every frame of the rendered capture registered, metric from depth, the trajectory drawn."""
+    out = root / "out" / "capture_scene"
+    record = json.loads((out / "recon.json").read_text())
+    assert record["frames"] == record["registered"] == 30 and record["metric"] and record["units"] == "mm"
+    assert record["scale_spread"] < 0.02
+    assert len(json.loads((out / "scene_camera.json").read_text())) == 30
+    assert cv2.imread(str(out / "trajectory.png")) is not None and (out / "cloud.ply").stat().st_size > 0
+    assert "30 of 30 frames registered" in stdout
+
+
 def check_check(root: Path, stdout: str) -> None:
     """The refined labels fit the example's photos: enough SIFT matches, sub-pixel distances."""
     report = json.loads((root / "out" / "example_check" / "check.json").read_text())
@@ -245,6 +289,16 @@ def check_check(root: Path, stdout: str) -> None:
     assert inst["edge_px"] < 1.2, inst
     assert cv2.imread(str(root / "out" / "example_check" / "check.png")) is not None
     assert "feature distance px" in stdout
+
+
+def check_against(root: Path, stdout: str) -> None:
+    """Our labels against the example's true poses: paired over the 8 views, no clear difference."""
+    out = root / "out" / "example_compare"
+    (cmp,) = json.loads((out / "check.json").read_text())["against"]["comparison"]
+    assert cmp["views"] == 8 and cmp["verdict"] == "no clear difference", cmp
+    assert abs(cmp["gain_px"]) < 0.1 and cmp["gain_ci95"][0] <= 0 <= cmp["gain_ci95"][1], cmp
+    assert cv2.imread(str(out / "compare.png")) is not None
+    assert "no clear difference" in stdout
 
 
 def check_export(root: Path, stdout: str) -> None:
@@ -304,8 +358,14 @@ def check_several_objects(root: Path, scope: dict[str, Any]) -> None:
 
 
 CHECKS: list[tuple[str, Callable[[Path, Any], None]]] = [
-    ("autoalign refine autoalign/data/example/scene --model", check_refine),
-    ("autoalign check autoalign/data/example/scene", check_check),
+    ("autoalign refine autoalign/data/example/scene --model autoalign/data/example/model.ply --out out/example\n",
+     check_refine),
+    ("--click 0:320,240 --out out/example_click", check_click),
+    ("--out out/example_models", check_models),
+    ("autoalign refine --batch out/scenes.txt", check_batch),
+    ("autoalign recon out/capture", check_recon),
+    ("--images 4 --out out/example_check", check_check),
+    ("--against autoalign/data/example/scene/scene_gt.json", check_against),
     ("autoalign export autoalign/data/example/scene", check_export),
     ("autoalign label autoalign/data/example/scene", check_label),
     ("autoalign simulate --max-models", check_simulate),
