@@ -34,18 +34,6 @@ class RayCaster:
         params.update()
         self._scene = mi.load_dict({"type": "scene", "object": m})
 
-    def ray_hits(self, T_wm: NDArray[np.float64], origins_w: NDArray[np.float64],
-                 dirs_w: NDArray[np.float64]) -> NDArray[np.bool_]:
-        """Whether world-frame rays (N, 3 each) hit the object posed at ``T_wm`` (any hit, no shading)."""
-        if len(origins_w) == 0:
-            return np.zeros(0, dtype=bool)
-        mi = self._mi
-        T_mw = invert(T_wm)
-        o_m, d_m = origins_w @ T_mw[:3, :3].T + T_mw[:3, 3], dirs_w @ T_mw[:3, :3].T
-        o = [jit_array(mi.Float, o_m[:, i], np.float32) for i in range(3)]
-        d = [jit_array(mi.Float, d_m[:, i], np.float32) for i in range(3)]
-        return np.array(self._scene.ray_test(mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d))), dtype=bool)
-
     def pixel_hits(self, T_wm: NDArray[np.float64], cams: CameraBatch, view: NDArray[np.int64],
                    uv: NDArray[np.float64]) -> NDArray[np.bool_]:
         """Hard hits of the rays through continuous pixel coordinates ``uv`` (N, 2; internal

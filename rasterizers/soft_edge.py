@@ -19,13 +19,6 @@ from autoalign.rasterizers.camera_batch import CameraBatch
 from autoalign.runtime.backend import drjit, jit_array, mitsuba
 
 
-def smoothstep_edge(z: NDArray[np.float64] | float) -> NDArray[np.float64]:
-    """The edge profile: 0 for ``z <= -1``, 1 for ``z >= 1``, C1 cubic in between (numpy; the
-    same profile as :func:`soft_edge_values` computes in drjit)."""
-    u = np.clip((np.asarray(z, dtype=np.float64) + 1.0) / 2.0, 0.0, 1.0)
-    return u * u * (3.0 - 2.0 * u)
-
-
 def soft_edge_values(cams: CameraBatch, view: NDArray[np.int64], px: NDArray[np.float64], py: NDArray[np.float64],
                      sign: NDArray[np.float64], A_w: NDArray[np.float64], B_w: NDArray[np.float64],
                      t0: NDArray[np.float64], t1: NDArray[np.float64], centre_w: NDArray[np.float64], half: float,
@@ -43,7 +36,8 @@ def soft_edge_values(cams: CameraBatch, view: NDArray[np.int64], px: NDArray[np.
         half: the profile's half width ``2 sigma`` (pixels).
 
     Returns:
-        ``smoothstep_edge(sign * dist / half)`` (B,) and its derivatives (B, 6) (zeros without
+        the edge profile ``smoothstep(sign * dist / half)`` (B,; 0 at or below -1, 1 at or above 1,
+        ``u^2 (3 - 2u)`` with ``u = (z + 1) / 2`` between) and its derivatives (B, 6) (zeros without
         ``with_jacobian``): w.r.t. the twist ``(v, w)``, or with ``wrt_endpoints`` w.r.t.
         ``(A_w, B_w)`` (mm), from one fused kernel. The visible interval ``t0, t1`` is held fixed.
     """

@@ -115,7 +115,7 @@ class SoftSilhouetteRasterizer:
     def hard_masks(self, T_wm: NDArray[np.float64], cameras: list[Camera]) -> list[NDArray[np.bool_]]:
         """Full-image hard masks (H, W) by ray casting at every pixel centre of the object's crops."""
         cams = CameraBatch.of(cameras)
-        crops = self._crops(T_wm, cams, margin=2)
+        crops = self.crops(T_wm, cams, margin=2)
         sizes = crops[:, 2] * crops[:, 3]
         view = np.repeat(np.arange(len(cameras)), sizes)
         uv = np.concatenate([_crop_pixel_centres(c) for c in crops]) if sizes.sum() else np.zeros((0, 2))
@@ -127,14 +127,11 @@ class SoftSilhouetteRasterizer:
             out.append(m)
         return out
 
-    def crops(self, T_wm: NDArray[np.float64], cameras: list[Camera], margin: int) -> NDArray[np.int64]:
+    def crops(self, T_wm: NDArray[np.float64], cams: CameraBatch, margin: int) -> NDArray[np.int64]:
         """(N, 4) ``x0, y0, w, h`` covering the projected convex hull plus ``margin`` px, clipped.
 
         A view whose camera plane cuts the object gets the whole image.
         """
-        return self._crops(T_wm, CameraBatch.of(cameras), margin)
-
-    def _crops(self, T_wm: NDArray[np.float64], cams: CameraBatch, margin: int) -> NDArray[np.int64]:
         Xw = transform_points(T_wm, self.hull)
         Xc = np.einsum("nij,hj->nhi", cams.R_w2c, Xw) + cams.t_w2c[:, None, :]  # (N, H, 3)
         behind = np.any(Xc[..., 2] < NEAR_MM, axis=1)
@@ -146,11 +143,6 @@ class SoftSilhouetteRasterizer:
         lo = np.clip(lo, 0, size)
         hi = np.clip(hi, 0, size)
         return np.concatenate([lo, np.maximum(hi - lo, 0)], axis=1)
-
-    def contour_edges(self, T_wm: NDArray[np.float64], cameras: list[Camera]) -> list[NDArray[np.int64]]:
-        """Per view, indices of mesh edges on the contour generator (front/back flip or open boundary)."""
-        flip = self.outlines.contour_matrix(T_wm, CameraBatch.of(cameras))
-        return [np.flatnonzero(flip[:, i]) for i in range(len(cameras))]
 
     def render(self, T_wm: NDArray[np.float64], cameras: list[Camera], sigma: float = 1.0,
                with_jacobian: bool = True, wrt: str = "twist") -> Silhouettes:
@@ -169,7 +161,7 @@ class SoftSilhouetteRasterizer:
         half = 2.0 * float(sigma)
         band_r = half + 1.5
         cams = CameraBatch.of(cameras)
-        crops = self._crops(T_wm, cams, int(np.ceil(band_r)) + 2)
+        crops = self.crops(T_wm, cams, int(np.ceil(band_r)) + 2)
         offsets = np.concatenate([[0], np.cumsum(crops[:, 2] * crops[:, 3])]).astype(np.int64)
         outline = self.outlines.find(T_wm, cams, crops)
         band = find_band(outline, crops, offsets, band_r)

@@ -30,6 +30,7 @@ from autoalign.experiments.studies.runner import get_model, model_ids
 from autoalign.experiments.studies.shared_data import REAL_SCENES
 from autoalign.geometry.mesh import mesh_from_trimesh
 from autoalign.geometry.se3 import make_pose, rotation_angle_deg, transform_points
+from autoalign.rasterizers.camera_batch import CameraBatch
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
 
@@ -220,7 +221,7 @@ def test_posed_hit_sums_match_casting_each_pose() -> None:
     rast = SoftSilhouetteRasterizer(mesh.simplified(1500))
     rng = np.random.default_rng(4)
     cams = [c.scaled(0.125) for c in scene.cameras[:6]]
-    crops = rast.crops(geo.T_gt, cams, margin=4)  # rays around the object, x0 y0 w h
+    crops = rast.crops(geo.T_gt, CameraBatch.of(cams), margin=4)  # rays around the object, x0 y0 w h
     uv = [np.column_stack([rng.uniform(x0, x0 + w, 400), rng.uniform(y0, y0 + h, 400)]) for x0, y0, w, h in crops]
     view = np.repeat(np.arange(len(cams)), 400)
     dirs = np.concatenate([c.ray_directions(p) for c, p in zip(cams, uv)])
@@ -231,7 +232,7 @@ def test_posed_hit_sums_match_casting_each_pose() -> None:
     assert sums.shape == (3, 4, len(cams))
     assert sums[:2, 0].min() > 30  # near the truth the rays see the object in every view
     for k, T in enumerate(poses):
-        hits = rast.caster.ray_hits(T, centres[view], dirs)
+        hits = rast.caster.pixel_hits(T, CameraBatch.of(cams), view, np.concatenate(uv))  # the same rays
         expected = np.stack([np.bincount(view, weights=weights[:, c] * hits, minlength=len(cams)) for c in range(4)])
         # model-frame directions rounded to float32 in a different order: at most a grazing ray apart
         assert np.abs(sums[k, 0] - expected[0]).max() <= 1

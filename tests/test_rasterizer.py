@@ -24,7 +24,6 @@ from autoalign.experiments.studies.refine_study import LM_DIR
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.mesh import Mesh, load_mesh, mesh_from_trimesh
 from autoalign.geometry.se3 import apply_twist, make_pose, transform_points
-from autoalign.rasterizers.soft_edge import smoothstep_edge
 from autoalign.rasterizers.soft_silhouette import Silhouettes, SoftSilhouetteRasterizer
 
 W, H = 640, 480
@@ -59,6 +58,12 @@ def _agreement_case(name: str):
     mesh = _mesh(name)
     cams, T_wm = _setup(sum(map(ord, name)), 40)
     return mesh, cams, T_wm, raycast_masks(mesh, T_wm, cams)
+
+
+def smoothstep_edge(z: float) -> float:
+    """The renderer's edge profile in numpy: 0 for ``z <= -1``, 1 for ``z >= 1``, C1 cubic between."""
+    u = float(np.clip((z + 1.0) / 2.0, 0.0, 1.0))
+    return u * u * (3.0 - 2.0 * u)
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:

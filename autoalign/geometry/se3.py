@@ -72,14 +72,6 @@ def se3_exp(xi: ArrayLike) -> NDArray[np.float64]:
     return T
 
 
-def se3_log(T: ArrayLike) -> NDArray[np.float64]:
-    """Twist ``(v, w)`` with ``se3_exp(se3_log(T)) == T`` (rotation angle in [0, pi])."""
-    T = np.asarray(T, dtype=np.float64)
-    w = so3_log(T[:3, :3])
-    v = np.linalg.solve(_left_jacobian(w), T[:3, 3])
-    return np.concatenate([v, w])
-
-
 def make_pose(R: ArrayLike, t: ArrayLike) -> NDArray[np.float64]:
     """4x4 pose from a 3x3 rotation and a translation (mm)."""
     T = np.eye(4)

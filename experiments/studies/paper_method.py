@@ -45,6 +45,7 @@ from scipy.spatial import cKDTree
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import transform_points
 from autoalign.io.bop import Scene
+from autoalign.rasterizers.camera_batch import CameraBatch
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
 _NEAR_MM = 1.0
@@ -336,14 +337,15 @@ class CandidateScorer:
 
     def current_mask(self, T_wm: NDArray[np.float64], view: int, box: NDArray[np.int64]) -> NDArray[np.bool_]:
         """Full-resolution hard mask of ``view`` at ``T_wm`` (ray cast inside ``box``)."""
-        cam, _, _, dimg = self.view_at(view, 1.0)
+        cam = self.view_at(view, 1.0)[0]
         x0, y0, w, h = (int(a) for a in box)
         m = np.zeros((cam.height, cam.width), dtype=bool)
         if w and h:
-            d = dimg.reshape(cam.height, cam.width, 3)[y0:y0 + h, x0:x0 + w].reshape(-1, 3)
-            o = np.broadcast_to(cam.centre, d.shape)
-            self.rays += len(d)
-            m[y0:y0 + h, x0:x0 + w] = self.rast.caster.ray_hits(T_wm, o, d.astype(np.float64)).reshape(h, w)
+            gx, gy = np.meshgrid(np.arange(x0, x0 + w) + 0.5, np.arange(y0, y0 + h) + 0.5)  # pixel centres
+            uv = np.column_stack([gx.ravel(), gy.ravel()])
+            self.rays += len(uv)
+            hits = self.rast.caster.pixel_hits(T_wm, CameraBatch.of([cam]), np.zeros(len(uv), np.int64), uv)
+            m[y0:y0 + h, x0:x0 + w] = hits.reshape(h, w)
         self.view_renders += 1
         return m
 
@@ -365,7 +367,7 @@ class CandidateScorer:
         lim = 4.0 * max(cam.width, cam.height)
         pts = np.round(np.clip(uv, -lim, lim) * 16.0).astype(np.int32)  # 4 fractional bits
         img = np.full((cam.height, cam.width), 255, dtype=np.uint8)
-        e = self.rast.contour_edges(T_wm, [cam])[0]
+        e = np.flatnonzero(self.rast.outlines.contour_matrix(T_wm, CameraBatch.of([cam]))[:, 0])  # contour generator
         if len(e):
             cv2.polylines(img, list(pts[mesh.edges[e]]), False, 0, thickness=1, lineType=cv2.LINE_8, shift=4)
         n_w = mesh.face_normals @ T_wm[:3, :3].T
