@@ -86,7 +86,7 @@ def _numbers(data: object) -> list[float]:
 def test_the_bundled_example_is_small_and_textured() -> None:
     """Package data stays small (photos a few hundred KB), and the model has vertex colours, so
     ``autoalign check`` has texture to match."""
-    from autoalign.quality.feature_distance import load_coloured_mesh
+    from autoalign.io.models import load_coloured_mesh
 
     photos = sum(p.stat().st_size for p in (DEFAULT_OUT / "scene" / "rgb").iterdir())
     assert photos < 400_000, photos

@@ -1,4 +1,4 @@
-"""Tests of the ground-truth-free label check (``autoalign check``, :mod:`autoalign.quality.feature_distance`).
+"""Tests of the ground-truth-free label check (``autoalign check``, :mod:`autoalign.quality.check`).
 
 * Renderer: the colour of every pixel equals an independent barycentric computation of the ray
   through ``K^-1 [j, i, 1]`` (OpenCV / BOP pixel centres), the silhouette equals
@@ -50,29 +50,23 @@ from autoalign.experiments.studies.shared_data import REAL_SCENES
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.mesh import load_mesh
 from autoalign.geometry.se3 import make_pose
-from autoalign.io.bop import mask_path, photo_path, read_cameras, read_mask, read_photo
+from autoalign.io.bop import (
+    Label,
+    mask_path,
+    photo_path,
+    read_cameras,
+    read_labels,
+    read_mask,
+    read_photo,
+)
+from autoalign.io.models import ColouredMesh, ModelSet, load_coloured_mesh
+from autoalign.quality.check import check_image, summarize
+from autoalign.quality.check_report import MIN_MATCHES, CheckReport, ViewInstanceCheck
 from autoalign.quality.edge_distance import (
     MAX_EDGE_PX,
     outline_edge_distances,
     outline_pixels,
     photo_edges,
-)
-from autoalign.quality.feature_distance import (
-    MIN_MATCHES,
-    CheckReport,
-    ColouredMesh,
-    Label,
-    ViewInstanceCheck,
-    check_image,
-    check_scene,
-    load_coloured_mesh,
-    load_models,
-    photo_sift,
-    read_labels,
-    read_photo_scaled,
-    render_labels,
-    select_images,
-    summarize,
 )
 from autoalign.quality.label_compare import (
     COLOURS,
@@ -82,6 +76,10 @@ from autoalign.quality.label_compare import (
     compare_views,
     comparison_figure,
 )
+from autoalign.quality.label_rendering import PlacedMesh, render_labels
+from autoalign.quality.photos import read_photo_scaled
+from autoalign.quality.scene_check import check_scene, select_images
+from autoalign.quality.sift import photo_sift
 
 REAL = REAL_SCENES / "lmo_im0480_0695"
 N_IMAGES = 15  # 15 of the 29 images, spread evenly (4 give only 0-3 matches per object on LM-O)
@@ -103,7 +101,7 @@ def test_colour_is_barycentric_blend_of_vertex_colours_on_opencv_rays() -> None:
     V = np.array([[-30.0, -25.0, 100.0], [32.0, -20.0, 110.0], [2.0, 33.0, 105.0]])  # camera frame, mm
     cols = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=np.float32)
     mesh = ColouredMesh(V, np.array([[0, 1, 2]]), cols, True)
-    r = render_labels([(3, mesh, np.eye(3), np.zeros(3))], K, W, H)
+    r = render_labels([PlacedMesh(3, mesh, np.eye(3), np.zeros(3))], K, W, H)
     ii, jj = np.nonzero(r.instance == 3)
     assert set(np.unique(r.instance)) == {-1, 3} and ii.size > 1000
     # independent: the ray d = K^-1 [j, i, 1] meets the triangle's plane at s d = sum_k l_k V_k, sum l_k = 1
@@ -128,8 +126,8 @@ def test_nearest_instance_wins() -> None:
     blue = ColouredMesh(sq, F, np.tile(np.float32([0, 0, 1]), (4, 1)), True)
     K = np.array([[100.0, 0.0, 50.0], [0.0, 100.0, 50.0], [0.0, 0.0, 1.0]])
     far, near = np.array([0.0, 0.0, 200.0]), np.array([10.0, 0.0, 150.0])
-    for order in ([(0, red, np.eye(3), far), (1, blue, np.eye(3), near)],
-                  [(1, blue, np.eye(3), near), (0, red, np.eye(3), far)]):
+    for order in ([PlacedMesh(0, red, np.eye(3), far), PlacedMesh(1, blue, np.eye(3), near)],
+                  [PlacedMesh(1, blue, np.eye(3), near), PlacedMesh(0, red, np.eye(3), far)]):
         r = render_labels(order, K, 101, 101)
         assert r.instance[50, 60] == 1 and tuple(r.rgb[50, 60]) == (0, 0, 255)  # both: blue (u 43-70) is nearer
         assert r.instance[50, 41] == 0 and tuple(r.rgb[50, 41]) == (255, 0, 0)  # only the far red square (u 40-60)
@@ -157,10 +155,10 @@ def test_silhouette_equals_independent_raycast_masks() -> None:
         ref = raycast_masks(load_mesh(path), make_pose(R_wm, c_w), [cam])[0]
         mesh = load_coloured_mesh(path)
         assert mesh.has_colours
-        mine = render_labels([(0, mesh, R_m2c, t_m2c)], K, W, H).instance >= 0
+        mine = render_labels([PlacedMesh(0, mesh, R_m2c, t_m2c)], K, W, H).instance >= 0
         assert ref.sum() > 5000
         assert (mine ^ ref).sum() <= 3  # measured 0
-        wrong = render_labels([(0, mesh, R_m2c, t_m2c)], K_internal, W, H).instance >= 0
+        wrong = render_labels([PlacedMesh(0, mesh, R_m2c, t_m2c)], K_internal, W, H).instance >= 0
         assert (wrong ^ ref).sum() > 100  # measured 144 (duck), 239 (hole puncher)
 
 
@@ -186,7 +184,7 @@ def test_shifted_photo_gives_its_shift() -> None:
     K = np.array([[500.0, 0.0, 159.5], [0.0, 500.0, 119.5], [0.0, 0.0, 1.0]])
     mesh = _textured_sphere(rng)
     R, t = random_rotation(rng), np.array([10.0, -5.0, 300.0])
-    bgr = cv2.cvtColor(render_labels([(0, mesh, R, t)], K, W, H).rgb, cv2.COLOR_RGB2BGR)
+    bgr = cv2.cvtColor(render_labels([PlacedMesh(0, mesh, R, t)], K, W, H).rgb, cv2.COLOR_RGB2BGR)
     photo = cv2.warpAffine(bgr, np.float32([[1, 0, 3], [0, 1, -2]]), (W, H))
     labels = [Label(7, 0, 1, R, t)]
     _, (c,) = check_image(7, photo, K, labels, {1: mesh})
@@ -221,7 +219,7 @@ def test_edge_distance_of_a_shifted_circle(shift: tuple[float, float]) -> None:
     W, H = 320, 240
     K = np.array([[500.0, 0.0, 159.5], [0.0, 500.0, 119.5], [0.0, 0.0, 1.0]])
     mesh, t = _grey_sphere(), np.array([10.0, -5.0, 300.0])
-    bgr = cv2.cvtColor(render_labels([(0, mesh, np.eye(3), t)], K, W, H).rgb, cv2.COLOR_RGB2BGR)
+    bgr = cv2.cvtColor(render_labels([PlacedMesh(0, mesh, np.eye(3), t)], K, W, H).rgb, cv2.COLOR_RGB2BGR)
     photo = cv2.warpAffine(bgr, np.float32([[1, 0, shift[0]], [0, 1, shift[1]]]), (W, H))
     _, (c,) = check_image(7, photo, K, [Label(7, 0, 1, np.eye(3), t)], {1: mesh})
     # the sphere's outline is a circle: radius f tan(asin(R / |t|)) about the projected centre
@@ -352,7 +350,7 @@ def test_large_photo_is_checked_downscaled_with_the_full_size_distances(tmp_path
     grey = ColouredMesh(textured.vertices, textured.faces, np.full((len(textured.vertices), 3), 0.6, np.float32), True)
     R, t = random_rotation(rng), np.array([20.0, -10.0, 300.0])
     R2, t2 = np.eye(3), np.array([-90.0, 40.0, 330.0])
-    r = render_labels([(0, textured, R, t), (1, grey, R2, t2)], K, W, H)
+    r = render_labels([PlacedMesh(0, textured, R, t), PlacedMesh(1, grey, R2, t2)], K, W, H)
     move = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
     photo = cv2.warpAffine(np.where((r.instance >= 0)[..., None], r.rgb[..., ::-1], np.uint8(50)), move, (W, H),
                            borderMode=cv2.BORDER_REPLICATE)
@@ -452,7 +450,7 @@ def real(tmp_path_factory: pytest.TempPathFactory) -> Real:
 
     labels = read_labels(REAL / "scene_gt.json")
     Ks = {im: K for im, (K, _, _) in read_cameras(REAL).items()}
-    meshes = load_models(REAL / "models", [lab.obj_id for labs in labels.values() for lab in labs])
+    meshes = ModelSet.read(REAL / "models").coloured_meshes([lab.obj_id for labs in labels.values() for lab in labs])
     masks_of = {(v.image_id, v.instance): v.iou for v in out.gt.views}
     out.variants = {"halfpx": [], "transposed": []}
     for im in out.gt.image_ids:
@@ -727,7 +725,7 @@ def test_cli_starts_without_torch_or_jax() -> None:
             "p.parse_args(['check', 'S', '--labels', 'L', '--models', 'M'])\n"
             "bad = [m for m in ('torch', 'jax', 'numpy', 'cv2', 'open3d') if m in sys.modules]\n"
             "assert not bad, bad\n"
-            "import autoalign.quality.feature_distance\n"
+            "import autoalign.quality.scene_check, autoalign.quality.figures\n"
             "assert 'torch' not in sys.modules and 'jax' not in sys.modules\n")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)

@@ -10,7 +10,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from autoalign.experiments.scenes.synthetic import raycast_masks
+from autoalign.experiments.scenes.synthetic import raycast_masks, write_scene
 from autoalign.geometry.camera import Camera, look_at
 from autoalign.geometry.mesh import mesh_from_trimesh
 from autoalign.geometry.se3 import make_pose, transform_points
@@ -19,7 +19,6 @@ from autoalign.io.bop import (
     pose_in_camera,
     read_init_pose,
     read_scene,
-    write_scene,
 )
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 

@@ -33,6 +33,7 @@ def two_image_labels(folder: Path) -> str:
 
 
 def test_top_level_and_bop_readers_take_str(scene: autoalign.Scene, tmp_path: Path) -> None:
+    from autoalign.experiments.scenes.synthetic import write_scene
     from autoalign.io import bop
 
     assert len(scene) == 24 and scene.image_ids[0] == 0
@@ -50,7 +51,7 @@ def test_top_level_and_bop_readers_take_str(scene: autoalign.Scene, tmp_path: Pa
     assert bop.mask_path(SCENE, 3, 0).is_file()
     assert len(bop.mask_files(SCENE)) == 24
     bop.check_masks_have_cameras(SCENE, set(range(24)))
-    bop.write_scene(str(tmp_path / "copy"), scene, T)
+    write_scene(str(tmp_path / "copy"), scene, T)
     assert len(list((tmp_path / "copy" / "mask_visib").glob("*.png"))) == 24
 
 
@@ -100,20 +101,19 @@ def test_export_takes_str(tmp_path: Path) -> None:
 
 
 def test_check_and_overlays_take_str(scene: autoalign.Scene, tmp_path: Path) -> None:
-    from autoalign.quality.feature_distance import (
-        check_scene,
-        load_coloured_mesh,
-        load_models,
-    )
-    from autoalign.quality.overlay import draw_overlay, photo_at
+    from autoalign.io.atomic_files import write_bytes_atomic
+    from autoalign.io.models import ModelSet, load_coloured_mesh
+    from autoalign.quality.overlay import encode_png, photo_at, render_overlay
+    from autoalign.quality.scene_check import check_scene
 
     labels = two_image_labels(tmp_path)
     report = check_scene(SCENE, labels, MODELS)
     assert report.image_ids == [0, 1] and report.instances[0].median_iou > 0.98
-    assert load_coloured_mesh(MODEL).has_colours and set(load_models(MODELS, [1], labels)) == {1}
+    assert load_coloured_mesh(MODEL).has_colours and set(ModelSet.read(MODELS).coloured_meshes([1], Path(labels))) == {1}
     assert photo_at(SCENE, 0, 320, 240).shape == (240, 320, 3)
     T = autoalign.read_init_pose(INIT, scene)
-    img = draw_overlay(scene, autoalign.load_mesh(MODEL), T, T, np.ones(len(scene)), str(tmp_path / "o.png"))
+    img = render_overlay(scene, autoalign.load_mesh(MODEL), T, T, np.ones(len(scene)))
+    write_bytes_atomic(str(tmp_path / "o.png"), encode_png(img))
     assert (tmp_path / "o.png").is_file() and img.ndim == 3
 
 

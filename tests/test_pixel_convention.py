@@ -17,10 +17,11 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from autoalign.engine.seeding import Click
+from autoalign.experiments.scenes.synthetic import write_scene
 from autoalign.geometry.camera import Camera, K_from_opencv, K_to_opencv, uv_from_opencv
 from autoalign.geometry.mesh import mesh_from_trimesh
 from autoalign.geometry.se3 import make_pose
-from autoalign.io.bop import read_scene, write_scene
+from autoalign.io.bop import read_scene
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
 W, H = 64, 48
@@ -68,6 +69,29 @@ def test_point_that_opencv_projects_to_integer_ij_lights_pixel_ij(tmp_path, seed
         X = _point_projecting_to(K, R, t, float(j), float(i), depth)
         mask = rast.hard_masks(make_pose(np.eye(3), X), [cam])[0]
         assert np.argwhere(mask).tolist() == [[i, j]], (i, j)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_check_renders_the_dot_opencv_projects_to_ij_at_pixel_ij(seed):
+    """The check's renderer (``render_labels``, open3d) keeps the same convention as the refine's
+    (above): a 0.05 px sphere at the point OpenCV projects to (j, i) lights pixel (row i, col j)
+    only, and the ray it casts through pixel (i, j) projects to (j, i) in ``cv2.projectPoints``."""
+    from autoalign.io.models import ColouredMesh
+    from autoalign.quality.label_rendering import PlacedMesh, pixel_rays, render_labels
+
+    rng = np.random.default_rng(seed)
+    K, R, t = _bop_camera(rng)
+    depth = 400.0
+    ico = trimesh.creation.icosphere(2, radius=0.05 * depth / K[0, 0])
+    dot = ColouredMesh(np.asarray(ico.vertices), np.asarray(ico.faces), np.ones((len(ico.vertices), 3), np.float32), True)
+    for i, j in [(0, 0), (H - 1, W - 1)] + [(int(rng.integers(1, H - 1)), int(rng.integers(1, W - 1))) for _ in range(3)]:
+        X_c = R @ _point_projecting_to(K, R, t, float(j), float(i), depth) + t
+        seen = render_labels([PlacedMesh(0, dot, np.eye(3), X_c)], K, W, H).instance >= 0
+        assert np.argwhere(seen).tolist() == [[i, j]], (i, j)
+    rays = pixel_rays(K_from_opencv(K), W, H).astype(np.float64) * depth  # camera frame, z = depth
+    uv, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, None)
+    jj, ii = np.meshgrid(np.arange(W), np.arange(H))
+    np.testing.assert_allclose(uv.reshape(-1, 2), np.column_stack([jj.ravel(), ii.ravel()]), atol=1e-3)
 
 
 def test_bop_masks_match_open3d_rays_through_opencv_pixel_centres(tmp_path):

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from autoalign.errors import AutoalignError
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import invert, make_pose
-from autoalign.io.atomic_files import write_json_atomic
+from autoalign.io.block_mean import Pad, block_mean
 
 
 @dataclass
@@ -289,11 +289,8 @@ def read_masks(paths: dict[tuple[int, int], Path], max_pixels: int | None = MAX_
             continue
         kinds.setdefault(kind, p)
         f = out.factor
-        if f > 1:  # padded to whole blocks, so that the scale is exactly 1 / factor
-            h, w = -(-m.shape[0] // f), -(-m.shape[1] // f)
-            padded = np.zeros((h * f, w * f), np.float32)
-            padded[:m.shape[0], :m.shape[1]] = m
-            m = cv2.resize(padded, (w, h), interpolation=cv2.INTER_AREA) > 0.5
+        if f > 1:  # whole blocks, so that the scale is exactly 1 / factor
+            m = block_mean(m.astype(np.float32), f, Pad.ZEROS) > 0.5
         out.masks[key] = m
     check_mask_kinds(kinds)
     return out
@@ -457,19 +454,3 @@ def scene_gt_dict(T_wm: NDArray[np.float64], cameras: list[Camera], image_ids: l
     """A BOP ``scene_gt.json`` object: one entry per image for the given world pose."""
     return scene_gt_of([(obj_id, T_wm)], cameras, image_ids)
 
-
-def write_scene(out_dir: str | Path, scene: Scene, T_wm: NDArray[np.float64], obj_id: int = 1,
-                write_masks: bool = True) -> None:
-    """Write ``scene`` as a BOP folder (cameras, masks, ground truth) — used for synthetic data."""
-    out_dir = Path(out_dir)
-    (out_dir / "mask_visib").mkdir(parents=True, exist_ok=True)
-    cams = {}
-    for im, cam in zip(scene.image_ids, scene.cameras):
-        cams[str(im)] = {"cam_K": [float(x) for x in cam.K_opencv.ravel()],
-                         "cam_R_w2c": [float(x) for x in cam.R_w2c.ravel()],
-                         "cam_t_w2c": [float(x) for x in cam.t_w2c], "depth_scale": 1.0}
-    if write_masks:
-        for im, m in zip(scene.image_ids, scene.masks):
-            cv2.imwrite(str(mask_path(out_dir, im, 0)), (np.asarray(m) > 0.5).astype(np.uint8) * 255)
-    write_json_atomic(out_dir / "scene_camera.json", cams)
-    write_json_atomic(out_dir / "scene_gt.json", scene_gt_dict(T_wm, scene.cameras, scene.image_ids, obj_id))

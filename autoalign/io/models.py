@@ -2,21 +2,77 @@
 
 ``models_info.json`` gives per object its ``diameter`` (mm) and, for symmetric objects,
 ``symmetries_discrete`` (model-frame 4x4 transforms, mm) and ``symmetries_continuous``
-(``{"axis", "offset"}``), as the bop_toolkit defines them. Meshes load on first use.
+(``{"axis", "offset"}``), as the bop_toolkit defines them. Meshes load on first use, as
+:class:`~autoalign.geometry.mesh.Mesh` (welded, for refining) or as :class:`ColouredMesh` (the file's
+vertices with their colours, for rendering the labels against photos).
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import trimesh
 from numpy.typing import NDArray
 
 from autoalign.errors import AutoalignError
 from autoalign.geometry.mesh import Mesh, load_mesh
+
+GREY = (0.5, 0.5, 0.5)
+"""Colour (RGB, 0..1) of a mesh without vertex colours."""
+
+
+@dataclass
+class ColouredMesh:
+    """A triangle mesh in its model frame (mm) with one RGB colour (0..1) per vertex."""
+
+    vertices: NDArray[np.float64]
+    faces: NDArray[np.int64]
+    colours: NDArray[np.float32]
+    has_colours: bool
+    path: Path | None = None
+
+
+def load_coloured_mesh(path: str | Path) -> ColouredMesh:
+    """A mesh file (mm) with its per-vertex colours (``trimesh.load(path, process=False)`` keeps
+    them in their vertex order); face colours are spread to the vertices, and a mesh without
+    colours is grey (``has_colours`` False)."""
+    path = Path(path)
+    try:
+        loaded = trimesh.load(str(path), process=False)
+    except Exception as exc:  # trimesh raises many kinds
+        raise AutoalignError(f"{path}: cannot read the mesh ({exc}); give a PLY/OBJ/GLB mesh in mm") from None
+    if isinstance(loaded, trimesh.Scene):
+        geoms = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)]
+        loaded = trimesh.util.concatenate(geoms) if geoms else None
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise AutoalignError(f"{path}: has no triangles; the check renders the object, give a triangle mesh")
+    V = np.asarray(loaded.vertices, dtype=np.float64)
+    colours = _vertex_colours(loaded.visual, len(V))
+    has = colours is not None
+    if colours is None:
+        colours = np.tile(np.asarray(GREY, dtype=np.float32), (len(V), 1))
+    return ColouredMesh(V, np.asarray(loaded.faces, dtype=np.int64), colours, has, path)
+
+
+def _vertex_colours(visual: Any, n_vertices: int) -> NDArray[np.float32] | None:
+    """RGB (0..1) per vertex of a trimesh visual (textures sampled, face colours spread), None without."""
+    kind = getattr(visual, "kind", None)
+    try:
+        if kind == "texture":
+            visual = visual.to_color()
+            kind = getattr(visual, "kind", None)
+        if kind in ("vertex", "face"):
+            c = np.asarray(visual.vertex_colors)
+            if c.shape[0] == n_vertices:
+                return c[:, :3].astype(np.float32) / 255.0
+    except Exception:  # a broken texture: fall back to grey
+        return None
+    return None
 
 
 @dataclass
@@ -33,16 +89,18 @@ class ModelSet:
     info: dict[int, dict[str, Any]]
     units: str | None = None
     _meshes: dict[int, Mesh] = field(default_factory=dict, repr=False)
+    _coloured: dict[int, ColouredMesh] = field(default_factory=dict, repr=False)
 
     @staticmethod
-    def read(folder: str | Path, units: str | None = None) -> "ModelSet":
+    def read(folder: str | Path, units: str | None = None, with_info: bool = True) -> "ModelSet":
+        """The models folder ``folder``; ``with_info`` False leaves ``models_info.json`` unread (``info`` empty)."""
         folder = Path(folder)
         if not folder.is_dir():
             raise AutoalignError(f"{folder}: models folder not found; pass a BOP models folder with "
                                  "obj_XXXXXX.ply files (and models_info.json) to --models")
         info_path = folder / "models_info.json"
         info: dict[int, dict[str, Any]] = {}
-        if info_path.is_file():
+        if with_info and info_path.is_file():
             try:
                 raw = json.loads(info_path.read_text())
                 info = {int(k): dict(v) for k, v in raw.items()}
@@ -63,6 +121,22 @@ class ModelSet:
                                      "or leave that instance out of the instances file")
             self._meshes[obj_id] = load_mesh(p, units=self.units)
         return self._meshes[obj_id]
+
+    def coloured(self, obj_id: int, named_in: Path | None = None) -> ColouredMesh:
+        """The file's mesh of ``obj_id`` with its vertex colours (mm), loaded once; ``named_in``: the
+        labels file that names the object, for the error when its mesh is missing."""
+        if obj_id not in self._coloured:
+            p = self.path(obj_id)
+            if not p.is_file():
+                named = f" (named in {named_in})" if named_in is not None else ""
+                raise AutoalignError(f"{p}: not found; every obj_id of the labels{named} needs its mesh "
+                                     f"{p.name} (mm) in --models")
+            self._coloured[obj_id] = load_coloured_mesh(p)
+        return self._coloured[obj_id]
+
+    def coloured_meshes(self, obj_ids: Sequence[int], named_in: Path | None = None) -> dict[int, ColouredMesh]:
+        """:meth:`coloured` of each of ``obj_ids``, by id (in increasing order)."""
+        return {obj: self.coloured(obj, named_in) for obj in sorted(set(obj_ids))}
 
     def continuous_axes(self, obj_id: int) -> tuple[NDArray[np.float64], ...]:
         """The unit model-frame axes of ``obj_id``'s continuous symmetries (``models_info.json``)."""

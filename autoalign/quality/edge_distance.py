@@ -1,7 +1,7 @@
 """Outline-to-edge distance: a ground-truth-free measure of how well a label's outline sits on the
 photo's edges, for textured and untextured objects alike.
 
-The SIFT feature distance (:mod:`autoalign.quality.feature_distance`) needs texture: a dark or plain object
+The SIFT feature distance (:mod:`autoalign.quality.check`) needs texture: a dark or plain object
 gives too few matches to judge. An object's outline, though, is almost always an intensity edge
 in the photo. For every outline pixel of the label's rendered visible silhouette, the distance
 (px) to the nearest photo edge pixel of about the same orientation is read from a distance

@@ -1,7 +1,7 @@
 """Two sets of labels of the same photos compared without ground truth (``autoalign check --against``).
 
 Which of two labels of an object (ours and a dataset's, say) sits where the photos show it? Both
-are checked by :func:`autoalign.quality.feature_distance.check_scene` on the same images, and for every
+are checked by :func:`autoalign.quality.scene_check.check_scene` on the same images, and for every
 instance the views where both have an outline to judge are paired: the share of them where the
 first label's outline is closer to the photo's edges (:mod:`autoalign.quality.edge_distance`), and the
 mean of the paired differences (reference minus labels, px; positive: the labels are closer) with
@@ -12,7 +12,7 @@ outline look closer than it is, by the same amount for both labels of one view.
 the outline of its mask (cyan), of the labels (green) and of the reference (red) over the photo,
 for a person to judge by eye. Outlines are the rendered visible silhouettes' outline pixels
 (:func:`autoalign.quality.edge_distance.outline_pixels`), the same pixels the edge distance measures.
-Pixels: OpenCV / BOP convention, as in :mod:`autoalign.quality.feature_distance`.
+Pixels: OpenCV / BOP convention, as in :mod:`autoalign.quality.check`.
 """
 
 from __future__ import annotations
@@ -26,13 +26,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.io.bop import mask_path, photo_path, read_masks
+from autoalign.quality.check_report import CheckReport, ViewInstanceCheck
 from autoalign.quality.edge_distance import outline_pixels
-from autoalign.quality.feature_distance import (
-    CheckReport,
-    ViewInstanceCheck,
-    bootstrap_mean_ci,
-    read_photo_scaled,
-)
+from autoalign.quality.photos import read_photo_scaled
+from autoalign.quality.stats import bootstrap_mean_ci
 
 FIGURE_VIEWS = 5
 """Views per instance in :func:`comparison_figure`, spread evenly over the paired views."""

@@ -1,8 +1,8 @@
 """A picture of how well a pose fits: target masks with the silhouette outline before and after.
 
-``draw_overlay(scene, mesh, T_before, T_after, ious_after, path)`` writes a PNG grid of up to
-12 views (evenly chosen over the scene, always including the worst-fitting view after
-refinement). Each tile is cropped and zoomed around the object and shows
+``render_overlay(scene, mesh, T_before, T_after, ious_after)`` draws a grid (BGR; :func:`encode_png`
+makes it a PNG) of up to 12 views (evenly chosen over the scene, always including the worst-fitting
+view after refinement). Each tile is cropped and zoomed around the object and shows
 
 * the target mask in grey (darker grey: inside the image but not in the mask, near-black:
   outside the image),
@@ -23,7 +23,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from autoalign.errors import AutoalignError
 from autoalign.geometry.mesh import Mesh
-from autoalign.io.atomic_files import write_bytes_atomic
 from autoalign.io.bop import Scene, photo_path, read_photo
 from autoalign.quality.overlap import mask_iou
 
@@ -194,19 +193,6 @@ def encode_png(img: NDArray[np.uint8]) -> bytes:
     if not ok:  # pragma: no cover - cv2 encodes any uint8 BGR image
         raise RuntimeError("cv2.imencode failed to encode the overlay")
     return buf.tobytes()
-
-
-def draw_overlay(scene: Scene, mesh: Mesh, T_before: ArrayLike, T_after: ArrayLike, ious_after: ArrayLike,
-                 path: str | Path | None = None, rasterizer: object | None = None) -> NDArray[np.uint8]:
-    """Draw the overlay grid (see the module docstring); write it as a PNG to ``path`` if given.
-
-    The file is written atomically (temporary file in the same folder, then renamed).
-    Returns the BGR image.
-    """
-    img = render_overlay(scene, mesh, T_before, T_after, ious_after, rasterizer)
-    if path is not None:
-        write_bytes_atomic(path, encode_png(img))
-    return img
 
 
 # ------------------------------------------------------------------------------------------

@@ -41,11 +41,12 @@ from autoalign.experiments.scenes.synthetic import (
     perturb_pose,
     random_rotation,
     ring_cameras,
+    write_scene,
 )
 from autoalign.geometry.mesh import mesh_from_trimesh
 from autoalign.geometry.se3 import make_pose, rotation_angle_deg
 from autoalign.io.atomic_files import write_json_atomic, write_text_atomic
-from autoalign.io.bop import Scene, scene_gt_dict, write_scene
+from autoalign.io.bop import Scene, scene_gt_dict
 
 ENLARGE = 6.25  # 640 x 480 -> 4000 x 3000
 # The commands with the downscaling switched off: the pixel budget lifted before main runs.
@@ -89,7 +90,8 @@ def write_photos(root: Path, tm: "trimesh.Trimesh", T_wm: np.ndarray, small: Sce
     detail as a photo does."""
     import trimesh
 
-    from autoalign.quality.feature_distance import ColouredMesh, render_labels
+    from autoalign.io.models import ColouredMesh
+    from autoalign.quality.label_rendering import PlacedMesh, render_labels
 
     V, F = trimesh.remesh.subdivide_to_size(tm.vertices, tm.faces, 3.0)
     freqs, phases = rng.normal(size=(3, 6, 3)) / 6.0, rng.uniform(0.0, 2 * np.pi, (3, 6))
@@ -101,7 +103,7 @@ def write_photos(root: Path, tm: "trimesh.Trimesh", T_wm: np.ndarray, small: Sce
     (root / "scene" / "rgb").mkdir()
     for im, cam, cam_big in zip(small.image_ids, small.cameras, big):
         T_cm = cam.T_cw @ T_wm
-        r = render_labels([(0, mesh, T_cm[:3, :3], T_cm[:3, 3])], cam.K_opencv, cam.width, cam.height)
+        r = render_labels([PlacedMesh(0, mesh, T_cm[:3, :3], T_cm[:3, 3])], cam.K_opencv, cam.width, cam.height)
         floor = cv2.resize(rng.uniform(60, 200, (cam.height // 8, cam.width // 8, 3)).astype(np.float32),
                            (cam.width, cam.height), interpolation=cv2.INTER_CUBIC)
         small_bgr = np.where((r.instance >= 0)[..., None], r.rgb[..., ::-1].astype(np.float32), floor)

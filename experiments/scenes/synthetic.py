@@ -21,7 +21,7 @@ from autoalign.geometry.camera import Camera, look_at
 from autoalign.geometry.mesh import Mesh
 from autoalign.geometry.se3 import make_pose, transform_points
 from autoalign.io.atomic_files import write_json_atomic
-from autoalign.io.bop import Scene, scene_gt_of, write_scene
+from autoalign.io.bop import Scene, mask_path, scene_gt_dict, scene_gt_of
 
 MaskCorruption = Callable[[NDArray[np.bool_], np.random.Generator], NDArray[np.bool_]]
 
@@ -135,9 +135,27 @@ def make_scene(mesh: Mesh, T_wm: ArrayLike, cameras: Sequence[Camera]) -> Scene:
     return Scene(list(cameras), masks, list(range(len(cameras))))
 
 
+def write_scene(out_dir: str | Path, scene: Scene, T_wm: NDArray[np.float64], obj_id: int = 1,
+                write_masks: bool = True) -> None:
+    """Write ``scene`` as a BOP folder: ``scene_camera.json`` (OpenCV ``cam_K``), ``mask_visib`` PNGs of
+    instance 0 (0/255) and ``scene_gt.json`` of the world-from-model pose ``T_wm`` (mm)."""
+    out_dir = Path(out_dir)
+    (out_dir / "mask_visib").mkdir(parents=True, exist_ok=True)
+    cams = {}
+    for im, cam in zip(scene.image_ids, scene.cameras):
+        cams[str(im)] = {"cam_K": [float(x) for x in cam.K_opencv.ravel()],
+                         "cam_R_w2c": [float(x) for x in cam.R_w2c.ravel()],
+                         "cam_t_w2c": [float(x) for x in cam.t_w2c], "depth_scale": 1.0}
+    if write_masks:
+        for im, m in zip(scene.image_ids, scene.masks):
+            cv2.imwrite(str(mask_path(out_dir, im, 0)), (np.asarray(m) > 0.5).astype(np.uint8) * 255)
+    write_json_atomic(out_dir / "scene_camera.json", cams)
+    write_json_atomic(out_dir / "scene_gt.json", scene_gt_dict(T_wm, scene.cameras, scene.image_ids, obj_id))
+
+
 def write_synthetic_scene(out_dir: str | Path, mesh: Mesh, T_wm: ArrayLike, cameras: Sequence[Camera],
                           obj_id: int = 1) -> Scene:
-    """Ray-cast a scene and write it as a BOP folder with :func:`autoalign.io.bop.write_scene`.
+    """Ray-cast a scene and write it as a BOP folder with :func:`write_scene`.
 
     Writes ``scene_camera.json``, ``scene_gt.json`` (the true ``T_wm``) and ``mask_visib/``.
     """

@@ -83,7 +83,7 @@ def feature_distances(scene: Path, refine_dir: Path, tmp: Path,
 
     Both label sets are the scene's ``scene_gt.json`` (every object, entry k = mask k); in ours the
     group members' entries are replaced by the refined poses, so the two differ only there."""
-    from autoalign.quality.feature_distance import check_scene
+    from autoalign.quality.scene_check import check_scene
     from autoalign.quality.label_compare import compare_reports, comparison_figure
     from autoalign.quality.overlay import encode_png
 
