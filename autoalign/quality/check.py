@@ -13,8 +13,8 @@ the photo shows it gives a small one (ProgressLabeller reports 1.95 px for its l
 Large photos: a photo of more than :data:`autoalign.io.bop.MAX_IMAGE_PIXELS` is read downscaled by the
 same whole factor as ``autoalign refine`` reads its masks (area-averaged over whole blocks, its
 masks and ``cam_K`` with it, so the pixel grid stays exact), and SIFT and the edge maps see only the
-region around the labels' renderings, SIFT at most :data:`~autoalign.quality.sift.MAX_SIFT_PIXELS`: 24 views of 12-megapixel
-photos are checked in well under 2 GB (README, "Large images"). Every distance, coordinate and px
+region around the labels' renderings, SIFT at most :data:`~autoalign.quality.sift.MAX_SIFT_PIXELS`:
+24 views of 12-megapixel photos are checked in well under 2 GB (README, "Large images"). Every distance, coordinate and px
 parameter is then in the pixels of the photo as checked (``image_scale`` times the file's); a
 photo the size of LM-O's (640 x 480) is checked whole and at full size, as before.
 

@@ -3,11 +3,11 @@
 Every labelled object's mesh is placed at its label's pose (model-to-camera, mm) and one ray per
 pixel centre is cast; the nearest surface wins. Pixels: the rays go through the pixel centres of
 autoalign's internal convention (:mod:`autoalign.geometry.camera`: pixel (row i, col j) centred at
-``(j + 0.5, i + 0.5)``) with the internal intrinsics ``K_from_opencv(cam_K)``, which is the ray through
-``cam_K^-1 [j, i, 1]`` of the OpenCV / BOP convention the files use (tests/test_check.py checks it
-against ``cv2.projectPoints``). The renderer of the refine (:mod:`autoalign.rasterizers`) casts its
-rays in the same convention; this one also gives each pixel's instance, depth and colour, which
-the check needs for several objects at once.
+``(j + 0.5, i + 0.5)``) with the internal intrinsics ``K_from_opencv(cam_K)``, which is the ray
+through ``cam_K^-1 [j, i, 1]`` of the OpenCV / BOP convention the files use
+(tests/test_pixel_convention.py checks it against ``cv2.projectPoints``). The refine's renderer
+(:mod:`autoalign.rasterizers`) casts its rays in the same convention; this one also gives each
+pixel's instance, depth and colour, which the check needs for several objects at once.
 """
 
 from __future__ import annotations

@@ -23,9 +23,9 @@ across at 640x480) give three to four times more matches than at native size (me
 scene 2); keypoint positions are mapped back to the original pixels."""
 MAX_SIFT_PIXELS = 640 * 480 * UPSAMPLE ** 2
 """SIFT sees at most this many pixels (an LM-O photo enlarged ``UPSAMPLE`` times): a photo larger than
-640 x 480 is searched only in its region around the labels (:data:`autoalign.quality.check_report.CONTEXT_PX`), enlarged ``UPSAMPLE``
-times while that fits and reduced to fit otherwise (SIFT's own pyramid of a 12-megapixel photo
-enlarged twice took 11 GB and 24 s)."""
+640 x 480 is searched only in its region around the labels
+(:data:`autoalign.quality.check_report.CONTEXT_PX`), enlarged ``UPSAMPLE`` times while that fits and
+reduced to fit otherwise (SIFT's own pyramid of a 12-megapixel photo enlarged twice took 11 GB and 24 s)."""
 
 
 @dataclass
