@@ -464,7 +464,7 @@ def pytest_collection_modifyitems(session, config, items):
 
 
 def test_the_readme_counts_the_tests_that_need_the_shared_folder(tmp_path: Path) -> None:
-    """The Set up section's count of the tests skipped without ``shared/real`` is right: the test
+    """The Tests section's count of the tests skipped without ``shared/real`` is right: the test
     files that use the shared folder are collected with it absent, and their skip marks evaluated."""
     files = sorted(p for p in (REPO / "tests").glob("test_*.py") if "shared_data" in p.read_text())
     (tmp_path / "skip_marks.py").write_text(SKIP_MARKS_PLUGIN)
@@ -480,7 +480,7 @@ def test_the_readme_counts_the_tests_that_need_the_shared_folder(tmp_path: Path)
             counted[name] = counted.get(name, 0) + 1
     text = " ".join(README.read_text().split())
     m = re.search(r"(\d+) tests are skipped: (.*?) \(pytest's summary", text)
-    assert m, "the Set up section no longer says how many tests need shared/real"
+    assert m, "the Tests section no longer says how many tests need shared/real"
     said = {name: int(n) for n, name in re.findall(r"(\d+) in `tests/([\w.]+)`", m.group(2))}
     assert said == counted and int(m.group(1)) == sum(counted.values()), (m.group(0), counted)
 
