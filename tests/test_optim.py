@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from autoalign.engine.objective import Level, SilhouetteObjective
-from autoalign.engine.solver import Stop, levenberg_marquardt
+from autoalign.engine.solver import OPTIMIZERS, Stop, levenberg_marquardt
 from autoalign.experiments.scenes.synthetic import make_scene
 from autoalign.experiments.studies.protocol import ImageSetup, make_trial
 from autoalign.experiments.studies.runner import get_model
@@ -85,3 +85,21 @@ def test_stops_are_named_budget_and_caller() -> None:
     _, caller = levenberg_marquardt(obj, start, Level(0.25, 1.0, 10), callback=lambda it, ev: True)
     assert (budget.stop, caller.stop) == (Stop.BUDGET, Stop.CALLER)
     assert not budget.converged and not caller.converged
+
+
+def test_every_solver_ends_with_a_reason_and_the_final_evaluation() -> None:
+    """LM, GN and Adam run in the one loop: each names why it stopped (a :class:`Stop` with a
+    message) and hands back the evaluation at the pose it returns (Adam's included)."""
+    entry = get_model("procedural44", 3)
+    geo = make_trial(entry.mesh.centre, entry.mesh.diameter, 0, 3, 0, 12, 100.0, ImageSetup())
+    scene = make_scene(entry.mesh, geo.T_gt, geo.cameras)
+    start = apply_twist(geo.T_gt, np.array([3.0, -2.0, 1.0, *np.radians([2.0, -1.0, 1.0])]),
+                        transform_points(geo.T_gt, entry.mesh.centre[None])[0])
+    obj = SilhouetteObjective(SoftSilhouetteRasterizer(entry.mesh), scene)
+    level = Level(0.25, 1.0, 3)
+    for name, solve in OPTIMIZERS.items():
+        T, trace = solve(obj, start, level)
+        assert isinstance(trace.stop, Stop) and trace.stop.message, name
+        assert trace.final is not None and trace.start is not None, name
+        assert np.isclose(trace.final.value, obj.evaluate(T, level, weights=trace.final.weights).value, rtol=1e-12), name
+    assert all(s.message for s in Stop)

@@ -516,8 +516,8 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
     iou_after = _hard_ious_of(final_ev, scene)
     timings["report"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
-    history = [{"scale": lv.scale, "sigma": lv.sigma, "values": tr.values, "poses": tr.poses, "iterations": tr.iterations,
-                "converged": tr.converged, "stop": tr.stop} for lv, tr in best.path]
+    history = [{"scale": lv.scale, "sigma": lv.sigma, "values": tr.values, "poses": tr.iterates, "iterations": tr.iterations,
+                "converged": tr.converged, "stop": tr.stop.value} for lv, tr in best.path]
     return RefineResult(
         T_wm=best.T_final, T_init=best.T_init, iou_before=iou_before, iou_after=iou_after,
         iterations=sum(tr.iterations for _, tr in best.path), renders=obj.renders, timings=timings,

@@ -1,18 +1,26 @@
-"""Pose optimisers over the 6-D twist ``(v [mm], w [rad])`` about the object centre.
+"""One least-squares loop, :func:`minimise`, with the step rules it can take (in the spirit of
+optimistix: a solver is a step rule with its own state; the loop, stopping and bookkeeping are shared).
 
-* :func:`levenberg_marquardt` — damped Gauss-Newton (second order), the default.
-* :func:`gauss_newton` — undamped Gauss-Newton with step halving.
-* :func:`adam` — the first-order reference.
+* :class:`LevenbergMarquardt` — damped Gauss-Newton (second order), the default; its damping is its state.
+* :class:`GaussNewton` — undamped Gauss-Newton with step halving.
+* :class:`Adam` — the first-order reference.
 
-Each runs one :class:`~autoalign.engine.objective.Level` of the coarse-to-fine schedule and stops when a step
-moves the object by less than ``tol_mm`` and ``tol_deg`` (Levenberg-Marquardt also, before trying
-it, when the next step's predicted decrease is below ``ftol`` of the objective).
+A :class:`Problem` says how to evaluate an iterate, its normal equations and how a step moves it:
+:class:`PoseProblem` is one object's twist ``(v [mm], w [rad])`` about its centre at one
+:class:`~autoalign.engine.objective.Level` of the coarse-to-fine schedule; the joint multi-object
+solve (:mod:`autoalign.scene.joint`) is another. Every solve ends with a :class:`Stop` reason
+and the evaluation at the returned iterate (``Trace.final``).
+
+For one object a solve stops when a step moves the object by less than ``tol_mm`` and ``tol_deg``
+(Levenberg-Marquardt also, before trying it, when the next step's predicted decrease is below
+``ftol`` of the objective).
 """
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Generic, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,45 +34,293 @@ FTOL = 1e-3
 COARSE_MM = 0.1
 COARSE_DEG = 0.05
 
-
-class Stop:
-    """Why an optimiser stopped (``Trace.stop``)."""
-
-    SMALL_STEP = "small step"  # the last step moved the object by less than the tolerances
-    FTOL = "predicted gain below ftol"  # LM: the next step would gain less than ftol of the objective
-    DAMPING_LIMIT = "damping limit"  # LM: no damping up to 1e8 gave a decrease
-    NO_DECREASE = "no decrease"  # GN: twelve halvings of the step gave no decrease
-    BUDGET = "iteration budget"  # the level's max_iters ran out
-    CALLER = "stopped by caller"  # the callback returned True
-    CONVERGED = (SMALL_STEP, FTOL, DAMPING_LIMIT, NO_DECREASE)
+X = TypeVar("X")  # an iterate (a pose, or every pose and camera of a scene)
+P = TypeVar("P")  # the evaluation of an iterate
 
 
-@dataclass
-class Trace:
-    """What an optimiser did: objective per accepted iteration, step sizes, renders, why it stopped."""
+class Stop(enum.Enum):
+    """Why a solve stopped (``Trace.stop``); the value is the short name written in reports."""
 
-    values: list[float] = field(default_factory=list)
-    step_mm: list[float] = field(default_factory=list)
-    step_deg: list[float] = field(default_factory=list)
-    poses: list[NDArray[np.float64]] = field(default_factory=list)
-    iterations: int = 0
-    stop: str = Stop.BUDGET
-    final: Evaluation | None = None  # the objective at the returned pose (LM and GN)
-    start: Evaluation | None = None  # the objective at the starting pose (LM and GN)
+    SMALL_STEP = "small step"
+    FTOL = "predicted gain below ftol"
+    DAMPING_LIMIT = "damping limit"
+    NO_DECREASE = "no decrease"
+    BUDGET = "iteration budget"
+    CALLER = "stopped by caller"
+
+    @property
+    def message(self) -> str:
+        """One sentence saying what happened."""
+        return _MESSAGES[self]
 
     @property
     def converged(self) -> bool:
-        """Stopped because nothing worth a step was left at this level (not by budget or caller)."""
-        return self.stop in Stop.CONVERGED
+        """Nothing worth a step was left (not stopped by the budget or the caller)."""
+        return self not in (Stop.BUDGET, Stop.CALLER)
+
+
+_MESSAGES = {
+    Stop.SMALL_STEP: "the last step moved the object by less than the tolerances",
+    Stop.FTOL: "the next step was predicted to gain less than ftol of the objective",
+    Stop.DAMPING_LIMIT: "Levenberg-Marquardt: no damping up to 1e8 gave a decrease",
+    Stop.NO_DECREASE: "Gauss-Newton: twelve halvings of the step gave no decrease",
+    Stop.BUDGET: "the iteration budget ran out",
+    Stop.CALLER: "the callback asked to stop",
+}
+
+
+class Problem(Protocol[X, P]):
+    """What :func:`minimise` needs of a least-squares problem over iterates ``X`` evaluated as ``P``."""
+
+    def evaluate(self, x: X, weights_of: P | None = None) -> P:
+        """The objective at ``x``, with the (IRLS) weights of ``weights_of`` if given, else its own."""
+
+    def reweighted(self, point: P) -> P:
+        """The same evaluation with weights re-computed from its own fit (no new render)."""
+
+    def value(self, point: P) -> float:
+        """The objective's value (what a step must not increase)."""
+
+    def normal_equations(self, x: X, point: P) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The Gauss-Newton matrix ``H`` and the gradient ``g`` at ``x``."""
+
+    def retract(self, x: X, step: NDArray[np.float64]) -> X:
+        """``x`` moved by ``step``."""
+
+    def reject(self, x: X) -> None:
+        """Undo what evaluating a rejected trial changed; ``x`` is the iterate kept."""
+
+    def small(self, step: NDArray[np.float64]) -> bool:
+        """Whether ``step`` is below the tolerances (the solve has converged)."""
+
+
+@dataclass
+class Move(Generic[X, P]):
+    """A step taken: the new iterate, its evaluation, the step, and the evaluation the iteration
+    reports (the new one, except for Adam: the one its step came from)."""
+
+    x: X
+    point: P
+    step: NDArray[np.float64]
+    reported: P
+
+
+@dataclass
+class Outcome(Generic[X, P]):
+    """What a step rule did in one iteration: a :class:`Move` or the :class:`Stop` reason, and how
+    many trial iterates it evaluated."""
+
+    tries: int
+    move: Move[X, P] | None = None
+    stop: Stop | None = None
+
+
+class StepRule(Protocol):
+    """A solver: ``init()`` its state, ``step(...)`` one iteration of it."""
+
+    def init(self) -> object: ...
+
+    def step(self, problem: Problem, x: object, point: object, state: object) -> Outcome: ...
+
+
+@dataclass
+class Trace(Generic[X, P]):
+    """What a solve did: objective and iterate per accepted iteration, iterations, why it stopped."""
+
+    values: list[float] = field(default_factory=list)
+    iterates: list[X] = field(default_factory=list)
+    iterations: int = 0  # iterations that evaluated at least one trial iterate
+    tries: int = 0  # trial iterates evaluated
+    stop: Stop = Stop.BUDGET
+    start: P | None = None  # the objective at the starting iterate
+    final: P | None = None  # the objective at the returned iterate
+
+    @property
+    def converged(self) -> bool:
+        """Stopped because nothing worth a step was left (not by budget or caller)."""
+        return self.stop.converged
+
+
+@dataclass
+class Solution(Generic[X, P]):
+    """The iterate a solve returned and its :class:`Trace` (stop reason, start and final evaluation)."""
+
+    x: X
+    trace: Trace[X, P]
+
+    @property
+    def stop(self) -> Stop:
+        return self.trace.stop
 
 
 Callback = Callable[[int, Evaluation], "bool | None"]
 """``callback(iteration, evaluation)`` after each accepted iteration; returning ``True`` stops the
-optimiser there (the trace is then not ``converged``)."""
+solve there (the trace is then not ``converged``)."""
 
 
-def _centre(objective: SilhouetteObjective, T: NDArray[np.float64]) -> NDArray[np.float64]:
-    return transform_points(T, objective.centre_m[None])[0]
+def minimise(problem: Problem[X, P], x0: X, rule: StepRule, max_iters: int,
+             callback: Callable[[int, P], bool | None] | None = None) -> Solution[X, P]:
+    """Take ``rule``'s steps on ``problem`` from ``x0`` for at most ``max_iters`` iterations.
+
+    Robust weights are re-computed from each accepted fit (IRLS) without a new render. It stops
+    when the rule finds no step worth taking, after a step ``problem.small`` calls converged, when
+    ``callback`` returns True, or when the budget runs out.
+    """
+    point = problem.evaluate(x0)
+    trace: Trace[X, P] = Trace(start=point)
+    state = rule.init()
+    x = x0
+    for it in range(max_iters):
+        out = rule.step(problem, x, point, state)
+        trace.tries += out.tries
+        if out.tries:
+            trace.iterations = it + 1
+        if out.move is None:
+            trace.stop = out.stop or Stop.BUDGET
+            break
+        x, point = out.move.x, out.move.point
+        trace.values.append(problem.value(out.move.reported))
+        trace.iterates.append(x)
+        if callback and callback(it, out.move.reported):
+            trace.stop = Stop.CALLER
+            break
+        if problem.small(out.move.step):
+            trace.stop = Stop.SMALL_STEP
+            break
+    trace.final = point
+    return Solution(x, trace)
+
+
+def clip_step(step: NDArray[np.float64], max_mm: float, max_deg: float) -> NDArray[np.float64]:
+    """``step`` (a twist, mm and rad) shortened to at most ``max_mm`` and ``max_deg`` (a trust region for far starts)."""
+    step = step.copy()
+    n_t = np.linalg.norm(step[:3])
+    if n_t > max_mm:
+        step[:3] *= max_mm / n_t
+    n_r = np.degrees(np.linalg.norm(step[3:]))
+    if n_r > max_deg:
+        step[3:] *= max_deg / n_r
+    return step
+
+
+@dataclass
+class Damping:
+    """Levenberg-Marquardt's state: the damping ``lam``, kept from one iteration to the next."""
+
+    lam: float
+
+
+@dataclass
+class LevenbergMarquardt:
+    """Levenberg-Marquardt on the weighted Gauss-Newton system ``(H + lam D) step = -g``, ``D = diag(H)``.
+
+    A rejected step raises ``lam`` by ``growth``, an accepted one lowers it three-fold. Steps are
+    clipped to ``max_step`` (mm, degrees; None: not clipped). It stops, without trying it (nothing
+    is rendered), at a step whose decrease predicted by the Gauss-Newton model is below ``ftol`` of
+    the objective (MINPACK's ``ftol`` test) or that ``problem.small`` calls converged. ``D``'s
+    entries are at least ``floor`` (times ``trace(H)`` if ``floor_of_trace``).
+    """
+
+    ftol: float
+    lam: float = 1e-3
+    growth: float = 4.0
+    max_step: tuple[float, float] | None = (30.0, 20.0)
+    floor: float = 1e-12
+    floor_of_trace: bool = True
+
+    def init(self) -> Damping:
+        return Damping(self.lam)
+
+    def step(self, problem: Problem[X, P], x: X, point: P, state: Damping) -> Outcome[X, P]:
+        H, g = problem.normal_equations(x, point)
+        value = problem.value(point)
+        floor = self.floor * max(np.trace(H), 1e-30) if self.floor_of_trace else self.floor
+        D = np.diag(np.maximum(np.diag(H), floor))
+        tries = 0
+        while state.lam <= 1e8:
+            try:
+                step = -np.linalg.solve(H + state.lam * D, g)
+            except np.linalg.LinAlgError:
+                step = np.zeros_like(g)
+            if self.max_step is not None:
+                step = clip_step(step, *self.max_step)
+            predicted = -(g @ step + 0.5 * step @ H @ step)
+            if predicted < self.ftol * value:
+                return Outcome(tries, stop=Stop.FTOL)
+            if problem.small(step):
+                return Outcome(tries, stop=Stop.SMALL_STEP)
+            x_new = problem.retract(x, step)
+            trial = problem.evaluate(x_new, point)
+            tries += 1
+            if problem.value(trial) <= value:
+                state.lam = max(state.lam / 3.0, 1e-7)
+                new = problem.reweighted(trial)
+                return Outcome(tries, Move(x_new, new, step, new))
+            problem.reject(x)
+            state.lam *= self.growth
+        return Outcome(tries, stop=Stop.DAMPING_LIMIT)
+
+
+@dataclass
+class GaussNewton:
+    """Gauss-Newton steps ``H step = -g`` (least squares, clipped to ``max_step`` mm and degrees) with
+    step halving (up to ``halvings`` times) until the objective does not increase."""
+
+    max_step: tuple[float, float] = (30.0, 20.0)
+    halvings: int = 12
+
+    def init(self) -> None:
+        return None
+
+    def step(self, problem: Problem[X, P], x: X, point: P, state: None) -> Outcome[X, P]:
+        H, g = problem.normal_equations(x, point)
+        step = clip_step(-np.linalg.lstsq(H, g, rcond=1e-10)[0], *self.max_step)
+        for k in range(self.halvings):
+            x_new = problem.retract(x, step)
+            trial = problem.evaluate(x_new, point)
+            if problem.value(trial) <= problem.value(point):
+                new = problem.reweighted(trial)
+                return Outcome(k + 1, Move(x_new, new, step, new))
+            problem.reject(x)
+            step = step / 2.0
+        return Outcome(self.halvings, stop=Stop.NO_DECREASE)
+
+
+@dataclass
+class Moments:
+    """Adam's state: the first and second moments of the gradient and the steps taken."""
+
+    m: NDArray[np.float64]
+    v: NDArray[np.float64]
+    taken: int = 0
+
+
+@dataclass
+class Adam:
+    """Adam on the twist with per-block learning rates (mm and degrees per step), decayed geometrically.
+    Every step is taken; the iteration reports the evaluation its step came from."""
+
+    lr_mm: float = 1.0
+    lr_deg: float = 1.0
+    betas: tuple[float, float] = (0.9, 0.999)
+    decay: float = 0.97
+
+    def init(self) -> Moments:
+        return Moments(np.zeros(6), np.zeros(6))
+
+    def step(self, problem: Problem[X, P], x: X, point: P, state: Moments) -> Outcome[X, P]:
+        g = problem.normal_equations(x, point)[1]
+        b1, b2 = self.betas
+        it = state.taken
+        state.m = b1 * state.m + (1 - b1) * g
+        state.v = b2 * state.v + (1 - b2) * g * g
+        mh = state.m / (1 - b1 ** (it + 1))
+        vh = state.v / (1 - b2 ** (it + 1))
+        lr = np.array([self.lr_mm] * 3 + [np.radians(self.lr_deg)] * 3)
+        step = -lr * (self.decay ** it) * mh / (np.sqrt(vh) + 1e-12)
+        state.taken += 1
+        x_new = problem.retract(x, step)
+        return Outcome(1, Move(x_new, problem.evaluate(x_new), step, point))
 
 
 def level_tolerance(level: Level, tol_mm: float, tol_deg: float) -> tuple[float, float]:
@@ -79,52 +335,53 @@ def level_tolerance(level: Level, tol_mm: float, tol_deg: float) -> tuple[float,
     return max(tol_mm, COARSE_MM / level.scale), max(tol_deg, COARSE_DEG / level.scale)
 
 
-def _small(step: NDArray[np.float64], tol_mm: float, tol_deg: float) -> bool:
-    return bool(np.linalg.norm(step[:3]) < tol_mm and np.degrees(np.linalg.norm(step[3:])) < tol_deg)
+def level_ftol(level: Level, ftol: float = FTOL) -> float:
+    """``ftol`` at ``level``: ``Level.ftol`` if it sets one, else ``ftol / scale`` below full resolution
+    (where the next level goes on)."""
+    return level.ftol if level.ftol is not None else ftol / min(level.scale, 1.0)
 
 
-def _record(trace: Trace, ev: Evaluation, T: NDArray[np.float64], step: NDArray[np.float64]) -> None:
-    trace.values.append(ev.value)
-    trace.step_mm.append(float(np.linalg.norm(step[:3])))
-    trace.step_deg.append(float(np.degrees(np.linalg.norm(step[3:]))))
-    trace.poses.append(T.copy())
+@dataclass
+class PoseProblem:
+    """One object's pose (4x4 world from model, mm) at ``level``; steps are twists about its centre."""
+
+    objective: SilhouetteObjective
+    level: Level
+    tol_mm: float = TOL_MM
+    tol_deg: float = TOL_DEG
+
+    def __post_init__(self) -> None:
+        self.tol_mm, self.tol_deg = level_tolerance(self.level, self.tol_mm, self.tol_deg)
+
+    def evaluate(self, T: NDArray[np.float64], weights_of: Evaluation | None = None) -> Evaluation:
+        return self.objective.evaluate(T, self.level, weights=None if weights_of is None else weights_of.weights)
+
+    def reweighted(self, ev: Evaluation) -> Evaluation:
+        return self.objective.reweighted(ev)
+
+    def value(self, ev: Evaluation) -> float:
+        return ev.value
+
+    def normal_equations(self, T: NDArray[np.float64], ev: Evaluation) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        return ev.gn, ev.grad
+
+    def retract(self, T: NDArray[np.float64], step: NDArray[np.float64]) -> NDArray[np.float64]:
+        return apply_twist(T, step, transform_points(T, self.objective.centre_m[None])[0])
+
+    def reject(self, T: NDArray[np.float64]) -> None:
+        pass
+
+    def small(self, step: NDArray[np.float64]) -> bool:
+        return bool(np.linalg.norm(step[:3]) < self.tol_mm and np.degrees(np.linalg.norm(step[3:])) < self.tol_deg)
 
 
-Search = Callable[[NDArray[np.float64], Evaluation, float, float],
-                  "tuple[NDArray[np.float64], Evaluation, NDArray[np.float64]] | str"]
+PoseSolve = Callable[..., "tuple[NDArray[np.float64], Trace]"]
 
 
-def _descend(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level, search: Search,
-             tol_mm: float, tol_deg: float, callback: Callback | None) -> tuple[NDArray[np.float64], Trace]:
-    """The outer loop shared by the second-order methods.
-
-    ``search(T, ev, tol_mm, tol_deg)`` returns ``(T_new, ev_new, step)`` for a step that does
-    not increase the objective (with the view weights of ``ev``), or the :class:`Stop` reason
-    when there is none worth trying. Robust weights are then re-computed from the new fit (IRLS) without a new render.
-    An iteration is one call that tried at least one step (rendered).
-    """
-    trace = Trace()
-    tol_mm, tol_deg = level_tolerance(level, tol_mm, tol_deg)
-    ev = trace.start = objective.evaluate(T, level)
-    for it in range(level.max_iters):
-        renders = objective.renders
-        found = search(T, ev, tol_mm, tol_deg)
-        if objective.renders > renders:  # an iteration tries at least one step
-            trace.iterations = it + 1
-        if isinstance(found, str):  # no descent worth a step left at this resolution
-            trace.stop = found
-            break
-        T, ev_new, step = found
-        ev = objective.reweighted(ev_new)
-        _record(trace, ev, T, step)
-        if callback and callback(it, ev):
-            trace.stop = Stop.CALLER
-            break
-        if _small(step, tol_mm, tol_deg):
-            trace.stop = Stop.SMALL_STEP
-            break
-    trace.final = ev
-    return T, trace
+def _solve_pose(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level, rule: StepRule,
+                tol_mm: float, tol_deg: float, callback: Callback | None) -> tuple[NDArray[np.float64], Trace]:
+    sol = minimise(PoseProblem(objective, level, tol_mm, tol_deg), T, rule, level.max_iters, callback)
+    return sol.x, sol.trace
 
 
 def levenberg_marquardt(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level,
@@ -132,108 +389,32 @@ def levenberg_marquardt(objective: SilhouetteObjective, T: NDArray[np.float64], 
                         callback: Callback | None = None, damping_growth: float = 4.0,
                         max_step_mm: float = 30.0, max_step_deg: float = 20.0,
                         ftol: float = FTOL) -> tuple[NDArray[np.float64], Trace]:
-    """Levenberg-Marquardt on the weighted Gauss-Newton system ``(H + lam diag(H)) step = -g``.
+    """:class:`LevenbergMarquardt` on one object's pose at ``level``.
 
-    A rejected step raises the damping ``lam`` by ``damping_growth``, an accepted one lowers it
-    three-fold. Steps are clipped to ``max_step_mm`` / ``max_step_deg`` (a trust region for far starts).
-
-    Besides the step-size test it stops, without trying it (nothing is rendered), at a step whose
-    decrease predicted by the Gauss-Newton model is below ``ftol`` of the objective (MINPACK's
-    ``ftol`` test; ``ftol / scale`` below full resolution, where the next level goes on, unless
-    the level sets its own ``Level.ftol``). The
-    objective's own noise (outlines discretised in pixels) is then larger than what the model can
-    still gain: without this rule LM kept rendering sub-micrometre steps at full resolution, each
-    gaining 1e-5 of the objective, without a better pose. What it leaves is a few hundredths of
-    a pixel in the images, mostly in directions the silhouettes barely see (a flashlight's small
-    button turning it about its axis by a few tenths of a degree).
+    ``ftol`` is :func:`level_ftol`'s. The objective's own noise (outlines discretised in pixels) is
+    then larger than what the model can still gain: without this rule LM kept rendering
+    sub-micrometre steps at full resolution, each gaining 1e-5 of the objective, without a better
+    pose. What it leaves is a few hundredths of a pixel in the images, mostly in directions the
+    silhouettes barely see (a flashlight's small button turning it about its axis by a few tenths
+    of a degree).
     """
-    state = {"lam": lam}
-    f_tol = level.ftol if level.ftol is not None else ftol / min(level.scale, 1.0)
-
-    def search(T: NDArray[np.float64], ev: Evaluation, tol_mm: float, tol_deg: float):
-        H, g = ev.gn, ev.grad
-        D = np.diag(np.maximum(np.diag(H), 1e-12 * max(np.trace(H), 1e-30)))
-        while state["lam"] <= 1e8:
-            try:
-                step = -np.linalg.solve(H + state["lam"] * D, g)
-            except np.linalg.LinAlgError:
-                step = np.zeros(6)
-            step = _clip_step(step, max_step_mm, max_step_deg)
-            predicted = -(g @ step + 0.5 * step @ H @ step)
-            if predicted < f_tol * ev.value:
-                return Stop.FTOL
-            if _small(step, tol_mm, tol_deg):
-                return Stop.SMALL_STEP
-            T_new = apply_twist(T, step, _centre(objective, T))
-            ev_new = objective.evaluate(T_new, level, weights=ev.weights)
-            if ev_new.value <= ev.value:
-                state["lam"] = max(state["lam"] / 3.0, 1e-7)
-                return T_new, ev_new, step
-            state["lam"] *= damping_growth
-        return Stop.DAMPING_LIMIT
-
-    return _descend(objective, T, level, search, tol_mm, tol_deg, callback)
+    rule = LevenbergMarquardt(level_ftol(level, ftol), lam, damping_growth, (max_step_mm, max_step_deg))
+    return _solve_pose(objective, T, level, rule, tol_mm, tol_deg, callback)
 
 
 def gauss_newton(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level,
-                 tol_mm: float = TOL_MM, tol_deg: float = TOL_DEG,
-                 callback: Callback | None = None) -> tuple[NDArray[np.float64], Trace]:
-    """Gauss-Newton steps ``H step = -g`` with step halving (up to 12 times) until the objective decreases."""
-
-    def search(T: NDArray[np.float64], ev: Evaluation, tol_mm: float, tol_deg: float):
-        step = _clip_step(-np.linalg.lstsq(ev.gn, ev.grad, rcond=1e-10)[0], 30.0, 20.0)
-        for _ in range(12):
-            T_new = apply_twist(T, step, _centre(objective, T))
-            ev_new = objective.evaluate(T_new, level, weights=ev.weights)
-            if ev_new.value <= ev.value:
-                return T_new, ev_new, step
-            step = step / 2.0
-        return Stop.NO_DECREASE
-
-    return _descend(objective, T, level, search, tol_mm, tol_deg, callback)
+                 tol_mm: float = TOL_MM, tol_deg: float = TOL_DEG, callback: Callback | None = None,
+                 max_step_mm: float = 30.0, max_step_deg: float = 20.0) -> tuple[NDArray[np.float64], Trace]:
+    """:class:`GaussNewton` on one object's pose at ``level``."""
+    return _solve_pose(objective, T, level, GaussNewton((max_step_mm, max_step_deg)), tol_mm, tol_deg, callback)
 
 
 def adam(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level,
          lr_mm: float = 1.0, lr_deg: float = 1.0, betas: tuple[float, float] = (0.9, 0.999),
          decay: float = 0.97, tol_mm: float = TOL_MM, tol_deg: float = TOL_DEG,
          callback: Callback | None = None) -> tuple[NDArray[np.float64], Trace]:
-    """Adam on the twist with per-block learning rates (mm and degrees per step), decayed geometrically."""
-    trace = Trace()
-    tol_mm, tol_deg = level_tolerance(level, tol_mm, tol_deg)
-    m = np.zeros(6)
-    v = np.zeros(6)
-    lr = np.array([lr_mm] * 3 + [np.radians(lr_deg)] * 3)
-    for it in range(level.max_iters):
-        ev = objective.evaluate(T, level)
-        if it == 0:
-            trace.start = ev
-        g = ev.grad
-        m = betas[0] * m + (1 - betas[0]) * g
-        v = betas[1] * v + (1 - betas[1]) * g * g
-        mh = m / (1 - betas[0] ** (it + 1))
-        vh = v / (1 - betas[1] ** (it + 1))
-        step = -lr * (decay ** it) * mh / (np.sqrt(vh) + 1e-12)
-        T = apply_twist(T, step, _centre(objective, T))
-        trace.iterations = it + 1
-        _record(trace, ev, T, step)
-        if callback and callback(it, ev):
-            trace.stop = Stop.CALLER
-            break
-        if _small(step, tol_mm, tol_deg):
-            trace.stop = Stop.SMALL_STEP
-            break
-    return T, trace
+    """:class:`Adam` on one object's pose at ``level``."""
+    return _solve_pose(objective, T, level, Adam(lr_mm, lr_deg, betas, decay), tol_mm, tol_deg, callback)
 
 
-def _clip_step(step: NDArray[np.float64], max_mm: float, max_deg: float) -> NDArray[np.float64]:
-    step = step.copy()
-    n_t = np.linalg.norm(step[:3])
-    if n_t > max_mm:
-        step[:3] *= max_mm / n_t
-    n_r = np.degrees(np.linalg.norm(step[3:]))
-    if n_r > max_deg:
-        step[3:] *= max_deg / n_r
-    return step
-
-
-OPTIMIZERS = {"lm": levenberg_marquardt, "gn": gauss_newton, "adam": adam}
+OPTIMIZERS: dict[str, PoseSolve] = {"lm": levenberg_marquardt, "gn": gauss_newton, "adam": adam}

@@ -16,14 +16,14 @@ system. The covariance of each pose is the cluster-robust sandwich with one clus
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.engine.objective import Level
-from autoalign.engine.solver import FTOL
+from autoalign.engine.solver import FTOL, LevenbergMarquardt, Stop, minimise
 from autoalign.engine.uncertainty import Uncertainty, sandwich, uncertainty_of
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.mesh import Mesh
@@ -57,6 +57,7 @@ class JointRefinement:
         scale: the factor the scene grew by about the world origin (1.0 without ``with_scale``),
             and ``scale_sigma`` its standard deviation (relative, from the same covariance as the
             poses; 0 without it).
+        stop: why the solve stopped.
     """
 
     poses: list[NDArray[np.float64]]
@@ -72,6 +73,152 @@ class JointRefinement:
     view_misfit_after: dict[int, float]
     scale: float = 1.0
     scale_sigma: float = 0.0
+    stop: Stop = Stop.BUDGET
+
+
+@dataclass
+class JointState:
+    """An iterate of the joint solve: the poses (world from model, mm), the camera corrections
+    ``E`` by image id with their stacked twists ``d`` (for the prior), and the scene's scale."""
+
+    poses: list[NDArray[np.float64]]
+    E: dict[int, NDArray[np.float64]]
+    d: NDArray[np.float64]
+    S: float = 1.0
+
+
+@dataclass
+class JointPoint:
+    """The fit of a :class:`JointState`; its value is the weighted loss plus the camera prior."""
+
+    ev: JointEvaluation
+    prior_cost: float = 0.0
+
+    @property
+    def value(self) -> float:
+        return self.ev.value + self.prior_cost
+
+
+@dataclass
+class JointProblem:
+    """The joint solve as a :class:`~autoalign.engine.solver.Problem`: unknowns a twist per
+    instance, per camera (``with_cameras``) and the log scale (``with_scale``), in that order."""
+
+    objective: OcclusionObjective
+    level: Level
+    centres_m: list[NDArray[np.float64]]
+    p: NDArray[np.float64]  # the instances' centre (world, mm), the cameras' pivot
+    prior: CameraPrior
+    with_cameras: bool
+    with_scale: bool
+    scale_from: list[bool] | None
+    _using: JointState | None = field(default=None, repr=False)  # the iterate whose cameras are in use
+
+    def __post_init__(self) -> None:
+        self.ids = self.objective.image_ids
+        self.base = dict(zip(self.ids, self.objective.cameras))
+        self.n_obj = len(self.centres_m)
+        self.cams = slice(6 * self.n_obj, 6 * (self.n_obj + (len(self.ids) if self.with_cameras else 0)))
+        self.n = self.cams.stop + (1 if self.with_scale else 0)
+
+    def start(self, poses: list[NDArray[np.float64]]) -> JointState:
+        """The iterate at ``poses`` with the given cameras and scale (those in use)."""
+        x = JointState([np.asarray(T, dtype=np.float64).copy() for T in poses], {im: np.eye(4) for im in self.ids},
+                       np.zeros(self.cams.stop - self.cams.start))
+        self._using = x
+        return x
+
+    def cameras_of(self, x: JointState) -> dict[int, Camera]:
+        """The cameras of ``x`` by image id: the given ones grown by ``x.S`` and corrected by ``x.E``."""
+        grown = scaled_cameras(self.base, x.S) if self.with_scale else self.base
+        out = {}
+        for im in self.ids:
+            T_cw = grown[im].T_cw @ x.E[im]
+            out[im] = replace(self.base[im], R_w2c=T_cw[:3, :3], t_w2c=T_cw[:3, 3])
+        return out
+
+    def _use(self, x: JointState) -> None:
+        if self.with_cameras or self.with_scale:
+            self.objective.use_cameras(self.cameras_of(x))
+        self._using = x
+
+    def evaluate(self, x: JointState, weights_of: JointPoint | None = None) -> JointPoint:
+        if x is not self._using:
+            self._use(x)
+        ev = self.objective.evaluate(x.poses, self.level, None if weights_of is None else weights_of.ev.weights)
+        return JointPoint(ev, self.prior.cost(x.d) if self.with_cameras else 0.0)
+
+    def reweighted(self, point: JointPoint) -> JointPoint:
+        return replace(point, ev=point.ev.reweighted())
+
+    def value(self, point: JointPoint) -> float:
+        return point.value
+
+    def reject(self, x: JointState) -> None:
+        self._use(x)
+
+    def small(self, step: NDArray[np.float64]) -> bool:
+        return False  # the joint solve stops on the predicted gain (ftol) only
+
+    def retract(self, x: JointState, step: NDArray[np.float64]) -> JointState:
+        poses = [apply_twist(T, step[6 * k:6 * k + 6], transform_points(T, self.centres_m[k][None])[0])
+                 for k, T in enumerate(x.poses)]
+        E, d, S = x.E, x.d, x.S
+        if self.with_cameras:
+            E = {im: apply_twist(np.eye(4), -step[self.cams][6 * c:6 * c + 6], self.p) @ x.E[im]
+                 for c, im in enumerate(self.ids)}
+            d = x.d + step[self.cams]
+        if self.with_scale:  # the instances grow with the scene
+            grow = float(np.exp(step[-1]))
+            S = x.S * grow
+            poses = [grown_pose(T, c, grow) for T, c in zip(poses, self.centres_m)]
+        return JointState(poses, E, d, S)
+
+    def normal_equations(self, x: JointState, point: JointPoint) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``H`` and ``g`` of the loss plus the camera prior."""
+        H, g, _ = self.system(x, point)
+        if self.with_cameras:
+            Hp, gp = self.prior.system(x.d)
+            H[self.cams, self.cams] += Hp
+            g[self.cams] += gp
+        return H, g
+
+    def system(self, x: JointState, point: JointPoint) -> tuple[NDArray, NDArray, NDArray]:
+        """The loss's H (n, n), g (n,) and the weighted gradient of each view (V, n)."""
+        n, ev, objective = self.n, point.ev, self.objective
+        H, g = np.zeros((n, n)), np.zeros(n)
+        per_view = np.zeros((len(self.ids), n))
+        centres_w = [transform_points(T, c[None])[0] for T, c in zip(x.poses, self.centres_m)]
+        for i, fits in enumerate(ev.fits):
+            for k, (f, w) in enumerate(zip(fits, ev.weights[i])):
+                gv = int(objective.views_of[i][k])
+                idx = (6 * f.instances[:, None] + np.arange(6)[None]).ravel()
+                Hl, gl = f.gn, f.grad
+                if self.with_cameras or self.with_scale:  # object twists = B @ (theirs, the camera's, the scale)
+                    B, idx = self._chain(f.instances, centres_w, objective.cameras[gv].centre, gv, idx)
+                    Hl, gl = B.T @ f.gn @ B, B.T @ f.grad
+                H[np.ix_(idx, idx)] += w * Hl
+                g[idx] += w * gl
+                per_view[gv, idx] += w * gl
+        return H, g, per_view
+
+    def _chain(self, instances: NDArray[np.int_], centres_w: list[NDArray[np.float64]], C_v: NDArray[np.float64],
+               gv: int, idx: NDArray[np.int_]) -> tuple[NDArray[np.float64], NDArray[np.int_]]:
+        """``B`` with the view's object twists ``= B @`` the unknowns at the returned indices."""
+        m, n_scale = len(instances), self.n - self.cams.stop
+        B = np.zeros((6 * m, 6 * m + 6 * self.with_cameras + n_scale))
+        B[:, :6 * m] = np.eye(6 * m)
+        parts = [idx]
+        for a, inst in enumerate(instances):
+            if self.with_cameras:
+                B[6 * a:6 * a + 6, 6 * m:6 * m + 6] = camera_block(centres_w[inst], self.p)
+            if self.with_scale and (self.scale_from is None or self.scale_from[inst]):
+                B[6 * a:6 * a + 3, -1] = centres_w[inst] - C_v
+        if self.with_cameras:
+            parts.append(self.cams.start + 6 * gv + np.arange(6))
+        if self.with_scale:
+            parts.append(np.array([self.n - 1]))
+        return B, np.concatenate(parts)
 
 
 def refine_jointly(found: InstanceScenes, meshes: list[Mesh], poses: list[NDArray[np.float64]],
@@ -82,124 +229,45 @@ def refine_jointly(found: InstanceScenes, meshes: list[Mesh], poses: list[NDArra
     mm), occlusion-aware, with ``with_cameras`` a correction of every camera and with ``with_scale``
     the scene's scale (``robust``: views weighted by their fit, as in
     :class:`~autoalign.engine.refine.RefineOptions`). ``scale_from`` (per instance, default all): the
-    instances whose fit decides the scale; the others move with it but do not pull it."""
+    instances whose fit decides the scale; the others move with it but do not pull it.
+    Levenberg-Marquardt (:func:`~autoalign.engine.solver.minimise`) with IRLS view weights."""
     rasts = [SoftSilhouetteRasterizer(m if fine_faces is None else m.simplified(fine_faces)) for m in meshes]
     objective = OcclusionObjective(found, rasts, robust)
-    ids = objective.image_ids
-    base = dict(zip(ids, objective.cameras))
-    prior = prior or CameraPrior()
-    n_obj, n_cam = len(meshes), (len(ids) if with_cameras else 0)
-    n_scale = 1 if with_scale else 0
-    n = 6 * (n_obj + n_cam) + n_scale
     centres_m = [r.mesh.centre for r in rasts]
     p = np.mean([transform_points(T, c[None])[0] for T, c in zip(poses, centres_m)], axis=0)
-
-    def cameras_of(E: dict[int, NDArray[np.float64]], S: float) -> dict[int, Camera]:
-        grown = scaled_cameras(base, S) if with_scale else base
-        out = {}
-        for im in ids:
-            T_cw = grown[im].T_cw @ E[im]
-            out[im] = replace(base[im], R_w2c=T_cw[:3, :3], t_w2c=T_cw[:3, 3])
-        return out
-
-    def system(Ts: list[NDArray[np.float64]], ev: JointEvaluation) -> tuple[NDArray, NDArray, NDArray]:
-        """H (n, n), g (n,) and the weighted gradient of each view (V, n)."""
-        H, g = np.zeros((n, n)), np.zeros(n)
-        per_view = np.zeros((len(ids), n))
-        centres_w = [transform_points(T, c[None])[0] for T, c in zip(Ts, centres_m)]
-        for i, fits in enumerate(ev.fits):
-            for k, (f, w) in enumerate(zip(fits, ev.weights[i])):
-                gv = int(objective.views_of[i][k])
-                if with_cameras or with_scale:  # object twists = B @ (theirs, the camera's, the scale)
-                    m = len(f.instances)
-                    B = np.zeros((6 * m, 6 * m + 6 * with_cameras + n_scale))
-                    B[:, :6 * m] = np.eye(6 * m)
-                    idx = [(6 * f.instances[:, None] + np.arange(6)[None]).ravel()]
-                    C_v = objective.cameras[gv].centre
-                    for a, inst in enumerate(f.instances):
-                        if with_cameras:
-                            B[6 * a:6 * a + 6, 6 * m:6 * m + 6] = camera_block(centres_w[inst], p)
-                        if with_scale and (scale_from is None or scale_from[inst]):
-                            B[6 * a:6 * a + 3, -1] = centres_w[inst] - C_v
-                    if with_cameras:
-                        idx.append(6 * (n_obj + gv) + np.arange(6))
-                    if with_scale:
-                        idx.append(np.array([n - 1]))
-                    idx = np.concatenate(idx)
-                    Hl, gl = B.T @ f.gn @ B, B.T @ f.grad
-                else:
-                    idx = (6 * f.instances[:, None] + np.arange(6)[None]).ravel()
-                    Hl, gl = f.gn, f.grad
-                H[np.ix_(idx, idx)] += w * Hl
-                g[idx] += w * gl
-                per_view[gv, idx] += w * gl
-        return H, g, per_view
-
-    Ts = [np.asarray(T, dtype=np.float64).copy() for T in poses]
-    E = {im: np.eye(4) for im in ids}
-    S = 1.0
-    d = np.zeros(6 * n_cam)  # the camera corrections as twists, for the prior
-    ev = objective.evaluate(Ts, level)
-    loss_before, misfit_before = ev.value, _misfit(objective, ev)
-    value = ev.value + (prior.cost(d) if with_cameras else 0.0)
-    lam, iterations = 1e-3, 0
+    problem = JointProblem(objective, level, centres_m, p, prior or CameraPrior(), with_cameras, with_scale, scale_from)
+    x0 = problem.start(poses)
     stage = "joint refinement" + (" with cameras" if with_cameras else "") + (" and scale" if with_scale else "")
-    H, g, per_view = system(Ts, ev)
-    for it in range(level.max_iters):
-        if progress is not None:
-            progress(stage, it, level.max_iters)
-        if with_cameras:
-            Hp, gp = prior.system(d)
-            H[6 * n_obj:n - n_scale, 6 * n_obj:n - n_scale] += Hp
-            g[6 * n_obj:n - n_scale] += gp
-        D = np.diag(np.maximum(np.diag(H), 1e-12))
-        accepted = False
-        while lam <= 1e8:
-            step = -np.linalg.solve(H + lam * D, g)
-            predicted = -(g @ step + 0.5 * step @ H @ step)
-            if predicted < (level.ftol if level.ftol is not None else FTOL) * value:
-                break
-            iterations += 1
-            Ts_new = [apply_twist(T, step[6 * k:6 * k + 6], transform_points(T, centres_m[k][None])[0])
-                      for k, T in enumerate(Ts)]
-            E_new, d_new, S_new = E, d, S
-            if with_cameras:
-                E_new = {im: apply_twist(np.eye(4), -step[6 * (n_obj + c):6 * (n_obj + c) + 6], p) @ E[im]
-                         for c, im in enumerate(ids)}
-                d_new = d + step[6 * n_obj:n - n_scale]
-            if with_scale:  # the instances grow with the scene
-                grow = float(np.exp(step[-1]))
-                S_new = S * grow
-                Ts_new = [grown_pose(T, c, grow) for T, c in zip(Ts_new, centres_m)]
-            if with_cameras or with_scale:
-                objective.use_cameras(cameras_of(E_new, S_new))
-            ev_new = objective.evaluate(Ts_new, level, ev.weights)
-            v_new = ev_new.value + (prior.cost(d_new) if with_cameras else 0.0)
-            if v_new <= value:
-                Ts, E, d, S, lam = Ts_new, E_new, d_new, S_new, max(lam / 3.0, 1e-7)
-                ev = ev_new.reweighted()
-                value = ev.value + (prior.cost(d) if with_cameras else 0.0)
-                accepted = True
-                break
-            if with_cameras or with_scale:
-                objective.use_cameras(cameras_of(E, S))
-            lam *= 4.0
-        H, g, per_view = system(Ts, ev)
-        if not accepted:
-            break
+
+    def report(it: int, point: JointPoint) -> None:
+        if progress is not None and it + 1 < level.max_iters:
+            progress(stage, it + 1, level.max_iters)
+
+    if progress is not None:
+        progress(stage, 0, level.max_iters)
+    rule = LevenbergMarquardt(level.ftol if level.ftol is not None else FTOL, max_step=None, floor_of_trace=False)
+    sol = minimise(problem, x0, rule, level.max_iters, report)
     if progress is not None:
         progress(stage, level.max_iters, level.max_iters)
-    if with_cameras:
-        H[6 * n_obj:n - n_scale, 6 * n_obj:n - n_scale] += prior.system(d)[0]
+    x, start, final = sol.x, sol.trace.start, sol.trace.final
+    cov, unc = _covariances(problem, x, final)
+    return JointRefinement(x.poses, final.ev, unc, problem.ids, problem.cameras_of(x), x.E, start.ev.value,
+                           final.value, sol.trace.tries, _misfit(objective, start.ev), _misfit(objective, final.ev),
+                           x.S, float(np.sqrt(max(cov[-1, -1], 0.0))) if with_scale else 0.0, sol.stop)
+
+
+def _covariances(problem: JointProblem, x: JointState, point: JointPoint) -> tuple[NDArray[np.float64], list[Uncertainty]]:
+    """The cluster-robust covariance of all unknowns (one cluster per view) and each pose's uncertainty."""
+    H, _, per_view = problem.system(x, point)
+    if problem.with_cameras:
+        H[problem.cams, problem.cams] += problem.prior.system(x.d)[0]
     H_inv = np.linalg.pinv(H, rcond=1e-12, hermitian=True)
     cov = sandwich(H_inv, per_view)
-    n_band = sum(f.n_band for fits in ev.fits for f in fits)
-    naive = H_inv * (2.0 * ev.value / max(n_band - n, 1))
+    n_band = sum(f.n_band for fits in point.ev.fits for f in fits)
+    naive = H_inv * (2.0 * point.ev.value / max(n_band - problem.n, 1))
     unc = [uncertainty_of(cov[6 * k:6 * k + 6, 6 * k:6 * k + 6], naive[6 * k:6 * k + 6, 6 * k:6 * k + 6], T[:3, :3])
-           for k, T in enumerate(Ts)]
-    return JointRefinement(Ts, ev, unc, ids, cameras_of(E, S), E, loss_before, value, iterations,
-                           misfit_before, _misfit(objective, ev), S,
-                           float(np.sqrt(max(cov[-1, -1], 0.0))) if with_scale else 0.0)
+           for k, T in enumerate(x.poses)]
+    return cov, unc
 
 
 def _misfit(objective: OcclusionObjective, ev: JointEvaluation) -> dict[int, float]:
