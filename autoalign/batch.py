@@ -7,7 +7,7 @@
   each finished record as one JSON line (flushed and fsynced), so that an interrupted run resumes
   where it stopped. Failed tasks go to ``OUT/errors.jsonl`` and run again next time. One
   progress bar (tqdm).
-* :func:`refine_many` runs ``autoalign refine`` on many scene folders with the same options,
+* :func:`refine_many` refines many scene folders (:mod:`autoalign.refine_folder`) with the same options,
   each into ``OUT/<scene folder name>``, one record per scene in ``OUT/batch.jsonl`` (its exit
   status: 0 ok, 3 written but flagged); a scene with a mistake in its inputs (status 2) goes to
   ``OUT/errors.jsonl`` with its one-line error and runs again next time, and a scene interrupted
@@ -29,11 +29,13 @@ import gc
 import json
 import os
 import signal
+import threading
 import time
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
@@ -41,7 +43,7 @@ from typing import Any
 
 from autoalign.errors import AutoalignError
 from autoalign.io.atomic_files import write_bytes_atomic
-from autoalign.runtime.interrupts import Interrupts, held_signals
+from autoalign.runtime.interrupts import Interrupts, held_signals, is_command_process
 
 Task = dict[str, Any]
 TaskFn = Callable[[Task], dict[str, Any]]
@@ -376,23 +378,50 @@ def read_scene_list(path: str | Path) -> list[tuple[Path, list[str]]]:
 
 
 def refine_task(task: Task) -> dict[str, Any]:
-    """One scene of a batch: ``autoalign refine SCENE ARGS --out OUT --quiet`` in this process."""
-    import contextlib
-    import io
+    """One scene of a batch, in this process: :func:`~autoalign.refine_folder.refine_folder` of
+    ``task["scene"]`` with its options (``task["args"]``, as after ``autoalign refine SCENE``) into
+    ``task["out"]``. Its record: the status (0 ok, 3 written but flagged), seconds and its last
+    warnings; a mistake in the scene's inputs gives ``{"id", "error"}`` instead (not done, so that
+    it runs again once fixed); Ctrl-C raises ``KeyboardInterrupt`` (not done; :func:`run_tasks` stops)."""
+    from autoalign.refine_folder import refine_folder
+    from autoalign.refine_job import FolderJob, RunLog, one_line
 
-    from autoalign.cli.main import main
-
-    err = io.StringIO()
+    log = RunLog()
     t0 = time.perf_counter()
-    with contextlib.redirect_stderr(err):
-        status = main(["refine", task["scene"], *task["args"], "--out", task["out"], "--quiet"])
-    messages = err.getvalue().strip().splitlines()
-    if status == 130:  # interrupted in this process: not done; the whole run stops (run_tasks)
-        raise KeyboardInterrupt
-    if status == 2:  # a mistake in this scene's inputs: not done, so that it runs again once fixed
-        return {"id": task["id"], "error": messages[-1] if messages else "exit status 2"}
-    return {"id": task["id"], "scene": task["scene"], "out": task["out"], "status": int(status),
+    try:
+        with _interrupts_of_a_task(), log.python_warnings():
+            outcome = refine_folder(FolderJob.from_argv(task["scene"], task["args"], task["out"]), log)
+    except AutoalignError as exc:
+        return {"id": task["id"], "error": f"autoalign: error: {one_line(str(exc))}"}
+    messages = [f"autoalign: warning: {m}" for m in [*log.warnings, *outcome.notes]]
+    if Interrupts.seen:  # after the outputs were written: they are complete, the run stops before the next task
+        messages.append("autoalign: Ctrl-C came after the outputs were written; they are complete")
+    return {"id": task["id"], "scene": task["scene"], "out": task["out"], "status": int(outcome.status),
             "seconds": time.perf_counter() - t0, "messages": messages[-5:]}
+
+
+@contextmanager
+def _interrupts_of_a_task() -> Iterator[None]:
+    """Ctrl-C during a task run in this process's main thread, as in the ``autoalign`` command
+    (:class:`~autoalign.runtime.interrupts.Interrupts`): raised as ``KeyboardInterrupt`` (also when
+    a library turned it into another exception) until the task's outputs are written, only
+    remembered after that. Elsewhere (a worker, which ignores it; another thread) nothing changes."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, Interrupts.handler)
+    try:
+        if Interrupts.seen and is_command_process():  # pressed while the command's modules loaded
+            raise KeyboardInterrupt
+        Interrupts.seen = False
+        try:
+            yield
+        except BaseException as exc:
+            if Interrupts.seen and not isinstance(exc, KeyboardInterrupt):
+                raise KeyboardInterrupt from exc
+            raise
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def refine_many(scenes: Sequence[str | Path], args: Sequence[str], out_dir: str | Path, workers: int = 1,

@@ -1,8 +1,8 @@
 """``autoalign check``: a ground-truth-free quality check of 6-DoF pose labels (feature and edge distance).
 
 Start-up imports only the standard library and :mod:`autoalign.errors`; numpy, OpenCV, open3d and
-trimesh load inside :func:`run_check` (nothing here imports torch or jax). Helpers of
-:mod:`autoalign.cli.main` are imported inside the functions, since that module registers this one.
+trimesh load inside :func:`run_check` (nothing here imports torch or jax). Its helpers come from
+:mod:`autoalign.cli.common` (:mod:`autoalign.cli.main` registers this module, never the other way round).
 """
 
 from __future__ import annotations
@@ -72,7 +72,7 @@ exit status: 0 the check ran (whatever the numbers), 2 a mistake in the command 
 
 def add_check_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``autoalign check`` on an argparse subparsers object."""
-    from autoalign.cli.main import HelpFormatter, positive_int
+    from autoalign.cli.common import HelpFormatter, positive_int
 
     p = subparsers.add_parser(
         "check", help="check pose labels against the photos without ground truth (SIFT feature distance, edge "
@@ -155,7 +155,8 @@ def run_check(args: argparse.Namespace) -> int:
     from autoalign.runtime.interrupts import preload
 
     preload("numpy", "cv2", "open3d", "trimesh")  # extension modules, with Ctrl-C deferred
-    from autoalign.cli.main import ProgressBar, prepare_out_dir, remove_empty_dirs, warn
+    from autoalign.cli.common import ProgressBar, warn
+    from autoalign.io.out_folder import prepare_out_dir, remove_empty_dirs
 
     _keep_freed_memory()
 

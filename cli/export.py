@@ -1,8 +1,8 @@
 """``autoalign export``: a BOP scene folder with labels for every frame, from poses (e.g. refine's).
 
 Start-up imports only the standard library and :mod:`autoalign.errors`; the rest loads inside
-:func:`run_export`. Helpers of :mod:`autoalign.cli.main` are imported inside the functions, since
-that module registers this one.
+:func:`run_export`. Its helpers come from
+:mod:`autoalign.cli.common` (:mod:`autoalign.cli.main` registers this module, never the other way round).
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ OUTPUT_NAMES = ("scene_gt.json", "scene_gt_info.json", "scene_camera.json", "sce
 
 def add_export_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``autoalign export`` on an argparse subparsers object."""
-    from autoalign.cli.main import HelpFormatter, add_units_argument
+    from autoalign.cli.common import HelpFormatter, add_units_argument
 
     p = subparsers.add_parser("export", help="write BOP labels (poses, masks, boxes; COCO) for every frame of a scene",
                               description=_DESCRIPTION, epilog=_EPILOG, formatter_class=HelpFormatter)
@@ -80,9 +80,10 @@ def run_export(args: argparse.Namespace) -> int:
     """``autoalign export``: see ``autoalign export --help``."""
 
     preload("numpy", "cv2", "trimesh")  # extension modules, with Ctrl-C deferred
-    from autoalign.cli.main import ProgressBar, write_folder
+    from autoalign.cli.common import ProgressBar
     from autoalign.io.export import cameras_to_export, export_dataset
     from autoalign.io.models import ModelSet
+    from autoalign.io.out_folder import write_folder
 
     t0 = time.perf_counter()
     scene, labels_path, out = Path(args.scene), Path(args.labels), Path(args.out)

@@ -8,8 +8,6 @@ Start-up imports only the standard library and :mod:`autoalign.errors`; the rest
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -49,7 +47,7 @@ and models folders only. Stop it with Ctrl-C (exit status 130); nothing accepted
 
 def add_label_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``autoalign label`` on an argparse subparsers object."""
-    from autoalign.cli.main import HelpFormatter, add_units_argument
+    from autoalign.cli.common import HelpFormatter, add_units_argument
 
     p = subparsers.add_parser("label", help="a local web page to place, check and correct objects, then export",
                               description=_DESCRIPTION, epilog=_EPILOG, formatter_class=HelpFormatter)
@@ -74,15 +72,17 @@ def run_label(args: argparse.Namespace) -> int:
     from autoalign.runtime.interrupts import preload
 
     preload("numpy", "cv2", "trimesh")  # extension modules, with Ctrl-C deferred
+    from autoalign.cli.common import warn
     from autoalign.cli.label_http import LabelServer
-    from autoalign.cli.main import check_outputs_spare_inputs, warn
     from autoalign.io.bop import check_scene_dir
     from autoalign.io.models import ModelSet
+    from autoalign.io.out_folder import check_outputs_spare_inputs
     from autoalign.label.session import LabelSession
+    from autoalign.refine_job import OUTPUT_FILES
 
     scene = check_scene_dir(args.scene)
     out = Path(args.out) if args.out else scene / "label_session"
-    check_outputs_spare_inputs(out, scene, [Path(args.instances)] if args.instances else [])
+    check_outputs_spare_inputs(out, scene, [Path(args.instances)] if args.instances else [], OUTPUT_FILES)
     if not 0 <= args.port < 65536:
         raise AutoalignError(f"--port {args.port}: a port is 0 (any free one) to 65535")
     models = ModelSet.read(args.models, args.units)
@@ -116,23 +116,3 @@ def run_label(args: argparse.Namespace) -> int:
         if viewer is not None:
             viewer.stop()
     return 0
-
-
-def export_session(session: Any, progress: Any = None) -> Path:
-    """The page's "Export": the accepted labels to ``OUT_DIR/scene_gt.json`` (with the decisions in
-    ``labels.json``), then ``autoalign export`` of them into ``OUT_DIR/bop`` (all or none)."""
-    from autoalign.cli.main import write_folder
-    from autoalign.io.atomic_files import write_files_atomic
-    from autoalign.io.export import cameras_to_export, export_dataset
-
-    out = session.out_dir
-    labels_path = out / "scene_gt.json"
-    out.mkdir(parents=True, exist_ok=True)
-    write_files_atomic({labels_path: json.dumps(session.accepted_labels(), indent=1).encode(),
-                        out / "labels.json": json.dumps(session.decisions(), indent=1).encode()})
-    cameras = cameras_to_export(session.scene_dir, labels_path, None)
-    dataset = export_dataset(session.scene_dir, labels_path, session.models, cameras, progress=progress)
-    write_folder(out / "bop", dataset.files)
-    print(f"autoalign label: exported {dataset.entries} entries in {dataset.images} images to {out / 'bop'}",
-          file=sys.stdout, flush=True)
-    return out / "bop"

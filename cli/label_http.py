@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import json
 import mimetypes
+import sys
 import threading
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -231,8 +232,6 @@ class LabelHandler(BaseHTTPRequestHandler):
         if path == "/api/refine_all":
             return self._job("refine together", None, s.refine_together)
         if path == "/api/export":
-            from autoalign.cli.label import export_session
-
             def export(progress: Progress) -> None:
                 export_session(s, progress)
 
@@ -257,3 +256,23 @@ class LabelHandler(BaseHTTPRequestHandler):
         if not s.start_job(kind, index, work):
             return self._error(HTTPStatus.CONFLICT, f"busy with {s.job.kind}; wait for it to finish")
         self._json({"job": s.job.number}, HTTPStatus.ACCEPTED)
+
+
+def export_session(session: Any, progress: Any = None) -> Path:
+    """The page's "Export": the accepted labels to ``OUT_DIR/scene_gt.json`` (with the decisions in
+    ``labels.json``), then ``autoalign export`` of them into ``OUT_DIR/bop`` (all or none)."""
+    from autoalign.io.atomic_files import write_files_atomic
+    from autoalign.io.export import cameras_to_export, export_dataset
+    from autoalign.io.out_folder import write_folder
+
+    out = session.out_dir
+    labels_path = out / "scene_gt.json"
+    out.mkdir(parents=True, exist_ok=True)
+    write_files_atomic({labels_path: json.dumps(session.accepted_labels(), indent=1).encode(),
+                        out / "labels.json": json.dumps(session.decisions(), indent=1).encode()})
+    cameras = cameras_to_export(session.scene_dir, labels_path, None)
+    dataset = export_dataset(session.scene_dir, labels_path, session.models, cameras, progress=progress)
+    write_folder(out / "bop", dataset.files)
+    print(f"autoalign label: exported {dataset.entries} entries in {dataset.images} images to {out / 'bop'}",
+          file=sys.stdout, flush=True)
+    return out / "bop"

@@ -1,8 +1,11 @@
-"""The ``autoalign`` command line: ``autoalign refine`` (and ``autoalign simulate`` when available).
+"""The ``autoalign`` command line: ``autoalign refine`` (and ``autoalign simulate`` when available);
+the other subcommands register from their own modules. ``refine`` parses its arguments, calls
+:func:`autoalign.refine_folder.refine_folder` (or :func:`autoalign.batch.refine_many`) and prints.
 
-Start-up is kept fast: only the standard library and :mod:`autoalign.errors` are imported here;
-numpy, OpenCV, trimesh and the rendering backend (mitsuba/drjit) load inside the command, after
-the arguments are parsed. Nothing on this path imports torch or jax.
+Start-up is kept fast: only the standard library and autoalign modules that need nothing more
+(:mod:`autoalign.cli.common`, :mod:`autoalign.refine_job`, :mod:`autoalign.errors`, ...) load
+here; numpy, OpenCV, trimesh and the rendering backend (mitsuba/drjit) load inside the command,
+after the arguments are parsed. Nothing on this path imports torch or jax.
 
 Exit status: 0 success; 2 a usage or input mistake (one line ``autoalign: error: ...`` on stderr,
 no output files); 3 outputs written but a pose is in doubt (its verdict, or an instance's, is
@@ -12,53 +15,45 @@ check or failed); 130 interrupted; anything else is a bug (Python prints a trace
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
 import signal
 import sys
-import tempfile
 import time
-import warnings
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from autoalign import __version__
+from autoalign.cli.common import (
+    EXIT_FLAGGED,
+    EXIT_INTERRUPTED,
+    EXIT_USAGE,
+    LOG,
+    PROG,
+    WARNINGS,
+    HelpFormatter,
+    Parser,
+    ProgressBar,
+    UsageError,
+    add_units_argument,
+    error,
+    nonnegative_int,
+    positive_int,
+    warn,
+)
 from autoalign.errors import AutoalignError
-from autoalign.io.atomic_files import write_files_atomic
-from autoalign.runtime.interrupts import Interrupts, is_command_process, preload
-
-PROG = "autoalign"
-OUTPUT_FILES = ("scene_gt.json", "refine.json", "overlay.png", "scene_camera.json")
-"""Every file ``refine`` may write (``scene_camera.json`` only with ``--refine-cameras`` or a solved scale)."""
-LOW_WEIGHT = 0.3  # a view whose robust weight (mean 1) ends below this ...
-LOW_WEIGHT_MAX_IOU = 0.95  # ... and whose IoU after stays below this is reported as disagreeing
-POOR_FIT_IOU = 0.7  # a mean IoU after refinement below this is reported as a poor fit
-EXIT_FLAGGED = 3
-"""Exit status when every output was written but a pose's verdict is ``check`` or ``failed``."""
-
-
-class UsageError(Exception):
-    """A command-line syntax mistake (unknown option, missing argument, bad value)."""
-
-
-class _Parser(argparse.ArgumentParser):
-    """An ArgumentParser whose errors become :class:`UsageError` (one line) instead of usage + exit."""
-
-    def error(self, message: str) -> None:  # type: ignore[override]
-        raise UsageError(f"{message} (see '{self.prog} --help')")
-
-
-class HelpFormatter(argparse.RawDescriptionHelpFormatter):
-    def __init__(self, prog: str) -> None:
-        super().__init__(prog, max_help_position=30, width=min(100, max(60, _terminal_width())))
-
-
-def _terminal_width() -> int:
-    try:
-        return os.get_terminal_size().columns
-    except OSError:
-        return 100
-
+from autoalign.io.out_folder import write_outputs  # noqa: F401 - where the tests and scripts found it
+from autoalign.refine_folder import refine_folder
+from autoalign.refine_job import (
+    LOSSES,
+    OPTIMIZERS,
+    OUTPUT_FILES,  # noqa: F401 - the tests read it here
+    FolderJob,
+    FolderOutcome,
+)
+from autoalign.runtime.interrupts import Interrupts, is_command_process
 
 # ------------------------------------------------------------------------------------------
 # Argument parsing
@@ -120,32 +115,6 @@ exit status: 0 success, 2 a mistake in the command or the input files (one line 
 3 outputs written but the verdict on a pose is check or failed (reasons on stderr), 130 interrupted."""
 
 
-def _int_at_least(minimum: int) -> Callable[[str], int]:
-    """An argparse type: a whole number of at least ``minimum``."""
-
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-        if v < minimum:
-            raise argparse.ArgumentTypeError(f"{text!r} must be {minimum} or more")
-        return v
-
-    return parse
-
-
-positive_int = _int_at_least(1)
-nonnegative_int = _int_at_least(0)
-
-
-def add_units_argument(group: Any) -> None:
-    """``--units mm|m`` of the mesh files, the same for every command that reads models."""
-    group.add_argument("--units", choices=("mm", "m"), default=None,
-                       help="units of the mesh files; default mm, and a mesh under 2 units across is then refused "
-                            "as probably metres (pass --units m to scale it by 1000, --units mm to keep it)")
-
-
 def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``autoalign refine`` on an argparse subparsers object."""
     p = subparsers.add_parser(
@@ -191,10 +160,10 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
                          "the position is found along "
                          "that ray and the orientation is searched")
     alg = p.add_argument_group("algorithm")
-    alg.add_argument("--loss", choices=("l2", "bce", "iou", "dice"), default="l2",
+    alg.add_argument("--loss", choices=LOSSES, default="l2",
                      help="silhouette loss per view: l2 = squared pixel differences (default, fastest to "
                           "converge), bce = binary cross-entropy, iou = 1 - soft IoU, dice = 1 - soft Dice")
-    alg.add_argument("--optimizer", choices=("lm", "gn", "adam"), default="lm",
+    alg.add_argument("--optimizer", choices=OPTIMIZERS, default="lm",
                      help="lm = Levenberg-Marquardt (default), gn = Gauss-Newton, adam = first-order Adam")
     alg.add_argument("--refine-cameras", action="store_true",
                      help="with --models: also correct every camera's pose (a silhouette bundle adjustment: "
@@ -230,10 +199,10 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``autoalign`` parser with its subcommands (``simulate`` only if its module imports)."""
-    parser = _Parser(prog=PROG, description=_MAIN_DESCRIPTION, formatter_class=HelpFormatter,
+    parser = Parser(prog=PROG, description=_MAIN_DESCRIPTION, formatter_class=HelpFormatter,
                      epilog="Run 'autoalign COMMAND --help' for the options of a command.")
     parser.add_argument("--version", action="version", version=f"{PROG} {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands", parser_class=_Parser)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands", parser_class=Parser)
     add_refine_parser(sub)
     from autoalign.cli.check import add_check_parser
     from autoalign.cli.export import add_export_parser
@@ -245,7 +214,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_export_parser(sub)
     add_label_parser(sub)
     try:
-        from autoalign.experiments.studies import simulate
+        # by its full name, which sys.modules answers first (a test puts a stand-in there)
+        simulate = importlib.import_module("autoalign.experiments.studies.simulate")
     except ImportError:
         simulate = None
     if simulate is not None and hasattr(simulate, "add_simulate_parser"):
@@ -256,27 +226,6 @@ def build_parser() -> argparse.ArgumentParser:
 # ------------------------------------------------------------------------------------------
 # Entry point
 # ------------------------------------------------------------------------------------------
-
-def one_line(text: str) -> str:
-    return " ".join(str(text).split())
-
-
-def _error(message: str) -> None:
-    print(f"{PROG}: error: {one_line(message)}", file=sys.stderr, flush=True)
-
-
-WARNINGS: list[str] = []  # the warnings of the current run (also written to refine.json)
-
-
-def warn(message: str) -> None:
-    WARNINGS.append(one_line(message))
-    print(f"{PROG}: warning: {one_line(message)}", file=sys.stderr, flush=True)
-
-
-def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
-                  file: Any = None, line: str | None = None) -> None:
-    warn(str(message))
-
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 ok, 2 usage/input error, 130 interrupted)."""
@@ -290,16 +239,16 @@ def main(argv: list[str] | None = None) -> int:
     if Interrupts.seen and is_command_process():  # pressed while the command's modules loaded
         signal.signal(signal.SIGINT, previous)
         print(f"\n{PROG}: interrupted", file=sys.stderr, flush=True)
-        return 130
+        return EXIT_INTERRUPTED
     Interrupts.seen = False
     try:
         status = _main(argv)
     except KeyboardInterrupt:  # pressed while the parser's modules loaded, before the command's own handling
         print(f"\n{PROG}: interrupted", file=sys.stderr, flush=True)
-        return 130
+        return EXIT_INTERRUPTED
     finally:
         signal.signal(signal.SIGINT, previous)
-    if Interrupts.seen and status != 130:  # Ctrl-C after Interrupts.outputs_written()
+    if Interrupts.seen and status != EXIT_INTERRUPTED:  # Ctrl-C after Interrupts.outputs_written()
         print(f"\n{PROG}: Ctrl-C came after the outputs were written; they are complete", file=sys.stderr, flush=True)
     return status
 
@@ -310,211 +259,32 @@ def _main(argv: list[str] | None) -> int:
     try:
         args = parser.parse_args(argv)
     except UsageError as exc:
-        _error(str(exc))
-        return 2
+        error(str(exc))
+        return EXIT_USAGE
     except SystemExit as exc:  # --help, --version
         return exc.code if isinstance(exc.code, int) else 0
     func: Callable[[argparse.Namespace], int] | None = getattr(args, "func", None)
     if func is None:
-        _error("no command given; use e.g. 'autoalign refine SCENE_DIR --model MESH --out OUT_DIR' "
+        error("no command given; use e.g. 'autoalign refine SCENE_DIR --model MESH --out OUT_DIR' "
                "(see 'autoalign --help')")
-        return 2
-    with warnings.catch_warnings():
-        warnings.showwarning = _show_warning
-        warnings.filterwarnings("ignore", category=RuntimeWarning, module=r"trimesh(\.|$)")
+        return EXIT_USAGE
+    with LOG.python_warnings():
         try:
             return int(func(args) or 0)
         except BaseException as exc:
             if not (Interrupts.seen or isinstance(exc, KeyboardInterrupt)):
                 if isinstance(exc, (AutoalignError, UsageError)):
-                    _error(str(exc))
-                    return 2
+                    error(str(exc))
+                    return EXIT_USAGE
                 raise
             # also an error raised because a library turned the interrupt into another exception
             print(f"\n{PROG}: interrupted", file=sys.stderr, flush=True)
-            return 130
+            return EXIT_INTERRUPTED
 
 
 # ------------------------------------------------------------------------------------------
 # autoalign refine
 # ------------------------------------------------------------------------------------------
-
-def prepare_out_dir(out: Path) -> list[Path]:
-    """Create ``out`` if needed and check a file can be written there.
-
-    Returns the folders that were created (outermost first) so that a failed run can remove them.
-    Raises :class:`AutoalignError` naming ``--out`` when that is impossible.
-    """
-    fix = "choose a folder you can write to with --out"
-    if out.exists() and not out.is_dir():
-        raise AutoalignError(f"--out {out}: exists and is not a folder; {fix}")
-    missing: list[Path] = []
-    p = out.absolute()
-    while not p.exists() and p != p.parent:
-        missing.append(p)
-        p = p.parent
-    if not p.is_dir():
-        raise AutoalignError(f"--out {out}: cannot create it because {p} is a file, not a folder; {fix}")
-    created = list(reversed(missing))
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".autoalign-probe-", suffix=".tmp", dir=out)
-        try:
-            os.write(fd, b"autoalign")
-        finally:
-            os.close(fd)
-            os.unlink(probe)
-    except OSError as exc:
-        remove_empty_dirs(created)
-        raise AutoalignError(f"--out {out}: cannot create or write to the folder ({exc.strerror or exc}); {fix}") from None
-    except BaseException:  # Ctrl-C half-way: leave nothing behind
-        remove_empty_dirs(created)
-        raise
-    return created
-
-
-def remove_empty_dirs(created: list[Path]) -> None:
-    """Remove the folders this run created (innermost first), if they are still empty."""
-    for d in reversed(created):
-        try:
-            d.rmdir()
-        except OSError:
-            break
-
-
-def write_outputs(out: Path, files: dict[str, bytes]) -> dict[str, Path]:
-    """Write every ``name -> bytes`` into ``out`` atomically (:mod:`autoalign.io.atomic_files`): all or none.
-
-    If any write fails no temporary file is left behind and no target file is touched. Nothing is
-    written after Ctrl-C (see :class:`Interrupts`).
-    """
-    Interrupts.check()
-    try:
-        write_files_atomic({out / name: data for name, data in files.items()})
-    except OSError as exc:
-        raise AutoalignError(f"--out {out}: cannot write the outputs ({exc.strerror or exc}); "
-                             "free some space or choose another --out") from None
-    return {name: out / name for name in files}
-
-
-def write_folder(out: Path, files: dict[str, bytes]) -> None:
-    """Write ``files`` (names relative to ``out``, subfolders allowed) with :func:`write_outputs`;
-    the folders this creates are removed again if the writing fails."""
-    created = prepare_out_dir(out)
-    for sub in sorted({name.rsplit("/", 1)[0] for name in files if "/" in name}):
-        if not (out / sub).is_dir():
-            (out / sub).mkdir(parents=True)
-            created.append(out / sub)
-    try:
-        write_outputs(out, files)
-    except BaseException:
-        remove_empty_dirs(created)
-        raise
-
-
-class ProgressBar:
-    """``progress(stage, done, total)`` callback drawing one tqdm bar on stderr."""
-
-    def __init__(self, enabled: bool) -> None:
-        self.enabled = enabled
-        self.bar: Any = None
-        self.stage: str | None = None
-        self.last = -1
-
-    def start(self, desc: str) -> None:
-        if self.enabled:
-            from tqdm import tqdm
-
-            self.bar = tqdm(total=None, desc=desc, file=sys.stderr, leave=False, dynamic_ncols=True,
-                            unit="it", bar_format="{desc}: {elapsed}")
-            self.stage = desc
-
-    def __call__(self, stage: str, done: int, total: int) -> None:
-        Interrupts.check()
-        if not self.enabled:
-            return
-        if self.bar is None:
-            self.start(stage)
-        if stage != self.stage or done < self.last or self.bar.total != total:
-            self.bar.bar_format = None
-            self.bar.set_description(stage, refresh=False)
-            self.bar.reset(total=total)
-            self.stage, self.last = stage, 0
-        self.bar.update(max(0, done - self.bar.n))
-        self.last = done
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-            self.bar = None
-
-
-def _floats(a: Any) -> Any:
-    """Nested lists of plain floats (NaN/inf as None) from an array-like."""
-    import numpy as np
-
-    arr = np.asarray(a, dtype=np.float64)
-    if arr.ndim == 0:
-        v = float(arr)
-        return v if np.isfinite(v) else None
-    return [_floats(x) for x in arr]
-
-
-def jsonable(obj: Any) -> Any:
-    """Plain JSON types from numpy scalars/arrays, dataclasses, tuples and paths (NaN as None)."""
-    import dataclasses
-    import math
-
-    import numpy as np
-
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _floats(obj) if obj.dtype.kind == "f" else obj.tolist()
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, (int, np.integer)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(float(obj)) else None
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
-
-
-def uncertainty_record(u: Any) -> dict[str, Any] | None:
-    """The ``uncertainty`` entry of ``refine.json`` (see :mod:`autoalign.engine.uncertainty`)."""
-    if u is None:
-        return None
-    return {"sigma_mm": u.sigma_mm, "sigma_deg": u.sigma_deg, "axes": "along / about the model's x, y, z",
-            "weakly_observed": list(u.weak), "covariance": u.covariance,
-            "covariance_of": "twist (v mm, w rad) in the model's axes, about the model centre; cluster-robust "
-                             "(one cluster per view) Gauss-Newton sandwich",
-            "naive_sigma_mm": u.naive_sigma_mm, "naive_sigma_deg": u.naive_sigma_deg}
-
-
-def pose_record(T: Any) -> dict[str, Any]:
-    import numpy as np
-
-    T = np.asarray(T, dtype=np.float64)
-    return {"T_wm": _floats(T), "R": _floats(T[:3, :3].ravel()), "t": _floats(T[:3, 3])}
-
-
-def _all_cameras(scene: Any) -> tuple[list[Any], list[int]]:
-    """Cameras and ids of every image in scene_camera.json (also those skipped for lack of a mask)."""
-    from autoalign.geometry.camera import Camera
-    from autoalign.io.bop import read_cameras
-
-    if scene.path is None:
-        return list(scene.cameras), list(scene.image_ids)
-    W, H = scene.cameras[0].width, scene.cameras[0].height
-    cams = read_cameras(Path(scene.path))
-    return [Camera.from_opencv(K, R, t, W, H) for K, R, t in cams.values()], list(cams)
-
 
 BATCH_SHARED = ("models", "model", "units", "obj_id", "instance", "instances", "loss", "optimizer")
 """Options of ``refine`` passed on to every scene of a batch (with the flags below)."""
@@ -552,7 +322,7 @@ def run_refine_batch(args: argparse.Namespace) -> int:
         if done < len(listed):
             print(f"\n{PROG}: interrupted; {done} of {len(listed)} scene(s) done (records in {records}); run the "
                   f"same command again to finish the other {len(listed) - done}", file=sys.stderr, flush=True)
-            return 130
+            return EXIT_INTERRUPTED
         # every scene was done: main() says that the Ctrl-C came after the outputs were written
     else:
         if not args.quiet:
@@ -561,23 +331,12 @@ def run_refine_batch(args: argparse.Namespace) -> int:
         if summary.failed:
             warn(f"{summary.failed} scene(s) failed: see {Path(args.out) / 'errors.jsonl'}; fix them and run the "
                  "same command again (finished scenes are skipped)")
-            return 2
+            return EXIT_USAGE
     flagged = [r for r in read_records(records) if r["id"] in listed and r.get("status") == EXIT_FLAGGED]
     if flagged:
         warn(f"{len(flagged)} scene(s) have doubtful labels (exit 3): " + ", ".join(Path(r["scene"]).name for r in flagged[:10]))
         return EXIT_FLAGGED
     return 0
-
-
-def check_outputs_spare_inputs(out: Path, scene_dir: Path, inputs: list[Path]) -> None:
-    """Refuse an ``--out`` that is the scene folder, or where an output would replace an input file."""
-    fix = "choose another folder with --out"
-    if out.resolve() == scene_dir.resolve():
-        raise AutoalignError(f"--out {out}: is the scene folder itself, whose scene_gt.json would be replaced; {fix}")
-    taken = {p.resolve() for p in inputs}
-    for name in OUTPUT_FILES:
-        if (out / name).resolve() in taken:
-            raise AutoalignError(f"--out {out}: writing {name} there would replace the input file {out / name}; {fix}")
 
 
 def run_refine(args: argparse.Namespace) -> int:
@@ -589,201 +348,51 @@ def run_refine(args: argparse.Namespace) -> int:
     if args.workers != 1 or args.scheduler is not None:
         raise UsageError("--workers and --scheduler go with --batch LIST")
     t_start = time.perf_counter()
-    preload("numpy", "cv2", "scipy.spatial", "trimesh")  # extension modules, with Ctrl-C deferred
-    click = None
-    if args.click is not None:
-        from autoalign.engine.seeding import Click
+    job = FolderJob(scene=args.scene, out=args.out, model=args.model, models=args.models, units=args.units,
+                    obj_id=args.obj_id, instance=args.instance, instances=args.instances, init=args.init,
+                    click=args.click, loss=args.loss, optimizer=args.optimizer, refine_cameras=args.refine_cameras,
+                    solve_scale=args.solve_scale, robust=not args.no_robust)
+    outcome = refine_folder(job, LOG, ProgressBar(enabled=not args.quiet), t_start)
+    elapsed = time.perf_counter() - t_start
+    if args.models is not None:
+        from autoalign.cli.refine_scene import print_scene_outcome
 
-        click = Click.parse(args.click)
-    out = Path(args.out)
-    if args.models is not None and click is not None:
-        raise UsageError("--click seeds one object; with --models give a coarse --init for the scene, or no seed")
-    if args.instances is not None and args.models is None:
-        raise UsageError("--instances needs --models (a models folder for the objects it names)")
-    if args.refine_cameras and args.models is None:
-        raise UsageError("--refine-cameras needs --models: several objects seen together pin a camera down")
-    if args.solve_scale and args.models is None:
-        raise UsageError("--solve-scale needs --models (a models folder whose meshes give the objects' size)")
-    inputs = [Path(x) for x in (args.model, args.init, args.instances) if x is not None]
-    check_outputs_spare_inputs(out, Path(args.scene), inputs)
-    created = prepare_out_dir(out)
-    try:
-        if args.models is not None:
-            from autoalign.cli.refine_scene import refine_scene_into
-
-            return refine_scene_into(args, out, t_start)
-        return _refine_into(args, out, click, t_start)
-    except BaseException:
-        remove_empty_dirs(created)
-        raise
+        print_scene_outcome(outcome, Path(args.out), elapsed, as_json=args.json, quiet=args.quiet)
+    else:
+        _print_object_outcome(outcome, Path(args.out), elapsed, as_json=args.json, quiet=args.quiet)
+    for note in outcome.notes:
+        warn(note)
+    return outcome.status
 
 
-def _refine_into(args: argparse.Namespace, out: Path, click: Any, t_start: float) -> int:
+def _print_object_outcome(outcome: FolderOutcome, out: Path, elapsed: float, as_json: bool, quiet: bool) -> None:
+    """Print what one object's refinement found: one JSON object (``--json``) or a few lines."""
     import numpy as np
 
-    from autoalign.geometry.mesh import load_mesh
-    from autoalign.io.bop import read_init_pose, read_scene, scene_gt_dict
+    from autoalign.report import RefineReport
 
-    scene = read_scene(args.scene, args.instance)
-    mesh = load_mesh(args.model, units=args.units)
-    seed: Any = None
-    seed_info: dict[str, Any] = {"kind": "hull", "init_file": None, "click": None, "pose": None}
-    if args.init is not None:
-        seed = read_init_pose(args.init, scene, args.obj_id, args.instance)
-        seed_info.update(kind="init", init_file=str(Path(args.init).absolute()), pose=pose_record(seed))
-    elif click is not None:
-        from autoalign.engine.seeding import check_click
-        from autoalign.geometry.camera import uv_to_opencv
-
-        u, v = uv_to_opencv(np.array([click.u, click.v]))  # as typed: OpenCV pixels of the image files
-        seed_info.update(kind="click", click={"image_id": click.image_id, "u": float(u), "v": float(v)})
-        click = click.scaled(scene.image_scale)
-        check_click(scene, click)  # fail now, before the slow start-up of the renderer
-        seed = click
-
-    from autoalign.engine.refine import RefineOptions, refine
-    from autoalign.geometry.camera import PIXEL_CONVENTION
-    from autoalign.geometry.se3 import rotation_angle_deg, transform_points
-    from autoalign.quality.overlay import encode_png, render_overlay
-    from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
-
-    options = RefineOptions(loss=args.loss, optimizer=args.optimizer, robust=not args.no_robust)
-    progress = ProgressBar(enabled=not args.quiet)
-    progress.start("loading the renderer" if seed_info["kind"] == "init" else "seeding")
-    try:
-        result = refine(scene, mesh, seed, options, progress=progress)
-        progress("overlay", 0, 1)
-        t0 = time.perf_counter()
-        overlay = render_overlay(scene, mesh, result.T_init, result.T_wm, result.iou_after,
-                                 rasterizer=SoftSilhouetteRasterizer(mesh))
-        progress("overlay", 1, 1)
-    finally:
-        progress.close()
-    t_overlay = time.perf_counter() - t0
-
-    # ---------------------------------------------------------------- compose outputs in memory
-    ids = [int(i) for i in result.image_ids or scene.image_ids]
-    iou_b, iou_a = np.asarray(result.iou_before, float), np.asarray(result.iou_after, float)
-    weights = np.asarray(result.weights, float)
-    low = [(i, float(w), float(a)) for i, w, a in zip(ids, weights, iou_a)
-           if w < LOW_WEIGHT and a < LOW_WEIGHT_MAX_IOU]
-    runner = None
-    if result.runner_up is not None:
-        Ru = np.asarray(result.runner_up.T_final, float)
-        c = mesh.centre[None]
-        runner = {"pose": pose_record(Ru), "loss": result.runner_up.loss, "mean_iou": result.runner_up.mean_iou,
-                  "stage": result.runner_up.stage,
-                  "rotation_deg": rotation_angle_deg(result.T_wm[:3, :3], Ru[:3, :3]),
-                  "translation_mm": float(np.linalg.norm(transform_points(result.T_wm, c) - transform_points(Ru, c)))}
-    all_cams, all_ids = _all_cameras(scene)
-    scene_gt = scene_gt_dict(result.T_wm, all_cams, all_ids, args.obj_id)
-    cam0 = scene.cameras[0]
-    T_cm = cam0.T_cw @ result.T_wm
-    first = {"image_id": ids[0], "cam_R_m2c": _floats(T_cm[:3, :3].ravel()), "cam_t_m2c": _floats(T_cm[:3, 3])}
-    notes = []
-    if result.ambiguous and runner is not None:
-        notes.append(f"ambiguous: another pose ({runner['rotation_deg']:.1f} deg, {runner['translation_mm']:.1f} mm "
-                     f"away) fits almost as well (loss {result.runner_up.loss:.4g} vs {result.hypotheses[0].loss:.4g}); "
-                     "the object may be symmetric in these views; check overlay.png and 'runner_up' in refine.json")
-    if low:
-        notes.append("views with low weight (their masks disagree with the others): image ids "
-                     + ", ".join(f"{i} (IoU {a:.2f})" for i, _, a in low) + "; check those masks")
-    if iou_a.mean() < POOR_FIT_IOU:
-        notes.append(f"poor fit: mean IoU after refinement is only {iou_a.mean():.2f}; check the model's units (mm), "
-                     "the starting pose and the masks (see overlay.png)")
-    if scene.empty:
-        notes.append(f"{len(scene.empty)} image(s) with an empty mask were treated as missing (not as 'object "
-                     "absent') and not used: ids " + ", ".join(str(i) for i in scene.empty[:20])
-                     + (" ..." if len(scene.empty) > 20 else "") + "; check the segmentation there")
-    if scene.skipped:
-        notes.append(f"{len(scene.skipped)} image(s) without a mask were skipped: ids "
-                     + ", ".join(str(i) for i in scene.skipped[:20]) + (" ..." if len(scene.skipped) > 20 else ""))
-    from autoalign.quality.verdict import judge
-
-    verdict = judge(iou_a, weights, ids, scene.empty, bool(result.ambiguous), uncertainty=result.uncertainty,
-                    turn_gap=result.turn_gap)
-    timings = dict(result.timings)
-    timings["overlay"] = t_overlay
-    report = {
-        "autoalign_version": __version__,
-        "scene_dir": str(Path(args.scene).absolute()),
-        "model": str(Path(args.model).absolute()),
-        "obj_id": args.obj_id,
-        "instance": args.instance,
-        "units": "mm; poses are world-from-model, world = the frame of scene_camera.json",
-        "pixel_convention": PIXEL_CONVENTION,
-        "pose": pose_record(result.T_wm),
-        "pose_first_camera": first,
-        "pose_before": pose_record(result.T_init),
-        "verdict": verdict.status, "reasons": verdict.reasons,
-        "uncertainty": uncertainty_record(result.uncertainty),
-        "seed": seed_info,
-        "image_ids": ids,
-        "iou_before": iou_b,
-        "iou_after": iou_a,
-        "weights": weights,
-        "mean_iou_before": float(iou_b.mean()), "mean_iou_after": float(iou_a.mean()),
-        "min_iou_before": float(iou_b.min()), "min_iou_after": float(iou_a.min()),
-        "low_weight_ids": [i for i, _, _ in low],
-        "skipped": [int(i) for i in scene.skipped],
-        "empty_masks": [int(i) for i in scene.empty],
-        "image_scale": scene.image_scale,
-        "iterations": result.iterations,
-        "renders": result.renders,
-        "timings": timings,
-        "hypotheses": [{"rank": k, "stage": h.stage, "loss": h.loss, "mean_iou": h.mean_iou,
-                        "pose_init": pose_record(h.T_init), "pose": pose_record(h.T_final)}
-                       for k, h in enumerate(result.hypotheses)],
-        "ambiguous": bool(result.ambiguous), "turn_gap": result.turn_gap,
-        "runner_up": runner,
-        "options": options,
-        "history": result.history,
-        "outputs": {"scene_gt": "scene_gt.json", "refine": "refine.json", "overlay": "overlay.png"},
-        "warnings": list(WARNINGS) + [one_line(n) for n in notes],
-    }
-    files = {
-        "scene_gt.json": json.dumps(jsonable(scene_gt), indent=1).encode(),
-        "refine.json": json.dumps(jsonable(report), indent=1, allow_nan=False).encode(),
-        "overlay.png": encode_png(overlay),
-    }
-    paths = write_outputs(out, files)
-    Interrupts.outputs_written()
-    elapsed = time.perf_counter() - t_start
-
-    # ---------------------------------------------------------------- report
-    if args.json:
-        summary = {
-            "pose": report["pose"], "pose_first_camera": first,
-            "mean_iou_before": report["mean_iou_before"], "mean_iou_after": report["mean_iou_after"],
-            "min_iou_after": report["min_iou_after"], "time_s": elapsed, "ambiguous": report["ambiguous"],
-            "verdict": verdict.status, "reasons": verdict.reasons,
-            "low_weight_ids": report["low_weight_ids"], "warnings": report["warnings"],
-            "out_dir": str(out.absolute()),
-            "outputs": {"scene_gt": str(paths["scene_gt.json"].absolute()),
-                        "refine": str(paths["refine.json"].absolute()),
-                        "overlay": str(paths["overlay.png"].absolute())},
-        }
-        print(json.dumps(jsonable(summary), allow_nan=False), flush=True)
-    elif not args.quiet:
-        R = T_cm[:3, :3]
-        rows = "\n".join("    [" + ", ".join(f"{x:+.6f}" for x in r) + "]" for r in R)
-        print(f"pose of obj {args.obj_id} in the camera of image {ids[0]} (model to camera):\n"
-              f"  cam_R_m2c =\n{rows}\n"
-              f"  cam_t_m2c = [{', '.join(f'{x:.2f}' for x in T_cm[:3, 3])}] mm\n"
-              f"IoU over {len(ids)} views: mean {iou_b.mean():.3f} -> {iou_a.mean():.3f}, "
-              f"min {iou_b.min():.3f} -> {iou_a.min():.3f} (image {ids[int(np.argmin(iou_a))]})\n"
-              + (f"sigma (model x, y, z): {', '.join(f'{x:.3f}' for x in result.uncertainty.sigma_mm)} mm, "
-                 f"{', '.join(f'{x:.3f}' for x in result.uncertainty.sigma_deg)} deg"
-                 + (f"; weakly observed: {'; '.join(result.uncertainty.weak)}" if result.uncertainty.weak else "")
-                 + "\n" if result.uncertainty is not None else "") +
-              f"time {elapsed:.1f} s ({result.iterations} iterations, {result.renders} renders)\n"
-              f"wrote {', '.join(files)} to {out}", flush=True)
-    for note in notes:
-        warn(note)
-    if verdict.status != "ok":
-        warn(f"verdict {verdict.status}: {'; '.join(verdict.reasons)}; look at overlay.png before using this pose")
-        return EXIT_FLAGGED
-    return 0
+    report = outcome.report
+    assert isinstance(report, RefineReport)
+    if as_json:
+        print(json.dumps(report.summary(elapsed, out, outcome.paths), allow_nan=False), flush=True)
+        return
+    if quiet:
+        return
+    r, ids, T_cm = report.result, report.image_ids, report.T_cm_first
+    iou_b, iou_a = np.asarray(r.iou_before, float), np.asarray(r.iou_after, float)
+    rows = "\n".join("    [" + ", ".join(f"{x:+.6f}" for x in row) + "]" for row in T_cm[:3, :3])
+    u = r.uncertainty
+    sigma = "" if u is None else (
+        f"sigma (model x, y, z): {', '.join(f'{x:.3f}' for x in u.sigma_mm)} mm, "
+        f"{', '.join(f'{x:.3f}' for x in u.sigma_deg)} deg" + (f"; weakly observed: {'; '.join(u.weak)}" if u.weak else "")
+        + "\n")
+    print(f"pose of obj {report.obj_id} in the camera of image {ids[0]} (model to camera):\n"
+          f"  cam_R_m2c =\n{rows}\n"
+          f"  cam_t_m2c = [{', '.join(f'{x:.2f}' for x in T_cm[:3, 3])}] mm\n"
+          f"IoU over {len(ids)} views: mean {iou_b.mean():.3f} -> {iou_a.mean():.3f}, "
+          f"min {iou_b.min():.3f} -> {iou_a.min():.3f} (image {ids[int(np.argmin(iou_a))]})\n"
+          + sigma + f"time {elapsed:.1f} s ({r.iterations} iterations, {r.renders} renders)\n"
+          f"wrote {', '.join(outcome.paths)} to {out}", flush=True)
 
 
 def entry() -> None:
@@ -792,10 +401,10 @@ def entry() -> None:
     on the GIL) in about one interrupted run in ten, and a late SIGINT could still raise there."""
     status = main()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the status is decided: Ctrl-C from here on changes nothing
-    if status == 130:
+    if status == EXIT_INTERRUPTED:
         sys.stdout.flush()
         sys.stderr.flush()
-        os._exit(130)
+        os._exit(EXIT_INTERRUPTED)
     sys.exit(status)
 
 

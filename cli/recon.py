@@ -2,8 +2,8 @@
 written as a BOP scene folder.
 
 Start-up imports only the standard library and :mod:`autoalign.errors`; pycolmap, open3d and the
-rest load inside :func:`run_recon`. Helpers of :mod:`autoalign.cli.main` are imported inside the
-functions, since that module registers this one.
+rest load inside :func:`run_recon`. Its helpers come from
+:mod:`autoalign.cli.common` (:mod:`autoalign.cli.main` registers this module, never the other way round).
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ SCALE_SPREAD_WARN = 0.02
 
 def add_recon_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``autoalign recon`` on an argparse subparsers object."""
-    from autoalign.cli.main import HelpFormatter, positive_int
+    from autoalign.cli.common import HelpFormatter, positive_int
 
     p = subparsers.add_parser("recon", help="camera poses, scale, table frame and cloud from a capture (a BOP scene)",
                               description=_DESCRIPTION, epilog=_EPILOG, formatter_class=HelpFormatter)
@@ -93,7 +93,8 @@ def run_recon(args: argparse.Namespace) -> int:
     if importlib.util.find_spec("pycolmap") is None:
         raise AutoalignError("autoalign recon needs pycolmap; install it with: pip install 'autoalign[recon]'")
     preload("numpy", "cv2", "open3d", "pycolmap")  # extension modules, with Ctrl-C deferred
-    from autoalign.cli.main import EXIT_FLAGGED, ProgressBar, warn, write_folder
+    from autoalign.cli.common import EXIT_FLAGGED, ProgressBar, warn
+    from autoalign.io.out_folder import write_folder
     from autoalign.recon.capture import read_capture
     from autoalign.recon.pipeline import reconstruct, scene_files
 

@@ -242,14 +242,13 @@ def test_a_dask_worker_killed_mid_scene_is_retried_and_recorded(batch, tmp_path)
         with open(starts, "a") as f:
             f.write(f"{task['id']}\n")
         if first:
-            import autoalign.cli.main
-            import autoalign.cli.refine_scene
+            import autoalign.io.out_folder
 
             def hold(out, files):
                 held.write_text(str(os.getpid()))
                 time.sleep(300)
 
-            autoalign.cli.main.write_outputs = autoalign.cli.refine_scene.write_outputs = hold
+            autoalign.io.out_folder.write_outputs = hold
         return refine_task(task)
 
     tasks = refine_tasks([s for s, _ in scenes], ["--models", str(batch / "models")], tmp_path / "out",

@@ -51,6 +51,7 @@ from autoalign.io.models import ModelSet
 from autoalign.quality.overlap import mask_iou
 from autoalign.quality.verdict import Verdict, judge
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+from autoalign.report import floats
 
 Progress = Callable[[str, int, int], None]
 
@@ -109,7 +110,7 @@ class LabelledInstance:
     def record(self) -> dict[str, Any]:
         """The instance as JSON (``session.json`` and the page's state)."""
         return {"index": self.index, "obj_id": self.obj_id,
-                "T_wm": None if self.T_wm is None else [[float(x) for x in row] for row in self.T_wm],
+                "T_wm": None if self.T_wm is None else floats(self.T_wm),
                 "decision": self.decision, "symmetric": self.symmetric, "source": self.source,
                 "verdict": self.verdict, "reasons": list(self.reasons), "sigma_mm": self.sigma_mm,
                 "sigma_deg": self.sigma_deg, "weakly_observed": list(self.weakly_observed),

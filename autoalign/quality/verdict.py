@@ -41,6 +41,14 @@ NEAR_SYMMETRY_GAP = 0.02
 pose about it clearly worsens the fit: by this much mean hard IoU at 1/4 resolution."""
 
 
+def low_weight_ids(image_ids: list[int], weights: NDArray[np.float64], iou_after: NDArray[np.float64]) -> list[int]:
+    """The image ids of the views set aside by the robust weights: weight below ``LOW_WEIGHT`` and
+    IoU after refinement below ``LOW_WEIGHT_MAX_IOU`` (their masks disagree with the others)."""
+    return [int(i) for i, w, a in zip(image_ids, np.asarray(weights, dtype=np.float64),
+                                      np.asarray(iou_after, dtype=np.float64))
+            if w < LOW_WEIGHT and a < LOW_WEIGHT_MAX_IOU]
+
+
 @dataclass
 class Verdict:
     """``status`` is ``ok``, ``check`` or ``failed``; ``reasons`` say why (for ``ok``, what was
@@ -97,7 +105,7 @@ def judge(iou_after: NDArray[np.float64], weights: NDArray[np.float64], image_id
     iou = np.asarray(iou_after, dtype=np.float64)
     w = np.asarray(weights, dtype=np.float64)
     reasons: list[str] = []
-    low = [int(i) for i, wi, a in zip(image_ids, w, iou) if wi < LOW_WEIGHT and a < LOW_WEIGHT_MAX_IOU]
+    low = low_weight_ids(image_ids, w, iou)
     n_all = len(iou) + len(empty_ids)
     failed = False
     if len(iou) < MIN_VIEWS:

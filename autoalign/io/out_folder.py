@@ -1,0 +1,102 @@
+"""The output folder of a run (``--out``): created when needed and removed again if the run fails,
+its files written all or none (:mod:`autoalign.io.atomic_files`), and no input file replaced.
+
+Error messages name ``--out``, the option through which every command and the batch runner
+(:mod:`autoalign.batch`, whose scenes take the command's options) choose this folder.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
+
+from autoalign.errors import AutoalignError
+from autoalign.io.atomic_files import write_files_atomic
+from autoalign.runtime.interrupts import Interrupts
+
+
+def prepare_out_dir(out: Path) -> list[Path]:
+    """Create ``out`` if needed and check a file can be written there.
+
+    Returns the folders that were created (outermost first) so that a failed run can remove them.
+    Raises :class:`AutoalignError` naming ``--out`` when that is impossible.
+    """
+    fix = "choose a folder you can write to with --out"
+    if out.exists() and not out.is_dir():
+        raise AutoalignError(f"--out {out}: exists and is not a folder; {fix}")
+    missing: list[Path] = []
+    p = out.absolute()
+    while not p.exists() and p != p.parent:
+        missing.append(p)
+        p = p.parent
+    if not p.is_dir():
+        raise AutoalignError(f"--out {out}: cannot create it because {p} is a file, not a folder; {fix}")
+    created = list(reversed(missing))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".autoalign-probe-", suffix=".tmp", dir=out)
+        try:
+            os.write(fd, b"autoalign")
+        finally:
+            os.close(fd)
+            os.unlink(probe)
+    except OSError as exc:
+        remove_empty_dirs(created)
+        raise AutoalignError(f"--out {out}: cannot create or write to the folder ({exc.strerror or exc}); {fix}") from None
+    except BaseException:  # Ctrl-C half-way: leave nothing behind
+        remove_empty_dirs(created)
+        raise
+    return created
+
+
+def remove_empty_dirs(created: list[Path]) -> None:
+    """Remove the folders this run created (innermost first), if they are still empty."""
+    for d in reversed(created):
+        try:
+            d.rmdir()
+        except OSError:
+            break
+
+
+def write_outputs(out: Path, files: dict[str, bytes]) -> dict[str, Path]:
+    """Write every ``name -> bytes`` into ``out`` atomically (:mod:`autoalign.io.atomic_files`): all or none.
+
+    If any write fails no temporary file is left behind and no target file is touched. Nothing is
+    written after Ctrl-C (see :class:`Interrupts`).
+    """
+    Interrupts.check()
+    try:
+        write_files_atomic({out / name: data for name, data in files.items()})
+    except OSError as exc:
+        raise AutoalignError(f"--out {out}: cannot write the outputs ({exc.strerror or exc}); "
+                             "free some space or choose another --out") from None
+    return {name: out / name for name in files}
+
+
+def write_folder(out: Path, files: dict[str, bytes]) -> None:
+    """Write ``files`` (names relative to ``out``, subfolders allowed) with :func:`write_outputs`;
+    the folders this creates are removed again if the writing fails."""
+    created = prepare_out_dir(out)
+    for sub in sorted({name.rsplit("/", 1)[0] for name in files if "/" in name}):
+        if not (out / sub).is_dir():
+            (out / sub).mkdir(parents=True)
+            created.append(out / sub)
+    try:
+        write_outputs(out, files)
+    except BaseException:
+        remove_empty_dirs(created)
+        raise
+
+
+def check_outputs_spare_inputs(out: Path, scene_dir: Path, inputs: list[Path], outputs: Iterable[str]) -> None:
+    """Refuse an ``--out`` that is the scene folder, or where one of the files ``outputs`` would
+    replace an input file."""
+    fix = "choose another folder with --out"
+    if out.resolve() == scene_dir.resolve():
+        raise AutoalignError(f"--out {out}: is the scene folder itself, whose scene_gt.json would be replaced; {fix}")
+    taken = {p.resolve() for p in inputs}
+    for name in outputs:
+        if (out / name).resolve() in taken:
+            raise AutoalignError(f"--out {out}: writing {name} there would replace the input file {out / name}; {fix}")

@@ -1,0 +1,165 @@
+"""Refine a BOP scene folder into an output folder: what ``autoalign refine`` does, without its
+argument parsing and printing. One object (``model``) or every instance (``models``,
+:mod:`autoalign.refine_scene_folder`); the outputs (``scene_gt.json``, ``refine.json``,
+``overlay.png``, sometimes ``scene_camera.json``) are written all or none.
+
+The command line, the batch runner (:mod:`autoalign.batch`, whose scene lists carry each scene's
+options as text: :meth:`~autoalign.refine_job.FolderJob.from_argv`) and Python users call
+:func:`refine_folder`; its options and outcome are in :mod:`autoalign.refine_job`.
+
+Standard library only at import (the command's start-up stays fast); the rest loads inside.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from autoalign.refine_job import (
+    EXIT_FLAGGED,
+    EXIT_OK,
+    OUTPUT_FILES,
+    FolderJob,
+    FolderOutcome,
+    NoProgress,
+    RunLog,
+    Stages,
+    write_json_outputs,
+)
+
+if TYPE_CHECKING:
+    from autoalign.report import RefineReport
+
+
+def refine_folder(job: FolderJob, log: RunLog | None = None, progress: Stages | None = None,
+                  t_start: float | None = None) -> FolderOutcome:
+    """Refine ``job.scene`` and write its outputs into ``job.out`` (created if missing, removed
+    again if the run fails). ``log`` collects the warnings (those before the report go into
+    ``refine.json``); ``t_start``: when the run began (``time.perf_counter``), for its timings.
+
+    Raises :class:`AutoalignError` (one line naming the file or option and the fix) for a mistake
+    in the inputs; nothing is written then."""
+    from autoalign.io.out_folder import (
+        check_outputs_spare_inputs,
+        prepare_out_dir,
+        remove_empty_dirs,
+    )
+    from autoalign.runtime.interrupts import preload
+
+    t_start = time.perf_counter() if t_start is None else t_start
+    log = log if log is not None else RunLog()
+    progress = progress if progress is not None else NoProgress()
+    preload("numpy", "cv2", "scipy.spatial", "trimesh")  # extension modules, with Ctrl-C deferred
+    click = None
+    if job.click is not None:
+        from autoalign.engine.seeding import Click
+
+        click = Click.parse(job.click)
+    job.check()
+    out = Path(job.out)
+    inputs = [Path(x) for x in (job.model, job.init, job.instances) if x is not None]
+    check_outputs_spare_inputs(out, Path(job.scene), inputs, OUTPUT_FILES)
+    created = prepare_out_dir(out)
+    try:
+        if job.models is not None:
+            from autoalign.refine_scene_folder import refine_scene_folder
+
+            return refine_scene_folder(job, log, progress, t_start)
+        return _refine_object(job, click, log, progress)
+    except BaseException:
+        remove_empty_dirs(created)
+        raise
+
+
+def _refine_object(job: FolderJob, click: Any, log: RunLog, progress: Stages) -> FolderOutcome:
+    """:func:`refine_folder` with one object (``job.model``)."""
+    from autoalign.engine.refine import RefineOptions, refine
+    from autoalign.geometry.mesh import load_mesh
+    from autoalign.io.bop import read_scene
+    from autoalign.quality.overlay import render_overlay
+    from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+
+    scene = read_scene(job.scene, job.instance)
+    mesh = load_mesh(job.model, units=job.units)
+    seed, seed_record = _seed(job, scene, click)
+    options = RefineOptions(loss=job.loss, optimizer=job.optimizer, robust=job.robust)
+    progress.start("loading the renderer" if seed_record.kind == "init" else "seeding")
+    try:
+        result = refine(scene, mesh, seed, options, progress=progress)
+        progress("overlay", 0, 1)
+        t0 = time.perf_counter()
+        overlay = render_overlay(scene, mesh, result.T_init, result.T_wm, result.iou_after,
+                                 rasterizer=SoftSilhouetteRasterizer(mesh))
+        progress("overlay", 1, 1)
+    finally:
+        progress.close()
+    t_overlay = time.perf_counter() - t0
+    report = _object_report(job, scene, mesh, result, seed_record, options, log)
+    report.timings["overlay"] = t_overlay
+    from autoalign.io.bop import scene_gt_dict
+    from autoalign.quality.overlay import encode_png
+
+    all_cams, all_ids = _all_cameras(scene)
+    scene_gt = scene_gt_dict(result.T_wm, all_cams, all_ids, job.obj_id)
+    paths = write_json_outputs(Path(job.out), {"scene_gt.json": scene_gt, "refine.json": report.to_json()},
+                               {"overlay.png": encode_png(overlay)})
+    notes = report.notes()
+    if report.verdict.status != "ok":
+        notes.append(f"verdict {report.verdict.status}: {'; '.join(report.verdict.reasons)}; look at overlay.png "
+                     "before using this pose")
+    status = EXIT_OK if report.verdict.status == "ok" else EXIT_FLAGGED
+    return FolderOutcome(status, report, paths, notes)
+
+
+def _seed(job: FolderJob, scene: Any, click: Any) -> tuple[Any, Any]:
+    """The starting pose of ``job`` (a 4x4, a :class:`~autoalign.engine.seeding.Click` in the
+    scene's pixels, or ``None``) and its record for the report."""
+    import numpy as np
+
+    from autoalign.io.bop import read_init_pose
+    from autoalign.report import Seed
+
+    if job.init is not None:
+        seed = read_init_pose(job.init, scene, job.obj_id, job.instance)
+        return seed, Seed("init", str(Path(job.init).absolute()), None, seed)
+    if click is not None:
+        from autoalign.engine.seeding import check_click
+        from autoalign.geometry.camera import uv_to_opencv
+
+        u, v = uv_to_opencv(np.array([click.u, click.v]))  # as typed: OpenCV pixels of the image files
+        record = Seed("click", None, {"image_id": click.image_id, "u": float(u), "v": float(v)})
+        click = click.scaled(scene.image_scale)
+        check_click(scene, click)  # fail now, before the slow start-up of the renderer
+        return click, record
+    return None, Seed()
+
+
+def _object_report(job: FolderJob, scene: Any, mesh: Any, result: Any, seed: Any, options: Any,
+                   log: RunLog) -> RefineReport:
+    """The report of one object's refinement (:class:`~autoalign.report.RefineReport`)."""
+    from autoalign.quality.verdict import judge
+    from autoalign.report import RefineReport, RunnerUp
+
+    ids = [int(i) for i in result.image_ids or scene.image_ids]
+    verdict = judge(result.iou_after, result.weights, ids, scene.empty, bool(result.ambiguous),
+                    uncertainty=result.uncertainty, turn_gap=result.turn_gap)
+    return RefineReport(
+        scene_dir=Path(job.scene).absolute(), model=Path(job.model).absolute(), obj_id=job.obj_id,
+        instance=job.instance, result=result, verdict=verdict, seed=seed, image_ids=ids,
+        T_cm_first=scene.cameras[0].T_cw @ result.T_wm, runner_up=RunnerUp.of(result, mesh.centre),
+        skipped=[int(i) for i in scene.skipped], empty=[int(i) for i in scene.empty],
+        image_scale=scene.image_scale, options=options, timings=dict(result.timings), warnings=list(log.warnings))
+
+
+def _all_cameras(scene: Any) -> tuple[list[Any], list[int]]:
+    """Cameras and ids of every image in scene_camera.json (also those skipped for lack of a mask)."""
+    from autoalign.geometry.camera import Camera
+    from autoalign.io.bop import read_cameras
+
+    if scene.path is None:
+        return list(scene.cameras), list(scene.image_ids)
+    W, H = scene.cameras[0].width, scene.cameras[0].height
+    cams = read_cameras(Path(scene.path))
+    return [Camera.from_opencv(K, R, t, W, H) for K, R, t in cams.values()], list(cams)
+
