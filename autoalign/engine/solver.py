@@ -389,12 +389,14 @@ def levenberg_marquardt(objective: SilhouetteObjective, T: NDArray[np.float64], 
                         callback: Callback | None = None, damping_growth: float = 4.0,
                         max_step_mm: float = 30.0, max_step_deg: float = 20.0,
                         ftol: float = FTOL) -> tuple[NDArray[np.float64], Trace]:
-    """:class:`LevenbergMarquardt` on one object's pose at ``level``.
+    """:class:`LevenbergMarquardt` on one object's pose at ``level`` (``lam``, ``damping_growth``:
+    its damping; steps clipped to ``max_step_mm`` / ``max_step_deg``).
 
-    ``ftol`` is :func:`level_ftol`'s. The objective's own noise (outlines discretised in pixels) is
-    then larger than what the model can still gain: without this rule LM kept rendering
-    sub-micrometre steps at full resolution, each gaining 1e-5 of the objective, without a better
-    pose. What it leaves is a few hundredths of a pixel in the images, mostly in directions the
+    Besides the step-size test it stops, without trying it, at a step whose predicted decrease is
+    below ``ftol`` of the objective (at ``level`` as :func:`level_ftol` says). The objective's own
+    noise (outlines discretised in pixels) is then larger than what the model can still gain:
+    without this rule LM kept rendering sub-micrometre steps at full resolution, each gaining 1e-5
+    of the objective, without a better pose. What it leaves is a few hundredths of a pixel in the images, mostly in directions the
     silhouettes barely see (a flashlight's small button turning it about its axis by a few tenths
     of a degree).
     """
