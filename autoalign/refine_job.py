@@ -113,7 +113,8 @@ class FolderJob:
     def from_argv(cls, scene: str, argv: Sequence[str], out: str) -> FolderJob:
         """The job of ``autoalign refine SCENE ARGV --out OUT`` (the options a batch list gives per
         scene, e.g. ``["--models", "models/", "--init", "coarse.json"]``); flags ``--refine-cameras``,
-        ``--solve-scale`` and ``--no-robust``, every other option with one value."""
+        ``--solve-scale`` and ``--no-robust`` (``--quiet`` and ``--json`` are accepted and change
+        nothing), every other option with one value."""
         names = {"--" + f.name.replace("_", "-"): f for f in fields(cls) if f.name not in ("scene", "out")}
         flags = {"--refine-cameras": ("refine_cameras", True), "--solve-scale": ("solve_scale", True),
                  "--no-robust": ("robust", False)}
@@ -121,6 +122,8 @@ class FolderJob:
         words = list(argv)
         while words:
             word = words.pop(0)
+            if word in ("--quiet", "--json"):  # how the command prints; a scene of a batch prints nothing
+                continue
             if word in flags:
                 values[flags[word][0]] = flags[word][1]
             elif word in names and names[word].type in ("bool", bool) or word not in names:
