@@ -24,6 +24,7 @@ from autoalign.engine.uncertainty import Uncertainty
 from autoalign.geometry.camera import PIXEL_CONVENTION
 from autoalign.geometry.se3 import rotation_angle_deg, transform_points
 from autoalign.quality.verdict import Verdict, low_weight_ids
+from autoalign.scene.joint import JointRefinement
 
 UNITS = "mm; poses are world-from-model, world = the frame of scene_camera.json"
 OUTPUTS = {"scene_gt": "scene_gt.json", "refine": "refine.json", "overlay": "overlay.png"}
@@ -264,7 +265,7 @@ class InstanceReport:
         }
 
 
-def joint_record(joint: Any) -> dict[str, Any]:
+def joint_record(joint: JointRefinement) -> dict[str, Any]:
     """A joint stage (:class:`~autoalign.scene.joint.JointRefinement`): iterations, loss and median
     per-view misfit (1 - IoU) before and after."""
     return {"iterations": joint.iterations, "loss_before": joint.loss_before, "loss_after": joint.loss_after,
@@ -272,7 +273,7 @@ def joint_record(joint: Any) -> dict[str, Any]:
             "median_view_misfit_after": float(np.median(list(joint.view_misfit_after.values())))}
 
 
-def cameras_record(attempt: Any, accepted: bool) -> dict[str, Any]:
+def cameras_record(attempt: JointRefinement, accepted: bool) -> dict[str, Any]:
     """The ``cameras`` entry: the camera corrections tried (:class:`~autoalign.scene.joint.JointRefinement`)
     and whether they were kept; per view the correction ``E`` (corrected ``T_cw = T_cw @ E``)."""
     joint = joint_record(attempt)
@@ -320,7 +321,7 @@ class SceneReport:
     options: RefineOptions
     timings: dict[str, float]
     warnings: list[str]
-    joint: Any = None
+    joint: JointRefinement | None = None
     scale: ScaleReport | None = None
     cameras_written: bool = False
     cameras: dict[str, Any] | None = None
