@@ -7,7 +7,7 @@
   each finished record as one JSON line (flushed and fsynced), so that an interrupted run resumes
   where it stopped. Failed tasks go to ``OUT/errors.jsonl`` and run again next time. One
   progress bar (tqdm).
-* :func:`refine_many` refines many scene folders (:mod:`autoalign.refine_folder`) with the same options,
+* :func:`refine_many` refines many scene folders (:mod:`autoalign.jobs.refine_folder`) with the same options,
   each into ``OUT/<scene folder name>``, one record per scene in ``OUT/batch.jsonl`` (its exit
   status: 0 ok, 3 written but flagged); a scene with a mistake in its inputs (status 2) goes to
   ``OUT/errors.jsonl`` with its one-line error and runs again next time, and a scene interrupted
@@ -378,13 +378,13 @@ def read_scene_list(path: str | Path) -> list[tuple[Path, list[str]]]:
 
 
 def refine_task(task: Task) -> dict[str, Any]:
-    """One scene of a batch, in this process: :func:`~autoalign.refine_folder.refine_folder` of
+    """One scene of a batch, in this process: :func:`~autoalign.jobs.refine_folder.refine_folder` of
     ``task["scene"]`` with its options (``task["args"]``, as after ``autoalign refine SCENE``) into
     ``task["out"]``. Its record: the status (0 ok, 3 written but flagged), seconds and its last
     warnings; a mistake in the scene's inputs gives ``{"id", "error"}`` instead (not done, so that
     it runs again once fixed); Ctrl-C raises ``KeyboardInterrupt`` (not done; :func:`run_tasks` stops)."""
-    from autoalign.refine_folder import refine_folder
-    from autoalign.refine_job import FolderJob, RunLog, one_line
+    from autoalign.jobs.refine_folder import refine_folder
+    from autoalign.jobs.job import FolderJob, RunLog, one_line
 
     log = RunLog()
     t0 = time.perf_counter()

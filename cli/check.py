@@ -110,7 +110,7 @@ def _ci(ci: tuple[float, float] | None) -> str:
 
 
 def format_table(report: Any) -> str:
-    """The per-instance table of a :class:`autoalign.quality.feature_distance.CheckReport`, and a total line."""
+    """The per-instance table of a :class:`autoalign.quality.check_report.CheckReport`, and a total line."""
     head = (f"{'obj':>4} {'inst':>4} {'views':>5} {'median IoU':>10}  {'feature distance px (95% CI)':<30} "
             f"{'matches':>7}  {'edge distance px (95% CI)':<26}")
     lines = [head, "-" * len(head)]
@@ -170,22 +170,23 @@ def run_check(args: argparse.Namespace) -> int:
                 raise AutoalignError(f"--out {out}: writing {name} there would replace the input file {out / name}; "
                                      "choose another folder with --out")
     as_json = bool(getattr(args, "json", False))
-    from autoalign.quality import feature_distance as fd
+    from autoalign.quality import scene_check
 
     # every input file is read and validated before any photo is checked (a bad --against file
     # was found only after the labels' whole check) and before --out is created
-    inputs = fd.prepare_check(scene, labels, models, images=getattr(args, "images", None))
+    inputs = scene_check.prepare_check(scene, labels, models, images=getattr(args, "images", None))
     ref_inputs = _prepare_reference(scene, against, models, inputs) if against is not None else None
     created = prepare_out_dir(out) if out is not None else []
     try:
+        from autoalign.quality.figures import match_figure
         from autoalign.quality.overlay import encode_png
 
         bar = ProgressBar(enabled=not getattr(args, "quiet", False))
         try:
-            report = fd.check_prepared(inputs, progress=lambda done, total: bar("checking images", done, total))
+            report = scene_check.check_prepared(inputs, progress=lambda done, total: bar("checking images", done, total))
             reference = None
             if ref_inputs is not None:
-                reference = fd.check_prepared(
+                reference = scene_check.check_prepared(
                     ref_inputs, progress=lambda done, total: bar("checking the reference", done, total))
         finally:
             bar.close()
@@ -202,7 +203,7 @@ def run_check(args: argparse.Namespace) -> int:
         paths: dict[str, str] = {}
         if out is not None:
             files = {out / "check.json": (json.dumps(record, indent=1) + "\n").encode(),
-                     out / "check.png": encode_png(fd.match_figure(report))}
+                     out / "check.png": encode_png(match_figure(report))}
             if comparison is not None:
                 files[out / "compare.png"] = encode_png(label_compare.comparison_figure(report, reference, comparison))
             _write(files, out)
@@ -238,17 +239,17 @@ def _keep_freed_memory(trim_mb: int = 256) -> None:
 
 
 def _prepare_reference(scene: Path, against: Path, models: Path, inputs: Any) -> Any:
-    """The validated inputs of the reference's check (:func:`autoalign.quality.feature_distance.prepare_check`):
+    """The validated inputs of the reference's check (:func:`autoalign.quality.scene_check.prepare_check`):
     the images of ``inputs`` that the reference labels too."""
     from autoalign.io.bop import read_labels
-    from autoalign.quality import feature_distance as fd
+    from autoalign.quality import scene_check
 
     ref_labels = read_labels(against)
     common = [i for i in inputs.image_ids if ref_labels.get(i)]
     if not common:
         raise AutoalignError(f"--against {against}: it labels none of the checked images of {inputs.labels_path}; "
                              "compare labels of the same scene")
-    return fd.prepare_check(scene, against, models, image_ids=common, labels=ref_labels)
+    return scene_check.prepare_check(scene, against, models, image_ids=common, labels=ref_labels)
 
 
 def _write(files: dict[Path, bytes], out: Path) -> None:

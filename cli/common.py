@@ -14,7 +14,7 @@ import sys
 from collections.abc import Callable
 from typing import Any
 
-from autoalign.refine_job import EXIT_FLAGGED, MESH_UNITS, RunLog, one_line  # noqa: F401 - EXIT_FLAGGED for the subcommands
+from autoalign.jobs.job import EXIT_FLAGGED, MESH_UNITS, RunLog, one_line  # noqa: F401 - EXIT_FLAGGED for the subcommands
 from autoalign.runtime.interrupts import Interrupts
 
 PROG = "autoalign"

@@ -78,7 +78,7 @@ def run_label(args: argparse.Namespace) -> int:
     from autoalign.io.models import ModelSet
     from autoalign.io.out_folder import check_outputs_spare_inputs
     from autoalign.label.session import LabelSession
-    from autoalign.refine_job import OUTPUT_FILES
+    from autoalign.jobs.job import OUTPUT_FILES
 
     scene = check_scene_dir(args.scene)
     out = Path(args.out) if args.out else scene / "label_session"

@@ -1,9 +1,9 @@
 """The ``autoalign`` command line: ``autoalign refine`` (and ``autoalign simulate`` when available);
 the other subcommands register from their own modules. ``refine`` parses its arguments, calls
-:func:`autoalign.refine_folder.refine_folder` (or :func:`autoalign.batch.refine_many`) and prints.
+:func:`autoalign.jobs.refine_folder.refine_folder` (or :func:`autoalign.batch.refine_many`) and prints.
 
 Start-up is kept fast: only the standard library and autoalign modules that need nothing more
-(:mod:`autoalign.cli.common`, :mod:`autoalign.refine_job`, :mod:`autoalign.errors`, ...) load
+(:mod:`autoalign.cli.common`, :mod:`autoalign.jobs.job`, :mod:`autoalign.errors`, ...) load
 here; numpy, OpenCV, trimesh and the rendering backend (mitsuba/drjit) load inside the command,
 after the arguments are parsed. Nothing on this path imports torch or jax.
 
@@ -45,8 +45,8 @@ from autoalign.cli.common import (
 )
 from autoalign.errors import AutoalignError
 from autoalign.io.out_folder import write_outputs  # noqa: F401 - where the tests and scripts found it
-from autoalign.refine_folder import refine_folder
-from autoalign.refine_job import (
+from autoalign.jobs.refine_folder import refine_folder
+from autoalign.jobs.job import (
     LOSSES,
     OPTIMIZERS,
     OUTPUT_FILES,  # noqa: F401 - the tests read it here
@@ -369,7 +369,7 @@ def _print_object_outcome(outcome: FolderOutcome, out: Path, elapsed: float, as_
     """Print what one object's refinement found: one JSON object (``--json``) or a few lines."""
     import numpy as np
 
-    from autoalign.report import RefineReport
+    from autoalign.jobs.report import RefineReport
 
     report = outcome.report
     assert isinstance(report, RefineReport)

@@ -1,7 +1,7 @@
 """``autoalign refine SCENE --models DIR``: what every instance's refinement found, printed.
 
 The work (instances read, refined, judged, the outputs written) is
-:func:`autoalign.refine_scene_folder.refine_scene_folder`, called by ``autoalign refine``
+:func:`autoalign.jobs.refine_scene_folder.refine_scene_folder`, called by ``autoalign refine``
 (:mod:`autoalign.cli.main`); a ``check`` or ``failed`` verdict is warned and exits 3, so that no
 script takes a doubtful label for a good one.
 """
@@ -13,12 +13,12 @@ from pathlib import Path
 
 from autoalign.cli.common import WARNINGS
 
-from autoalign.refine_job import FolderOutcome
+from autoalign.jobs.job import FolderOutcome
 
 
 def print_scene_outcome(outcome: FolderOutcome, out: Path, elapsed: float, as_json: bool, quiet: bool) -> None:
     """Print every instance's verdict and fit: one JSON object (``--json``) or a line each."""
-    from autoalign.report import SceneReport
+    from autoalign.jobs.report import SceneReport
 
     report = outcome.report
     assert isinstance(report, SceneReport)

@@ -178,6 +178,9 @@ def test_refine_models_from_init_labels_every_instance(multi, tmp_path):
         assert e_mm < 1.0 and e_deg < 1.0
     rec = json.loads((out / "refine.json").read_text())
     assert [r["verdict"] for r in rec["instances"]] == ["ok"] * N_OBJ
+    from autoalign.engine.solver import Stop
+
+    assert Stop(rec["joint"]["stop"]).converged, rec["joint"]  # the joint stage says why it stopped
     gt = json.loads((out / "scene_gt.json").read_text())
     assert len(gt) == N_VIEWS and all([e["obj_id"] for e in v] == multi.obj_ids for v in gt.values())
     overlay = cv2.imread(str(out / "overlay.png"))

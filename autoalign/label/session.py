@@ -51,7 +51,7 @@ from autoalign.io.models import ModelSet
 from autoalign.quality.overlap import mask_iou
 from autoalign.quality.verdict import Verdict, judge
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
-from autoalign.report import floats
+from autoalign.jobs.report import floats
 
 Progress = Callable[[str, int, int], None]
 

@@ -54,8 +54,8 @@ _FULL_SIZE = {
     "refine": ("import functools, sys, autoalign.io.bop as b; "
                "b.read_scene = functools.partial(b.read_scene, max_pixels=None); "
                "from autoalign.cli.main import main; sys.exit(main(sys.argv[1:]))"),
-    "check": ("import functools, sys, autoalign.quality.feature_distance as fd; "
-              "fd.check_prepared = functools.partial(fd.check_prepared, max_pixels=None); "
+    "check": ("import functools, sys, autoalign.quality.scene_check as sc; "
+              "sc.check_prepared = functools.partial(sc.check_prepared, max_pixels=None); "
               "from autoalign.cli.main import main; sys.exit(main(sys.argv[1:]))"),
 }
 

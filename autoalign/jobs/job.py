@@ -1,8 +1,8 @@
-"""The typed hand-offs of refining a scene folder (:mod:`autoalign.refine_folder`): the job
+"""The typed hand-offs of refining a scene folder (:mod:`autoalign.jobs.refine_folder`): the job
 (:class:`FolderJob`, the options of ``autoalign refine``), the run's warnings (:class:`RunLog`),
 its progress (:class:`Stages`), what it gave (:class:`FolderOutcome`, with the exit statuses), and
 the writing of its outputs. A module of its own so that the one-object and the scene refinement
-(:mod:`autoalign.refine_scene_folder`) and the command line share them without importing each other.
+(:mod:`autoalign.jobs.refine_scene_folder`) and the command line share them without importing each other.
 
 Standard library only at import (the command's start-up stays fast); the rest loads inside.
 """
@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 from autoalign.errors import AutoalignError
 
 if TYPE_CHECKING:
-    from autoalign.report import RefineReport, SceneReport
+    from autoalign.jobs.report import RefineReport, SceneReport
 
 OUTPUT_FILES = ("scene_gt.json", "refine.json", "overlay.png", "scene_camera.json")
 """Every file a refinement may write (``scene_camera.json`` only with ``refine_cameras`` or a solved scale)."""
@@ -188,7 +188,7 @@ def write_json_outputs(out: Path, documents: dict[str, Any], binary: dict[str, b
     import json
 
     from autoalign.io.out_folder import write_outputs
-    from autoalign.report import jsonable
+    from autoalign.jobs.report import jsonable
     from autoalign.runtime.interrupts import Interrupts
 
     files = {name: json.dumps(jsonable(doc), indent=1, allow_nan=name != "refine.json").encode()

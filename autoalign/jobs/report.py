@@ -2,9 +2,9 @@
 (:class:`SceneReport`, every instance), built from the results as typed records; ``to_json()``
 gives the file's content (plain JSON types: :func:`jsonable`).
 
-At the top of the package, beside :mod:`autoalign.refine_folder` which writes it, because it reads
-the results of ``engine`` and ``scene``, which ``quality`` (the verdict and overlay) may not import.
-The command line, the batch runner and Python users all build their reports here.
+In ``jobs``, beside :mod:`autoalign.jobs.refine_folder` which writes it, because it reads the results
+of ``engine`` and ``scene``, which ``quality`` (the verdict and overlay) may not import. The command
+line, the batch runner and Python users all build their reports here.
 """
 
 from __future__ import annotations
@@ -266,9 +266,10 @@ class InstanceReport:
 
 
 def joint_record(joint: JointRefinement) -> dict[str, Any]:
-    """A joint stage (:class:`~autoalign.scene.joint.JointRefinement`): iterations, loss and median
-    per-view misfit (1 - IoU) before and after."""
-    return {"iterations": joint.iterations, "loss_before": joint.loss_before, "loss_after": joint.loss_after,
+    """A joint stage (:class:`~autoalign.scene.joint.JointRefinement`): iterations, why it stopped, loss
+    and median per-view misfit (1 - IoU) before and after."""
+    return {"iterations": joint.iterations, "stop": joint.stop.value,
+            "loss_before": joint.loss_before, "loss_after": joint.loss_after,
             "median_view_misfit_before": float(np.median(list(joint.view_misfit_before.values()))),
             "median_view_misfit_after": float(np.median(list(joint.view_misfit_after.values())))}
 

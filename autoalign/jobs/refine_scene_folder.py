@@ -1,10 +1,10 @@
 """Refine every instance of a BOP scene folder into an output folder (``autoalign refine --models``;
-:func:`~autoalign.refine_folder.refine_folder` calls this for a job with ``models``).
+:func:`~autoalign.jobs.refine_folder.refine_folder` calls this for a job with ``models``).
 
 Reads the instances (:mod:`autoalign.io.instances`), solves the scene's scale when asked or when
 the cameras have none, refines each instance (:mod:`autoalign.scene.refine`), and writes
 ``scene_gt.json`` (every instance in every image), ``refine.json``
-(:class:`~autoalign.report.SceneReport`), ``overlay.png`` (every instance in its own colour,
+(:class:`~autoalign.jobs.report.SceneReport`), ``overlay.png`` (every instance in its own colour,
 labelled with its verdict) and, with corrected cameras or a solved scale, ``scene_camera.json``.
 """
 
@@ -25,7 +25,7 @@ from autoalign.io.instances import (
     read_instances,
 )
 from autoalign.io.models import ModelSet
-from autoalign.refine_job import (
+from autoalign.jobs.job import (
     EXIT_FLAGGED,
     EXIT_OK,
     FolderJob,
@@ -35,7 +35,7 @@ from autoalign.refine_job import (
     one_line,
     write_json_outputs,
 )
-from autoalign.report import InstanceReport, ScaleReport, SceneReport, cameras_record
+from autoalign.jobs.report import InstanceReport, ScaleReport, SceneReport, cameras_record
 from autoalign.scene.refine import SceneRefinement, refine_scene
 from autoalign.scene.scale import (
     ScaleGuess,

@@ -1,11 +1,11 @@
 """Refine a BOP scene folder into an output folder: what ``autoalign refine`` does, without its
 argument parsing and printing. One object (``model``) or every instance (``models``,
-:mod:`autoalign.refine_scene_folder`); the outputs (``scene_gt.json``, ``refine.json``,
+:mod:`autoalign.jobs.refine_scene_folder`); the outputs (``scene_gt.json``, ``refine.json``,
 ``overlay.png``, sometimes ``scene_camera.json``) are written all or none.
 
 The command line, the batch runner (:mod:`autoalign.batch`, whose scene lists carry each scene's
-options as text: :meth:`~autoalign.refine_job.FolderJob.from_argv`) and Python users call
-:func:`refine_folder`; its options and outcome are in :mod:`autoalign.refine_job`.
+options as text: :meth:`~autoalign.jobs.job.FolderJob.from_argv`) and Python users call
+:func:`refine_folder`; its options and outcome are in :mod:`autoalign.jobs.job`.
 
 Standard library only at import (the command's start-up stays fast); the rest loads inside.
 """
@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from autoalign.refine_job import (
+from autoalign.jobs.job import (
     EXIT_FLAGGED,
     EXIT_OK,
     OUTPUT_FILES,
@@ -29,7 +29,7 @@ from autoalign.refine_job import (
 )
 
 if TYPE_CHECKING:
-    from autoalign.report import RefineReport
+    from autoalign.jobs.report import RefineReport
 
 
 def refine_folder(job: FolderJob, log: RunLog | None = None, progress: Stages | None = None,
@@ -63,7 +63,7 @@ def refine_folder(job: FolderJob, log: RunLog | None = None, progress: Stages | 
     created = prepare_out_dir(out)
     try:
         if job.models is not None:
-            from autoalign.refine_scene_folder import refine_scene_folder
+            from autoalign.jobs.refine_scene_folder import refine_scene_folder
 
             return refine_scene_folder(job, log, progress, t_start)
         return _refine_object(job, click, log, progress)
@@ -118,7 +118,7 @@ def _seed(job: FolderJob, scene: Any, click: Any) -> tuple[Any, Any]:
     import numpy as np
 
     from autoalign.io.bop import read_init_pose
-    from autoalign.report import Seed
+    from autoalign.jobs.report import Seed
 
     if job.init is not None:
         seed = read_init_pose(job.init, scene, job.obj_id, job.instance)
@@ -137,9 +137,9 @@ def _seed(job: FolderJob, scene: Any, click: Any) -> tuple[Any, Any]:
 
 def _object_report(job: FolderJob, scene: Any, mesh: Any, result: Any, seed: Any, options: Any,
                    log: RunLog) -> RefineReport:
-    """The report of one object's refinement (:class:`~autoalign.report.RefineReport`)."""
+    """The report of one object's refinement (:class:`~autoalign.jobs.report.RefineReport`)."""
     from autoalign.quality.verdict import judge
-    from autoalign.report import RefineReport, RunnerUp
+    from autoalign.jobs.report import RefineReport, RunnerUp
 
     ids = [int(i) for i in result.image_ids or scene.image_ids]
     verdict = judge(result.iou_after, result.weights, ids, scene.empty, bool(result.ambiguous),
