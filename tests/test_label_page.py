@@ -330,7 +330,7 @@ def test_nudge_turns_about_the_object_centre_in_camera_axes():
 
     from autoalign.geometry.camera import Camera
     from autoalign.geometry.se3 import make_pose
-    from autoalign.label.session import nudged_pose
+    from autoalign.label.page_geometry import nudged_pose
 
     rng = np.random.default_rng(4)
     R_w2c = Rotation.random(random_state=5).as_matrix()

@@ -1,0 +1,136 @@
+"""The records of a labelling session: one mask instance and what is known of it
+(:class:`LabelledInstance`, as ``session.json`` and the page see it), the verdict a refinement gave
+a pose (:class:`Judgement`), and the session's one slow job (:class:`JobState`).
+
+Units and frames: poses are world-from-model 4x4 in mm (the frame of ``scene_camera.json``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.engine.uncertainty import Uncertainty
+from autoalign.jobs.report import floats
+from autoalign.quality.verdict import Verdict
+
+DECISIONS = ("open", "accepted", "rejected")
+"""What the person decided about an instance: nothing yet, its label is right, or it is not wanted."""
+WORST_VIEWS = 3
+MOVED_BY_HAND = "moved by hand since the last refinement: refine from here to judge it"
+
+
+@dataclass
+class LabelledInstance:
+    """One mask instance (``..._{index:06d}.png``) and what the session knows of it.
+
+    Attributes:
+        index: the instance's mask number.
+        obj_id: the object the person chose for it (``None``: not placed yet).
+        T_wm: world-from-model pose (4x4, mm), ``None`` until placed.
+        decision: one of :data:`DECISIONS`.
+        symmetric: the person marked the object symmetric (a turn about its axis is not an error).
+        source: what set the pose last (``click``, ``refine``, ``nudge``, ``3d``, ``together``).
+        verdict: autoalign's ``ok`` / ``check`` / ``failed`` after a refinement, ``None`` once the
+            pose was moved by hand since (``reasons`` says so).
+        reasons: why the verdict is what it is.
+        sigma_mm / sigma_deg: per model axis (x, y, z) from the last refinement, or ``None``.
+        weakly_observed: the directions the last refinement could not pin down.
+        ious: hard IoU of the silhouette at ``T_wm`` with the instance's mask, by image id.
+        pose_revision: counts the pose's changes (the page fetches contours again when it moves).
+    """
+
+    index: int
+    obj_id: int | None = None
+    T_wm: NDArray[np.float64] | None = None
+    decision: str = "open"
+    symmetric: bool = False
+    source: str = ""
+    verdict: str | None = None
+    reasons: list[str] = field(default_factory=list)
+    sigma_mm: list[float] | None = None
+    sigma_deg: list[float] | None = None
+    weakly_observed: list[str] = field(default_factory=list)
+    ious: dict[int, float] = field(default_factory=dict)
+    pose_revision: int = 0
+
+    @property
+    def placed(self) -> bool:
+        return self.T_wm is not None and self.obj_id is not None
+
+    @property
+    def worst_views(self) -> list[int]:
+        """The image ids of the :data:`WORST_VIEWS` views whose mask the silhouette fits least."""
+        return [im for im, _ in sorted(self.ious.items(), key=lambda kv: kv[1])[:WORST_VIEWS]]
+
+    def record(self) -> dict[str, Any]:
+        """The instance as JSON (``session.json`` and the page's state)."""
+        return {"index": self.index, "obj_id": self.obj_id,
+                "T_wm": None if self.T_wm is None else floats(self.T_wm),
+                "decision": self.decision, "symmetric": self.symmetric, "source": self.source,
+                "verdict": self.verdict, "reasons": list(self.reasons), "sigma_mm": self.sigma_mm,
+                "sigma_deg": self.sigma_deg, "weakly_observed": list(self.weakly_observed),
+                "ious": {str(k): float(v) for k, v in self.ious.items()},
+                "median_iou": float(np.median(list(self.ious.values()))) if self.ious else None,
+                "worst_views": self.worst_views, "pose_revision": self.pose_revision}
+
+    @staticmethod
+    def from_record(d: dict[str, Any]) -> LabelledInstance:
+        """The instance of a :meth:`record` (raises ``KeyError``, ``TypeError`` or ``ValueError`` on a bad one)."""
+        T = d.get("T_wm")
+        return LabelledInstance(
+            int(d["index"]), None if d.get("obj_id") is None else int(d["obj_id"]),
+            None if T is None else np.asarray(T, dtype=np.float64).reshape(4, 4), str(d.get("decision", "open")),
+            bool(d.get("symmetric", False)), str(d.get("source", "")), d.get("verdict"), list(d.get("reasons", [])),
+            d.get("sigma_mm"), d.get("sigma_deg"), list(d.get("weakly_observed", [])),
+            {int(k): float(v) for k, v in (d.get("ious") or {}).items()}, int(d.get("pose_revision", 0)))
+
+
+@dataclass(frozen=True)
+class Judgement:
+    """What a refinement said of the pose it gave: autoalign's verdict and the pose's uncertainty."""
+
+    verdict: Verdict
+    uncertainty: Uncertainty | None
+
+
+def moved(inst: LabelledInstance, obj_id: int, T_wm: NDArray[np.float64], source: str, ious: dict[int, float],
+          judged: Judgement | None) -> LabelledInstance:
+    """``inst`` as object ``obj_id`` at ``T_wm`` (4x4, mm), set by ``source``, fitting its masks by
+    ``ious``; with ``judged`` (after a refinement) its verdict and uncertainty, else none (moved by
+    hand). A click starts its decision over."""
+    u = None if judged is None else judged.uncertainty
+    return replace(
+        inst, obj_id=obj_id, T_wm=T_wm, source=source, ious=ious, pose_revision=inst.pose_revision + 1,
+        verdict=None if judged is None else judged.verdict.status,
+        reasons=[MOVED_BY_HAND] if judged is None else list(judged.verdict.reasons),
+        sigma_mm=None if u is None else [float(x) for x in u.sigma_mm],
+        sigma_deg=None if u is None else [float(x) for x in u.sigma_deg],
+        weakly_observed=[] if u is None else list(u.weak),
+        decision="open" if source == "click" else inst.decision)
+
+
+@dataclass
+class JobState:
+    """The one slow task the session runs at a time (placing, refining or exporting) and its progress
+    (``started`` and ``seconds``: ``time.perf_counter`` seconds)."""
+
+    kind: str = ""
+    instance: int | None = None
+    running: bool = False
+    stage: str = ""
+    done: int = 0
+    total: int = 0
+    error: str | None = None
+    started: float = 0.0
+    seconds: float = 0.0
+    number: int = 0
+
+    def record(self) -> dict[str, Any]:
+        """The job as JSON (the page's state)."""
+        return {"kind": self.kind, "instance": self.instance, "running": self.running, "stage": self.stage,
+                "done": self.done, "total": self.total, "error": self.error, "seconds": self.seconds,
+                "number": self.number}

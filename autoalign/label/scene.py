@@ -1,0 +1,99 @@
+"""The scene a labelling session works on, read once: its views, its instance masks, the objects
+that can be chosen and those an instances file suggests. Read-only, so any thread may ask it.
+
+Pixel coordinates are OpenCV's (the centre of the top-left pixel at 0, 0), in the masks'
+resolution (the views' ``width`` x ``height``).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.errors import AutoalignError
+from autoalign.geometry.camera import Camera
+from autoalign.io.bop import Scene
+from autoalign.io.instances import InstanceScenes, read_instance_scenes, read_instances
+from autoalign.io.models import ModelSet
+
+
+class SessionScene:
+    """A BOP scene folder's views and instance masks, with the models to choose from.
+
+    Args:
+        scene_dir: a BOP scene folder with ``scene_camera.json`` and instance masks in ``mask_visib/``.
+        models: the objects that can be chosen.
+        instances_file: an instances file (``{"instances": {"0": 5}}``) whose objects are offered first.
+    """
+
+    def __init__(self, scene_dir: str | os.PathLike[str], models: ModelSet,
+                 instances_file: str | os.PathLike[str] | None = None) -> None:
+        self.scene_dir, self.models = Path(scene_dir), models
+        self.found: InstanceScenes = read_instance_scenes(self.scene_dir, None)
+        self.indices = [i.index for i in self.found.instances]
+        if not self.indices:
+            raise AutoalignError(f"{self.scene_dir / 'mask_visib'}: no non-empty instance mask; label a scene with "
+                                 "masks (a segmenter's, or 'autoalign recon --propose')")
+        self.suggested = self._suggested_objects(None if instances_file is None else Path(instances_file))
+        self.object_ids = sorted(int(p.stem[4:]) for p in models.folder.glob("obj_*.ply") if p.stem[4:].isdigit())
+        if not self.object_ids:
+            raise AutoalignError(f"{models.folder}: no obj_XXXXXX.ply; pass a BOP models folder to --models")
+
+    @property
+    def views(self) -> list[Camera]:
+        return self.found.cameras
+
+    @property
+    def image_ids(self) -> list[int]:
+        return self.found.image_ids
+
+    def _suggested_objects(self, instances_file: Path | None) -> dict[int, int]:
+        """instance -> obj_id from an instances file or the scene's own ``scene_gt.json`` (if any)."""
+        if instances_file is None and not (self.scene_dir / "scene_gt.json").is_file():
+            return {}
+        return {i.index: i.obj_id for i in read_instances(self.scene_dir, instances_file)}
+
+    def scene_of(self, index: int) -> Scene:
+        """The views and masks of instance ``index`` (other masks' pixels ignored)."""
+        return self.found.scenes[self.indices.index(index)]
+
+    def view(self, image_id: int) -> Camera:
+        """The camera of image ``image_id``; raises if the scene has no such view."""
+        if image_id not in self.image_ids:
+            raise AutoalignError(f"image {image_id} is not a view of {self.scene_dir}")
+        return self.views[self.image_ids.index(image_id)]
+
+    def masks_in_view(self, image_id: int) -> dict[int, NDArray[np.bool_]]:
+        """Every instance's mask in image ``image_id`` (at the views' resolution), by instance."""
+        out = {}
+        for inst, sc in zip(self.found.instances, self.found.scenes):
+            if image_id in sc.image_ids:
+                out[inst.index] = np.asarray(sc.masks[sc.image_ids.index(image_id)]) > 0.5
+        return out
+
+    def instance_at(self, image_id: int, u: float, v: float) -> int:
+        """The instance whose mask covers OpenCV pixel ``(u, v)`` of image ``image_id`` (the smallest,
+        where masks overlap). Raises :class:`AutoalignError` if none does."""
+        cam = self.view(image_id)
+        col, row = int(round(u)), int(round(v))
+        if not (0 <= col < cam.width and 0 <= row < cam.height):
+            raise AutoalignError(f"pixel {u:.0f},{v:.0f} is outside the {cam.width}x{cam.height} image {image_id}")
+        under = [(int(m.sum()), k) for k, m in self.masks_in_view(image_id).items() if m[row, col]]
+        if not under:
+            raise AutoalignError(f"no instance mask under pixel {col},{row} of image {image_id}; click inside a tinted "
+                                 "region (autoalign aligns a model with a mask)")
+        return min(under)[1]
+
+    def check_object(self, obj_id: int) -> None:
+        """Raise unless ``obj_id`` has a model."""
+        if obj_id not in self.object_ids:
+            raise AutoalignError(f"object {obj_id} has no model in {self.models.folder}; choose one of "
+                                 f"{', '.join(map(str, self.object_ids))}")
+
+    def check_instance(self, index: int) -> None:
+        """Raise unless ``index`` is one of the scene's instance masks."""
+        if index not in self.indices:
+            raise AutoalignError(f"instance {index} has no mask in {self.scene_dir / 'mask_visib'}")
