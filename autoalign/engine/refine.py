@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import enum
 import time
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable
@@ -116,6 +117,18 @@ class RefineOptions:
     fine_faces: int | None = 20000
 
 
+class Stage(enum.Enum):
+    """Where a hypothesis got to (:attr:`Hypothesis.stage`; ``refine.json`` writes :attr:`Hypothesis.stage_name`)."""
+
+    START = "start"  # a start, not yet run
+    FLIP = "flip"  # a half turn of the best start, not yet run
+    SEARCH = "search"  # left in the orientation funnel, at its step Hypothesis.step (0, 1)
+    DROPPED = "level"  # left behind after the polish level of scale Hypothesis.step
+    ORBIT = "orbit"  # a turn of the runner-up's orbit, not yet polished
+    WEAK_TURN = "weak turn"  # a turn about a weakly observed axis, not yet polished
+    FINAL = "final"  # polished through the last level
+
+
 @dataclass(eq=False)
 class Hypothesis:
     """One start tried: its initial pose, its final pose, loss and mean IoU.
@@ -130,9 +143,19 @@ class Hypothesis:
     T_final: NDArray[np.float64]
     loss: float
     mean_iou: float
-    stage: str
+    stage: Stage
     path: tuple[tuple[Level, Trace], ...] = ()
     estimated: bool = False
+    step: float | None = None
+
+    @property
+    def stage_name(self) -> str:
+        """The stage as reports write it: ``search0``, ``level 0.5``, ``final``, ..."""
+        if self.stage is Stage.SEARCH:
+            return f"search{int(self.step)}"
+        if self.stage is Stage.DROPPED:
+            return f"level {self.step:g}"
+        return self.stage.value
 
     def rank(self) -> tuple[bool, float]:
         """Sort key, best first: measured losses before estimated ones, then by loss."""
@@ -271,7 +294,7 @@ def _search(obj: SilhouetteObjective, starts: list[NDArray[np.float64]], mesh: M
     times the best of its stage so far."""
     levels = opts.schedule
     others: list[Hypothesis] = []
-    pool = [Hypothesis(T, T, float("nan"), float("nan"), "start") for T in starts]
+    pool = [Hypothesis(T, T, float("nan"), float("nan"), Stage.START) for T in starts]
     funnel = [(opts.search_level, opts.n_mid), (levels[0], opts.n_final)]
     for stage, (level, keep) in enumerate(funnel):
         done: list[Hypothesis] = []
@@ -282,14 +305,14 @@ def _search(obj: SilhouetteObjective, starts: list[NDArray[np.float64]], mesh: M
                 Tc, tr = _run_schedule(obj, h.T_final, (level,), opts.optimizer,
                                        give_up=lambda it, ev, bar=bar: it >= 1 and ev.value / len(ev.weights) > bar)
                 loss, miou, _ = _final_loss(obj, Tc, level, tr[-1])
-                done.append(Hypothesis(h.T_init, Tc, loss, miou, f"search{stage}", h.path + ((level, tr[-1]),)))
+                done.append(Hypothesis(h.T_init, Tc, loss, miou, Stage.SEARCH, h.path + ((level, tr[-1]),), step=stage))
                 if progress is not None:
                     progress(f"hypotheses {stage + 1}/{len(funnel)}", j + 1, len(todo))
 
         run(pool)
         if stage == 0 and opts.flips:  # the half turns of the best one compete too, from its path
             best = min(done, key=lambda h: h.loss)
-            run([Hypothesis(best.T_init, T, float("nan"), float("nan"), "flip", best.path)
+            run([Hypothesis(best.T_init, T, float("nan"), float("nan"), Stage.FLIP, best.path)
                  for T in flips(best.T_final, mesh.principal_axes, mesh.centre)])
         done.sort(key=lambda h: h.loss)
         pool = []
@@ -299,8 +322,14 @@ def _search(obj: SilhouetteObjective, starts: list[NDArray[np.float64]], mesh: M
                 pool.append(h)
         others.extend(h for h in done if h not in pool)
     # A distinct runner-up goes on only while it is competitive: a clearly worse pose need not be polished.
-    finalists = [h for h in pool if h.loss <= pool[0].loss * opts.competitive + 1e-4]
+    finalists = [h for h in pool if _competitive(h.loss, pool[0].loss, opts)]
     return finalists, others + [h for h in pool if h not in finalists]
+
+
+def _competitive(loss: float, best_loss: float, opts: RefineOptions) -> bool:
+    """Whether a hypothesis' loss is within ``opts.competitive`` of the best's, so that it goes on
+    (the 1e-4 keeps near-zero losses of exact masks comparable)."""
+    return loss <= best_loss * opts.competitive + 1e-4
 
 
 def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple[Level, ...], opts: RefineOptions,
@@ -317,7 +346,7 @@ def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple
     the right one, estimated 1.8% lower, was left unpolished behind it when only a 5% lower estimate
     was polished.
 
-    Returns the finalists (best first, stage "final") and the ones that stopped early.
+    Returns the finalists (best first, :attr:`Stage.FINAL`) and the ones that stopped early.
     """
     alive, dropped = list(finalists), []
     scored: list[Finalist] = []
@@ -331,20 +360,21 @@ def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple
                 estimate = ev.value / len(ev.weights) * gain
                 if estimate >= scored[0].hypothesis.loss * (1.0 - opts.polish_margin):
                     scored.append(Finalist(Hypothesis(h.T_init, h.T_final, estimate, float(np.mean(ev.terms.iou)),
-                                                      "final", h.path, estimated=True), ev.weights))
+                                                      Stage.FINAL, h.path, estimated=True), ev.weights))
                     continue
             name = label if len(alive) == 1 else f"{label} {k + 1}/{len(alive)}"
             T, tr = _run_schedule(obj, h.T_final, (lv,), opts.optimizer, progress, f"{name} (level {li + 1}/{len(levels)})")
             loss, miou, weights = _final_loss(obj, T, lv, tr[-1])
-            scored.append(Finalist(Hypothesis(h.T_init, T, loss, miou, "final", h.path + ((lv, tr[-1]),)), weights))
+            scored.append(Finalist(Hypothesis(h.T_init, T, loss, miou, Stage.FINAL, h.path + ((lv, tr[-1]),)), weights))
             start = tr[-1].start
             if k == 0 and start is not None:  # the best's polishing gain at this level
                 gain = loss / max(start.value / len(start.weights), 1e-12)
         scored.sort(key=lambda f: f.hypothesis.rank())  # an estimate ranks last: had it been clearly better, it was polished
         if not at_last:
-            bar = scored[0].hypothesis.loss * opts.competitive + 1e-4
-            dropped.extend(replace(f.hypothesis, stage=f"level {lv.scale:g}") for f in scored if f.hypothesis.loss > bar)
-            scored = [f for f in scored if f.hypothesis.loss <= bar]
+            best_loss = scored[0].hypothesis.loss
+            dropped.extend(replace(f.hypothesis, stage=Stage.DROPPED, step=lv.scale) for f in scored
+                           if not _competitive(f.hypothesis.loss, best_loss, opts))
+            scored = [f for f in scored if _competitive(f.hypothesis.loss, best_loss, opts)]
         alive = [f.hypothesis for f in scored]
     return scored, dropped
 
@@ -402,19 +432,19 @@ def _rank(final: list[Finalist], others: list[Hypothesis], centre_m: NDArray[np.
     runner = next((h for h in ranked[1:] if _differs(h.T_final, ranked[0].T_final, centre_m)), None)
     # ambiguous: the runner-up's loss is almost the best's, or competitive while its IoU is higher
     # (the robust loss and the IoU disagree on which fits: masks that fail in some views)
-    ambiguous = bool(runner is not None and runner.stage == "final"
+    ambiguous = bool(runner is not None and runner.stage is Stage.FINAL
                      and (runner.loss <= ranked[0].loss * (1.0 + opts.ambiguity_tol) + 1e-4
-                          or (runner.loss <= ranked[0].loss * opts.competitive
+                          or (_competitive(runner.loss, ranked[0].loss, opts)
                               and runner.mean_iou >= ranked[0].mean_iou)))
     return Standing(ranked, runner, ambiguous)
 
 
 def _with_candidate(obj: SilhouetteObjective, final: list[Finalist], parent: Hypothesis, T: NDArray[np.float64],
-                    stage: str, level: Level, opts: RefineOptions, progress: Progress | None) -> list[Finalist]:
+                    stage: Stage, level: Level, opts: RefineOptions, progress: Progress | None) -> list[Finalist]:
     """``final`` with the pose ``T`` (reached from ``parent``'s path by a known turn) polished at
     ``level`` added, best first."""
     polished, _ = _polish(obj, [Hypothesis(parent.T_init, T, float("nan"), float("nan"), stage, parent.path)],
-                          (level,), opts, progress, f"refine {stage}")
+                          (level,), opts, progress, f"refine {stage.value}")
     return sorted(final + polished, key=lambda f: f.hypothesis.rank())
 
 
@@ -436,14 +466,14 @@ def _disambiguate(obj: SilhouetteObjective, renderers: _Renderers, scene: Scene,
     levels = opts.schedule
     standing = _rank(final, others, mesh.centre, opts)
     runner = standing.runner_up
-    if (opts.orbits and runner is not None and runner.stage == "final"
-            and runner.loss <= standing.ranked[0].loss * opts.competitive + 1e-4):
+    if (opts.orbits and runner is not None and runner.stage is Stage.FINAL
+            and _competitive(runner.loss, standing.ranked[0].loss, opts)):
         best = standing.ranked[0]
         cands = orbit(best.T_final, runner.T_final)
         if len(cands):
             ious = np.array([float(np.mean(hard_ious(renderers.fine, scene, T))) for T in cands])
             if ious.max() > float(np.mean(hard_ious(renderers.fine, scene, best.T_final))) + opts.orbit_margin:
-                final = _with_candidate(obj, final, best, cands[int(np.argmax(ious))], "orbit", levels[-1], opts,
+                final = _with_candidate(obj, final, best, cands[int(np.argmax(ious))], Stage.ORBIT, levels[-1], opts,
                                         progress)
                 standing = _rank(final, others, mesh.centre, opts)
     best = final[0]
@@ -455,7 +485,7 @@ def _disambiguate(obj: SilhouetteObjective, renderers: _Renderers, scene: Scene,
         k = int(np.argmax(scores))
         turn_gap = own - float(scores[k])
         if scores[k] > own + opts.orbit_margin:
-            final = _with_candidate(obj, final, best.hypothesis, cands[k], "weak turn", levels[-1], opts, progress)
+            final = _with_candidate(obj, final, best.hypothesis, cands[k], Stage.WEAK_TURN, levels[-1], opts, progress)
             standing = _rank(final, others, mesh.centre, opts)
             if final[0] is not best:
                 ev, uncertainty = _final_state(obj, final[0].hypothesis, final[0].weights, levels)

@@ -124,7 +124,7 @@ class RunnerUp:
             return None
         Ru = np.asarray(result.runner_up.T_final, float)
         c = np.asarray(centre_m, float)[None]
-        return cls(Ru, result.runner_up.loss, result.runner_up.mean_iou, result.runner_up.stage,
+        return cls(Ru, result.runner_up.loss, result.runner_up.mean_iou, result.runner_up.stage_name,
                    rotation_angle_deg(result.T_wm[:3, :3], Ru[:3, :3]),
                    float(np.linalg.norm(transform_points(result.T_wm, c) - transform_points(Ru, c))))
 
@@ -208,7 +208,7 @@ class RefineReport:
             "low_weight_ids": self.low_weight_ids, "skipped": self.skipped, "empty_masks": self.empty,
             "image_scale": self.image_scale, "iterations": r.iterations, "renders": r.renders,
             "timings": self.timings,
-            "hypotheses": [{"rank": k, "stage": h.stage, "loss": h.loss, "mean_iou": h.mean_iou,
+            "hypotheses": [{"rank": k, "stage": h.stage_name, "loss": h.loss, "mean_iou": h.mean_iou,
                             "pose_init": pose_record(h.T_init), "pose": pose_record(h.T_final)}
                            for k, h in enumerate(r.hypotheses)],
             "ambiguous": bool(r.ambiguous), "turn_gap": r.turn_gap,
