@@ -24,7 +24,6 @@ from pathlib import Path
 
 import numpy as np
 
-from autoalign.experiments import RESULTS
 from autoalign.experiments.benchmarks.bench_scene import make_bench_scene, symmetries
 from autoalign.experiments.pages.label_page_driver import (
     LabelServerProcess,
@@ -32,8 +31,8 @@ from autoalign.experiments.pages.label_page_driver import (
     open_page,
     place_in_largest_view,
 )
+from autoalign.experiments.result_files import write_results
 from autoalign.experiments.studies.metrics import pose_errors
-from autoalign.io.atomic_files import write_json_atomic, write_text_atomic
 from autoalign.io.models import ModelSet
 
 
@@ -87,7 +86,6 @@ def main(argv: list[str] | None = None) -> int:
     meta = {"objects": args.objects, "views": args.views, "image": "640x480", "cpus": os.cpu_count(),
             "machine": platform.machine(), "python": platform.python_version(),
             "date": time.strftime("%Y-%m-%d %H:%M")}
-    write_json_atomic(RESULTS / "bench_label_page.json", {"meta": meta, "summary": summary, "rows": results})
     lines = ["# autoalign label: click to outlines on screen", "",
              f"`python -m autoalign.experiments.benchmarks.bench_label_page --objects {args.objects} --views {args.views}`; "
              f"{args.objects} objects that hide each other, {args.views} views of 640x480, headless Chromium "
@@ -108,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     lines += ["", "| 3D view | median (s) | max (s) | server median (s) |", "|---|---|---|---|"]
     lines += [f"| {name} | {s['median_s']:.2f} | {s['max_s']:.2f} | {s['server_median_s']:.2f} |"
               for name, s in summary.items()]
-    write_text_atomic(RESULTS / "bench_label_page.md", "\n".join(lines) + "\n")
+    write_results("bench_label_page", {"meta": meta, "summary": summary, "rows": results}, lines, shown=0)
     print(json.dumps(summary, indent=1))
     return 0
 

@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 
 from autoalign.experiments import RESULTS
+from autoalign.experiments.result_files import write_results
 from autoalign.experiments.scenes.procedural_models import procedural_models
 from autoalign.experiments.scenes.synthetic import (
     make_scene,
@@ -45,7 +46,7 @@ from autoalign.experiments.scenes.synthetic import (
 )
 from autoalign.geometry.mesh import mesh_from_trimesh
 from autoalign.geometry.se3 import make_pose, rotation_angle_deg
-from autoalign.io.atomic_files import write_json_atomic, write_text_atomic
+from autoalign.io.atomic_files import write_json_atomic
 from autoalign.io.bop import Scene, scene_gt_dict
 
 ENLARGE = 6.25  # 640 x 480 -> 4000 x 3000
@@ -197,10 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(f"| {r['reading']} | {s:g} | {r['peak_rss_mb']:.0f} | {r['wall_s']:.1f} | "
                      f"{r['wall_s'] / base['wall_s']:.2f} | {r['n_matches']} | {r['mean_px'] / s:.2f} | "
                      f"{r['edge_px'] / s:.2f} |")
-    a.out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(a.out / "bench_memory.json", rows)
-    write_text_atomic(a.out / "bench_memory.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_results("bench_memory", rows, lines, a.out)
     return 0
 
 

@@ -31,12 +31,13 @@ import numpy as np
 import open3d as o3d
 
 from autoalign.experiments import RESULTS
+from autoalign.experiments.result_files import write_results
 from autoalign.experiments.scenes.stream import DEPTH_SCALE, Stream, render_stream
 from autoalign.experiments.scenes.synthetic import perturb_pose, raycast_visible_masks
 from autoalign.experiments.studies.metrics import Symmetries, pose_errors
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import rotation_angle_deg
-from autoalign.io.atomic_files import write_json_atomic, write_text_atomic
+from autoalign.io.atomic_files import write_json_atomic
 from autoalign.io.bop import read_cameras, scene_gt_of
 
 KEYFRAME_EVERY = 5
@@ -92,10 +93,7 @@ def recon_row(a: argparse.Namespace, rec: dict, t_render: float, t_recon: float,
              f"| {a.frames} | {t_recon:.1f} | {rec['registered']} | {rec['reprojection_error_px']:.2f} | "
              f"{row['trajectory_median_mm']:.2f} / {row['trajectory_median_deg']:.3f} | {row['trajectory_max_mm']:.2f} / "
              f"{row['trajectory_max_deg']:.3f} | {row['scale_error']:+.3%} | {row['table_normal_deg']:.3f} |"]
-    a.out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(a.out / f"bench_recon_{a.frames}.json", row)
-    write_text_atomic(a.out / f"bench_recon_{a.frames}.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_results(f"bench_recon_{a.frames}", row, lines, a.out)
     return 0
 
 
@@ -251,11 +249,8 @@ def main(argv: list[str] | None = None) -> int:
              f"| export ({len(gt)} frames, COCO) | {t_export:.1f} | mask_visib against open3d ray casting at the truth: IoU "
              f"median {row['export_mask_iou_median']:.3f}, min {row['export_mask_iou_min']:.3f} (10 frames) |",
              f"| **pipeline** | **{row['pipeline_s']:.1f}** | rendering the stream itself: {t_render:.1f} s (not counted) |"]
-    a.out.mkdir(parents=True, exist_ok=True)
     name = "bench_pipeline" + ("_rgb" if a.rgb_only else "") + ("_propose" if a.propose else "")
-    write_json_atomic(a.out / f"{name}.json", row)
-    write_text_atomic(a.out / f"{name}.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_results(name, row, lines, a.out)
     return 0
 
 

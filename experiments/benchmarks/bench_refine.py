@@ -31,6 +31,7 @@ import trimesh
 from autoalign.engine.objective import Level, SilhouetteObjective
 from autoalign.engine.refine import RefineOptions, refine
 from autoalign.experiments import RESULTS
+from autoalign.experiments.result_files import write_results
 from autoalign.experiments.scenes.synthetic import (
     default_K,
     make_scene,
@@ -40,7 +41,6 @@ from autoalign.experiments.scenes.synthetic import (
 )
 from autoalign.geometry.mesh import Mesh, mesh_from_trimesh
 from autoalign.geometry.se3 import make_pose, rotation_angle_deg, transform_points
-from autoalign.io.atomic_files import write_json_atomic, write_text_atomic
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
 
@@ -126,10 +126,7 @@ def main(argv: list[str] | None = None) -> int:
                      f"{r['per_iter_s']:.3f} | {r['per_iter_s'] / base['per_iter_s']:.2f} | {r['refine_s']:.2f} | "
                      f"{r['refine_s'] / base['refine_s']:.2f} | {r['iterations']:.0f} | {r['renders']:.0f} | "
                      f"{r['band_px']:.0f} | {r['crop_px']:.0f} | {r['err_mm']:.3f} | {r['err_deg']:.3f} |")
-    a.out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(a.out / "bench_refine.json", rows)
-    write_text_atomic(a.out / "bench_refine.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_results("bench_refine", rows, lines, a.out)
     return 0
 
 

@@ -30,6 +30,7 @@ import numpy as np
 
 from autoalign.experiments import RESULTS
 from autoalign.experiments.benchmarks.mitsuba_baseline import SPP
+from autoalign.experiments.result_files import write_results
 from autoalign.experiments.scenes.procedural_models import procedural_models
 from autoalign.experiments.scenes.synthetic import (
     default_K,
@@ -41,7 +42,6 @@ from autoalign.experiments.scenes.synthetic import (
 from autoalign.experiments.studies.metrics import Symmetries, pose_errors
 from autoalign.geometry.mesh import Mesh, mesh_from_trimesh
 from autoalign.geometry.se3 import make_pose
-from autoalign.io.atomic_files import write_json_atomic, write_text_atomic
 from autoalign.io.bop import Scene
 
 MITSUBA_LR, MITSUBA_STEPS = 0.1, 60
@@ -187,10 +187,7 @@ def main(argv: list[str] | None = None) -> int:
             lines.append(f"| {r['scene']} | {r['object']} | {r['native_s']:.2f} | {r['native_err'][0]:.3f} / "
                          f"{r['native_err'][1]:.3f} | {reach_s} | {r['mitsuba_wall_s']:.1f} | "
                          f"{r['mitsuba_err'][0]:.3f} / {r['mitsuba_err'][1]:.3f} | {ratio} |")
-    a.out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(a.out / "bench_research_api.json", rows + mrows)
-    write_text_atomic(a.out / "bench_research_api.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_results("bench_research_api", rows + mrows, lines, a.out)
     return 0
 
 

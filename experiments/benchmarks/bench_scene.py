@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from autoalign.experiments import RESULTS
+from autoalign.experiments.result_files import write_results
 from autoalign.experiments.scenes.procedural_models import (
     procedural_models,
     write_models,
@@ -40,7 +41,7 @@ from autoalign.experiments.scenes.synthetic import (
 )
 from autoalign.experiments.studies.metrics import Symmetries, pose_errors
 from autoalign.geometry.se3 import make_pose, rotation_angle_deg
-from autoalign.io.atomic_files import write_json_atomic, write_text_atomic
+from autoalign.io.atomic_files import write_json_atomic
 from autoalign.io.bop import scene_gt_of
 from autoalign.io.models import ModelSet
 
@@ -191,10 +192,7 @@ def main(argv: list[str] | None = None) -> int:
                   "| instances | within 1 mm, 1 deg | wrong and not flagged | verdict ok | median wall s |",
                   "|---|---|---|---|---|",
                   f"| {f['instances']} | {f['within_1mm_1deg']:.0%} | {f['wrong_unflagged']} | {f['ok']} | {f['wall_s']:.1f} |"]
-    a.out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(a.out / "bench_scene.json", rows + [r for r in (cam_row, free_row) if r is not None])
-    write_text_atomic(a.out / "bench_scene.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_results("bench_scene", rows + [r for r in (cam_row, free_row) if r is not None], lines, a.out)
     return 0
 
 

@@ -25,9 +25,9 @@ from autoalign.experiments.pages.label_page_driver import (
     open_page,
     place_in_largest_view,
 )
+from autoalign.experiments.result_files import write_results
 from autoalign.experiments.studies.metrics import pose_errors
 from autoalign.experiments.studies.shared_data import REAL_SCENES
-from autoalign.io.atomic_files import write_json_atomic, write_text_atomic
 from autoalign.io.bop import read_cameras
 from autoalign.io.models import ModelSet
 
@@ -71,7 +71,6 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for scene in sorted(d for d in args.data.iterdir() if (d / "gt_world.json").is_file()):
             rows += label_scene(scene, Path(tmp) / scene.name, RESULTS / "label_page" / f"real-{scene.name}.png")
-    write_json_atomic(RESULTS / "label_page_real.json", rows)
     lines = ["# autoalign label on the real LM-O scenes", "",
              "`python -m autoalign.experiments.pages.label_page_real`: each object of the rigid group clicked once in the "
              "page (headless Chromium, 2 cores), the scene's object chosen, in the view where its SAM mask is "
@@ -82,8 +81,7 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(f"| {r['scene']} | {r['obj_id']} | {r['views']} | {r['click_to_outlines_s']:.2f} | "
                      f"{r['error_mm']:.1f} / {r['error_deg']:.1f} | {r['median_iou']:.2f} | {r['verdict']} | "
                      f"{'; '.join(r['reasons'])[:160]} |")
-    write_text_atomic(RESULTS / "label_page_real.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_results("label_page_real", rows, lines)
     return 0
 
 

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from autoalign.experiments import RESULTS
+from autoalign.experiments.result_files import write_results
 from autoalign.experiments.scenes.procedural_models import load_bop_models_info
 from autoalign.experiments.scenes.synthetic import perturb_pose
 from autoalign.experiments.studies.metrics import (
@@ -43,7 +44,6 @@ from autoalign.geometry.se3 import make_pose
 from autoalign.io.atomic_files import (
     write_bytes_atomic,
     write_json_atomic,
-    write_text_atomic,
 )
 from autoalign.io.bop import read_cameras
 
@@ -276,10 +276,7 @@ def main(argv: list[str] | None = None) -> int:
                      f"{r['vs_dataset_labels']['mspd_px']:.1f} ({r['vs_dataset_labels']['max_mspd_px']:.1f}) | "
                      f"{r['dataset_mask_offset_px']:.1f} | "
                      f"{r['views']} | {r['verdict']} | {'; '.join(r['reasons'])} |")
-    a.out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(a.out / "real_scenes.json", rows)
-    write_text_atomic(a.out / "real_scenes.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_results("real_scenes", rows, lines, a.out)
     return 0
 
 

@@ -31,11 +31,12 @@ from autoalign.experiments.benchmarks.bench_pipeline import (
     rigid_alignment,
 )
 from autoalign.experiments.benchmarks.bench_scene import symmetries
+from autoalign.experiments.result_files import write_results
 from autoalign.experiments.studies.metrics import label_difference, track_fit
 from autoalign.experiments.studies.real_scenes import scene_inputs
 from autoalign.experiments.studies.shared_data import REAL_SCENES
 from autoalign.geometry.se3 import make_pose
-from autoalign.io.atomic_files import write_json_atomic, write_text_atomic
+from autoalign.io.atomic_files import write_json_atomic
 from autoalign.io.bop import read_cameras
 from autoalign.io.models import ModelSet
 from autoalign.recon.capture import read_capture
@@ -205,10 +206,7 @@ def main(argv: list[str] | None = None) -> int:
             lines.append(f"| {r['scene']} | {r['run']} | {r['scale_vs_sim3']:+.2%} | {o} | {cells} | "
                          f"{', '.join(r['verdicts_given_ours'][o])} | "
                          f"{', '.join(f'{x:.3f}' for x in r['median_iou_given_ours'][o])} |")
-    a.out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(a.out / "recon_real.json", rows)
-    write_text_atomic(a.out / "recon_real.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_results("recon_real", rows, lines, a.out)
     return 0
 
 

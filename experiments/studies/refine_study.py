@@ -29,6 +29,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from autoalign.experiments.result_files import write_results
 from autoalign.experiments.scenes.procedural_models import procedural_models
 from autoalign.experiments.scenes.synthetic import (
     corrupt_views,
@@ -43,7 +44,7 @@ from autoalign.experiments.studies.shared_data import shared_dir
 from autoalign.geometry.camera import uv_to_opencv
 from autoalign.geometry.mesh import Mesh, load_mesh, mesh_from_trimesh
 from autoalign.geometry.se3 import make_pose, rotation_angle_deg, transform_points
-from autoalign.io.atomic_files import write_json_atomic, write_text_atomic
+from autoalign.io.atomic_files import write_json_atomic
 from autoalign.io.bop import Scene, scene_gt_dict
 
 
@@ -216,9 +217,7 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(f"| {kind} | {r['n']} | {100 * r['success']:.0f}% | {tm:g} mm, {td:g} deg | {r['median_err_mm']:.3f} | "
                      f"{r['median_err_deg']:.3f} | {r['max_err_mm']:.3f} | {r['max_err_deg']:.3f} | {r['median_wall_s']:.2f} |")
     suffix = "_cli" if a.cli else ""
-    write_json_atomic(a.out / f"results{suffix}.json", {"summary": results, "rows": all_rows})
-    write_text_atomic(a.out / f"results{suffix}.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_results(f"results{suffix}", {"summary": results, "rows": all_rows}, lines, a.out)
     return 0
 
 

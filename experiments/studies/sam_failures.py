@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from autoalign.engine.refine import RefineOptions
 from autoalign.experiments import RESULTS
+from autoalign.experiments.result_files import write_results
 from autoalign.experiments.scenes.procedural_models import (
     procedural_models,
     write_models,
@@ -43,7 +44,7 @@ from autoalign.experiments.scenes.synthetic import (
 from autoalign.experiments.studies.metrics import Symmetries, pose_errors
 from autoalign.experiments.studies.shared_data import REAL_SCENES
 from autoalign.geometry.se3 import make_pose
-from autoalign.io.atomic_files import write_json_atomic, write_text_atomic
+from autoalign.io.atomic_files import write_json_atomic
 from autoalign.io.bop import scene_gt_of
 from autoalign.io.instances import read_init_poses, read_instance_scenes, read_instances
 from autoalign.io.models import ModelSet
@@ -214,10 +215,7 @@ def main(argv: list[str] | None = None) -> int:
         gap = "-" if r["turn_gap"] is None else f"{r['turn_gap']:.3f}"
         lines.append(f"| {r['seed']} | {r['scene']} | {r['obj']} | {r['err_mm']:.3f} | {r['err_deg']:.3f} | {gap} | "
                      f"{r['verdict']} | {'; '.join(r['reasons'])} |")
-    a.out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(a.out / "sam_failures.json", {"rates": rates, "rows": rows})
-    write_text_atomic(a.out / "sam_failures.md", "\n".join(lines) + "\n")
-    print("\n".join(lines[:10]))
+    write_results("sam_failures", {"rates": rates, "rows": rows}, lines, a.out, shown=10)
     return 0
 
 
