@@ -129,6 +129,88 @@ def proposal_assignment(scene: Path, stream: Stream, T: np.ndarray) -> dict[int,
     return out
 
 
+def keyframe_masks(scene: Path, stream: Stream, T: np.ndarray, keys: list[int], propose: bool) -> dict[int, int]:
+    """Masks of the ``keys`` frames in ``scene/mask_visib``: ``recon --propose``'s (the other frames'
+    removed) when ``propose``, else ray cast from the truth (the user's segmenter); returns which
+    stream object each mask's instance is."""
+    if propose:  # the proposals' masks of the keyframes; the user says which object each is
+        for f in (scene / "mask_visib").iterdir():
+            if int(f.name[:6]) % KEYFRAME_EVERY:
+                f.unlink()
+        return proposal_assignment(scene, stream, T)
+    masks = raycast_visible_masks(stream.meshes, stream.poses, [stream.cameras[i] for i in keys])
+    (scene / "mask_visib").mkdir()
+    for i, per in zip(keys, masks):
+        for k, m in enumerate(per):
+            if m.any():
+                cv2.imwrite(str(scene / "mask_visib" / f"{i:06d}_{k:06d}.png"), m.astype(np.uint8) * 255)
+    return {k: k for k in range(len(stream.meshes))}
+
+
+def write_coarse_init(path: Path, stream: Stream, truth: dict, k0: int, assignment: dict[int, int],
+                      size: tuple[int, int]) -> None:
+    """``--init`` for refine: every object's true pose 10 mm / 15 deg off (seeded), in frame
+    ``k0``'s true camera frame (``size``: W, H px), one entry per instance of ``assignment``
+    (a placeholder where an instance has no object)."""
+    rng = np.random.default_rng(1)
+    coarse = [perturb_pose(P, 10.0, 15.0, rng, m.centre) for P, m in zip(stream.poses, stream.meshes)]
+    cam0 = Camera.from_opencv(*truth[k0], *size)  # the coarse labels in the first keyframe's camera frame
+    entries = scene_gt_of([(j + 1, coarse[j]) for j in range(len(stream.meshes))], [cam0], [k0])[str(k0)]
+    placeholder = {"obj_id": 0, "cam_R_m2c": np.eye(3).ravel().tolist(), "cam_t_m2c": [0.0, 0.0, 0.0]}
+    write_json_atomic(path, {str(k0): [entries[assignment[k]] if k in assignment else placeholder
+                                       for k in range(max(assignment) + 1)]})
+
+
+def export_mask_ious(bop: Path, stream: Stream) -> tuple[dict, list[float]]:
+    """The exported ``bop/scene_gt.json``, and the IoUs of its ``mask_visib`` in 10 of its frames
+    against open3d ray casting at the truth."""
+    gt = json.loads((bop / "scene_gt.json").read_text())
+    check = sorted(int(i) for i in gt)[:: max(1, len(gt) // 10)]
+    ious = []
+    ref = raycast_visible_masks(stream.meshes, stream.poses, [stream.cameras[i] for i in check])
+    for i, per in zip(check, ref):
+        for k, e in enumerate(gt[str(i)]):
+            mine = cv2.imread(str(bop / "mask_visib" / f"{i:06d}_{k:06d}.png"), cv2.IMREAD_GRAYSCALE) > 0
+            m = per[e["obj_id"] - 1]
+            u = np.count_nonzero(mine | m)
+            if u:
+                ious.append(np.count_nonzero(mine & m) / u)
+    return gt, ious
+
+
+def pipeline_table(a: argparse.Namespace, row: dict, rec: dict, n_keys: int, n_gt: int, solved: float | None
+                   ) -> list[str]:
+    """The lines of ``bench_pipeline*.md``: one row per stage (``row``: the JSON row, ``rec``: recon.json,
+    ``solved``: the scale refine solved, mm per unit)."""
+    n_obj, rgb = row["objects"], a.rgb_only
+    return ["# Capture to dataset: recon -> refine -> export", "",
+            f"`python -m autoalign.experiments.benchmarks.bench_pipeline --frames {a.frames} --size {a.size}"
+            f"{' --rgb-only' if rgb else ''}{' --propose' if a.propose else ''}` on {platform.machine()}, "
+            f"{os.cpu_count()} cores, Python {platform.python_version()}: a synthetic hand-held RGB-D stream, {n_obj} "
+            f"objects{' (RGB only: depth withheld)' if rgb else ''}; masks of every {KEYFRAME_EVERY}th frame "
+            + (f"from `recon --propose` (no segmenter; {row['matched_objects']} of {n_obj} objects have a proposal of "
+               "their own, assigned by their centres as a user would)" if a.propose else "from the truth (the segmenter)")
+            + ", `--init` 10 mm / 15 deg off; "
+            "each command a child process.", "",
+            "| stage | wall s | result |", "|---|---|---|",
+            f"| recon | {row['recon_s']:.1f} | {rec['registered']} of {a.frames} frames registered, reprojection "
+            f"{rec['reprojection_error_px']:.2f} px; trajectory after {'Sim(3)' if rgb else 'SE(3)'} alignment: "
+            f"median {row['trajectory_median_mm']:.2f} mm / {row['trajectory_median_deg']:.3f} deg; "
+            + ("scale left free (no depth)" if rgb else
+               f"scale error {row['scale_error']:+.3%} (spread {rec['scale_spread']:.2%})")
+            + f"; table normal {row['table_normal_deg']:.3f} deg |",
+            f"| refine ({n_obj} objects, {n_keys} keyframes) | {row['refine_s']:.1f} | "
+            + (f"scale solved from the objects: {row['solved_scale_error']:+.3%} from the true one (from object 1 "
+               f"alone: {row['solved_scale_error_one_object']:+.3%}); " if solved else "")
+            + "label errors, worst keyframe per object: "
+            f"{', '.join(f'{mm:.2f} mm / {deg:.2f} deg' for mm, deg in zip(row['pose_err_mm'], row['pose_err_deg']))}; "
+            f"verdicts {', '.join(row['verdicts'])} |",
+            f"| export ({n_gt} frames, COCO) | {row['export_s']:.1f} | mask_visib against open3d ray casting at the truth: "
+            f"IoU median {row['export_mask_iou_median']:.3f}, min {row['export_mask_iou_min']:.3f} (10 frames) |",
+            f"| **pipeline** | **{row['pipeline_s']:.1f}** | rendering the stream itself: {row['render_s']:.1f} s "
+            "(not counted) |"]
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--frames", type=int, default=200)
@@ -159,31 +241,12 @@ def main(argv: list[str] | None = None) -> int:
         normal = T[:3, :3] @ np.array([0.0, 0.0, 1.0]) / np.cbrt(np.linalg.det(T[:3, :3]))  # without Sim(3)'s scale
         if a.recon_only:
             return recon_row(a, rec, t_render, t_recon, pos, rot, sim3, normal)
-        # keyframe masks from the truth (the user's segmenter), in the reconstruction's scene folder
+        # keyframe masks in the reconstruction's scene folder
         keys = [i for i in sorted(ours) if i % KEYFRAME_EVERY == 0]
         n_obj = len(stream.meshes)
-        if a.propose:  # the proposals' masks of the keyframes; the user says which object each is
-            for f in (root / "scene" / "mask_visib").iterdir():
-                if int(f.name[:6]) % KEYFRAME_EVERY:
-                    f.unlink()
-            assignment = proposal_assignment(root / "scene", stream, T)
-        else:
-            masks = raycast_visible_masks(stream.meshes, stream.poses, [stream.cameras[i] for i in keys])
-            (root / "scene" / "mask_visib").mkdir()
-            for i, per in zip(keys, masks):
-                for k, m in enumerate(per):
-                    if m.any():
-                        cv2.imwrite(str(root / "scene" / "mask_visib" / f"{i:06d}_{k:06d}.png"), m.astype(np.uint8) * 255)
-            assignment = {k: k for k in range(n_obj)}
+        assignment = keyframe_masks(root / "scene", stream, T, keys, a.propose)
         write_json_atomic(root / "instances.json", {"instances": {str(k): j + 1 for k, j in assignment.items()}})
-        rng = np.random.default_rng(1)
-        coarse = [perturb_pose(P, 10.0, 15.0, rng, m.centre) for P, m in zip(stream.poses, stream.meshes)]
-        k0 = keys[0]
-        cam0 = Camera.from_opencv(*truth[k0], W, H)  # the coarse labels in the first keyframe's camera frame
-        entries = scene_gt_of([(j + 1, coarse[j]) for j in range(n_obj)], [cam0], [k0])[str(k0)]
-        placeholder = {"obj_id": 0, "cam_R_m2c": np.eye(3).ravel().tolist(), "cam_t_m2c": [0.0, 0.0, 0.0]}
-        write_json_atomic(root / "init.json", {str(k0): [entries[assignment[k]] if k in assignment else placeholder
-                                                         for k in range(max(assignment) + 1)]})
+        write_coarse_init(root / "init.json", stream, truth, keys[0], assignment, (W, H))
         t_refine, _ = _run(cli + ["refine", str(root / "scene"), "--models", str(root / "capture" / "gt" / "models"),
                                   "--instances", str(root / "instances.json"), "--init", str(root / "init.json"),
                                   "--out", str(root / "labels"), "--quiet"])
@@ -201,17 +264,7 @@ def main(argv: list[str] | None = None) -> int:
         t_export, _ = _run(cli + ["export", str(root / "scene"), "--labels", str(root / "labels" / "scene_gt.json"),
                                   "--models", str(root / "capture" / "gt" / "models"), "--out", str(root / "bop"),
                                   "--coco", "--quiet"])
-        gt = json.loads((root / "bop" / "scene_gt.json").read_text())
-        check = sorted(int(i) for i in gt)[:: max(1, len(gt) // 10)]
-        ious = []
-        ref = raycast_visible_masks(stream.meshes, stream.poses, [stream.cameras[i] for i in check])
-        for i, per in zip(check, ref):
-            for k, e in enumerate(gt[str(i)]):
-                mine = cv2.imread(str(root / "bop" / "mask_visib" / f"{i:06d}_{k:06d}.png"), cv2.IMREAD_GRAYSCALE) > 0
-                m = per[e["obj_id"] - 1]
-                u = np.count_nonzero(mine | m)
-                if u:
-                    ious.append(np.count_nonzero(mine & m) / u)
+        gt, ious = export_mask_ious(root / "bop", stream)
     row = {
         "frames": a.frames, "size": f"{W}x{H}", "objects": n_obj, "render_s": t_render,
         "recon_s": t_recon, "refine_s": t_refine, "export_s": t_export, "pipeline_s": t_recon + t_refine + t_export,
@@ -225,30 +278,7 @@ def main(argv: list[str] | None = None) -> int:
         "export_mask_iou_min": float(min(ious)) if ious else None, "export_mask_iou_median": float(np.median(ious)) if ious else None,
     }
     print(json.dumps(row), flush=True)
-    lines = ["# Capture to dataset: recon -> refine -> export", "",
-             f"`python -m autoalign.experiments.benchmarks.bench_pipeline --frames {a.frames} --size {a.size}"
-             f"{' --rgb-only' if a.rgb_only else ''}{' --propose' if a.propose else ''}` on {platform.machine()}, "
-             f"{os.cpu_count()} cores, Python {platform.python_version()}: a synthetic hand-held RGB-D stream, {n_obj} "
-             f"objects{' (RGB only: depth withheld)' if a.rgb_only else ''}; masks of every {KEYFRAME_EVERY}th frame "
-             + (f"from `recon --propose` (no segmenter; {len(assignment)} of {n_obj} objects have a proposal of their "
-                "own, assigned by their centres as a user would)" if a.propose else "from the truth (the segmenter)")
-             + ", `--init` 10 mm / 15 deg off; "
-             "each command a child process.", "",
-             "| stage | wall s | result |", "|---|---|---|",
-             f"| recon | {t_recon:.1f} | {rec['registered']} of {a.frames} frames registered, reprojection "
-             f"{rec['reprojection_error_px']:.2f} px; trajectory after {'Sim(3)' if a.rgb_only else 'SE(3)'} alignment: "
-             f"median {np.median(pos):.2f} mm / {np.median(rot):.3f} deg; "
-             + ("scale left free (no depth)" if a.rgb_only else
-                f"scale error {row['scale_error']:+.3%} (spread {rec['scale_spread']:.2%})")
-             + f"; table normal {row['table_normal_deg']:.3f} deg |",
-             f"| refine ({n_obj} objects, {len(keys)} keyframes) | {t_refine:.1f} | "
-             + (f"scale solved from the objects: {row['solved_scale_error']:+.3%} from the true one (from object 1 "
-                f"alone: {row['solved_scale_error_one_object']:+.3%}); " if solved else "")
-             + "label errors, worst keyframe per object: "
-             f"{', '.join(f'{e[0]:.2f} mm / {e[1]:.2f} deg' for e in errs)}; verdicts {', '.join(e[2] for e in errs)} |",
-             f"| export ({len(gt)} frames, COCO) | {t_export:.1f} | mask_visib against open3d ray casting at the truth: IoU "
-             f"median {row['export_mask_iou_median']:.3f}, min {row['export_mask_iou_min']:.3f} (10 frames) |",
-             f"| **pipeline** | **{row['pipeline_s']:.1f}** | rendering the stream itself: {t_render:.1f} s (not counted) |"]
+    lines = pipeline_table(a, row, rec, len(keys), len(gt), solved)
     name = "bench_pipeline" + ("_rgb" if a.rgb_only else "") + ("_propose" if a.propose else "")
     write_results(name, row, lines, a.out)
     return 0
