@@ -212,6 +212,38 @@ def candidate_poses(T_wm: NDArray[np.float64], cam: Camera, centre_m: NDArray[np
     return out
 
 
+def contour_distance(rast: SoftSilhouetteRasterizer, T_wm: NDArray[np.float64], cam: Camera,
+                     graze_rad: float) -> NDArray[np.float32] | None:
+    """Distance (px) of every pixel of ``cam``'s image to the edges of ``rast``'s mesh whose image
+    can bound the silhouette during a move.
+
+    Those are the contour edges at ``T_wm`` (front/back flips and open boundaries) and the edges
+    of faces within ``graze_rad`` of edge-on (they may flip while the viewing direction turns by
+    up to ``graze_rad``). If every point's image moves by at most ``D`` px, coverage can change
+    only within ``D`` px of these edges. None when the object straddles the camera plane.
+    """
+    mesh = rast.mesh
+    V_w = transform_points(T_wm, mesh.vertices)
+    Vc = cam.to_camera(V_w)
+    if np.any(Vc[:, 2] < _NEAR_MM):
+        return None
+    uv = Vc @ cam.K.T
+    uv = uv[:, :2] / uv[:, 2:3]
+    lim = 4.0 * max(cam.width, cam.height)
+    pts = np.round(np.clip(uv, -lim, lim) * 16.0).astype(np.int32)  # 4 fractional bits
+    img = np.full((cam.height, cam.width), 255, dtype=np.uint8)
+    e = np.flatnonzero(rast.outlines.contour_matrix(T_wm, CameraBatch.of([cam]))[:, 0])  # contour generator
+    if len(e):
+        cv2.polylines(img, list(pts[mesh.edges[e]]), False, 0, thickness=1, lineType=cv2.LINE_8, shift=4)
+    n_w = mesh.face_normals @ T_wm[:3, :3].T
+    to_cam = cam.centre - V_w[mesh.faces[:, 0]]
+    cosang = np.abs(np.einsum("ij,ij->i", n_w, to_cam)) / np.maximum(np.linalg.norm(to_cam, axis=1), 1e-9)
+    graze = np.flatnonzero(cosang <= np.sin(min(graze_rad, np.pi / 2)))
+    if len(graze):
+        cv2.polylines(img, list(pts[mesh.faces[graze]]), True, 0, thickness=1, lineType=cv2.LINE_8, shift=4)
+    return cv2.distanceTransform(img, cv2.DIST_L2, 5)
+
+
 # ----------------------------------------------------------------------------------------------
 # Scoring many candidate poses in one view
 # ----------------------------------------------------------------------------------------------
@@ -349,35 +381,6 @@ class CandidateScorer:
         self.view_renders += 1
         return m
 
-    def contour_distance(self, T_wm: NDArray[np.float64], cam: Camera, graze_rad: float) -> NDArray[np.float32] | None:
-        """Distance (px) of every pixel to the edges whose image can bound the silhouette during a move.
-
-        Those are the contour edges at ``T_wm`` (front/back flips and open boundaries) and the edges
-        of faces within ``graze_rad`` of edge-on (they may flip while the viewing direction turns by
-        up to ``graze_rad``). If every point's image moves by at most ``D`` px, coverage can change
-        only within ``D`` px of these edges. None when the object straddles the camera plane.
-        """
-        mesh = self.rast.mesh
-        V_w = transform_points(T_wm, mesh.vertices)
-        Vc = cam.to_camera(V_w)
-        if np.any(Vc[:, 2] < _NEAR_MM):
-            return None
-        uv = Vc @ cam.K.T
-        uv = uv[:, :2] / uv[:, 2:3]
-        lim = 4.0 * max(cam.width, cam.height)
-        pts = np.round(np.clip(uv, -lim, lim) * 16.0).astype(np.int32)  # 4 fractional bits
-        img = np.full((cam.height, cam.width), 255, dtype=np.uint8)
-        e = np.flatnonzero(self.rast.outlines.contour_matrix(T_wm, CameraBatch.of([cam]))[:, 0])  # contour generator
-        if len(e):
-            cv2.polylines(img, list(pts[mesh.edges[e]]), False, 0, thickness=1, lineType=cv2.LINE_8, shift=4)
-        n_w = mesh.face_normals @ T_wm[:3, :3].T
-        to_cam = cam.centre - V_w[mesh.faces[:, 0]]
-        cosang = np.abs(np.einsum("ij,ij->i", n_w, to_cam)) / np.maximum(np.linalg.norm(to_cam, axis=1), 1e-9)
-        graze = np.flatnonzero(cosang <= np.sin(min(graze_rad, np.pi / 2)))
-        if len(graze):
-            cv2.polylines(img, list(pts[mesh.faces[graze]]), True, 0, thickness=1, lineType=cv2.LINE_8, shift=4)
-        return cv2.distanceTransform(img, cv2.DIST_L2, 5)
-
     def band_scores(self, view: int, current: NDArray[np.bool_], dist: NDArray[np.float32],
                     poses: NDArray[np.float64], radii: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """``(intersection, area)`` of each pose at full resolution, re-casting only the pixels within
@@ -454,7 +457,7 @@ class CandidateScorer:
             # the viewing direction of a surface point turns by at most the rotation angle plus
             # (image displacement / focal length); 0.5 degree of slack on top
             graze = float(turn.max() + (disp[small].max() + 2.0) / f + np.radians(0.5))
-            dist = self.contour_distance(poses[0], cam, graze) if self.band else None
+            dist = contour_distance(self.rast, poses[0], cam, graze) if self.band else None
             if dist is None:
                 exact.extend(small.tolist())
             else:
