@@ -87,58 +87,100 @@ def run_sfm(capture: Capture, workdir: str | os.PathLike[str], progress: Progres
             progress(stage, done, 3)
 
     workdir = Path(workdir)
-    folder = capture.frames[0].parent
-    if any(p.parent != folder for p in capture.frames):
-        raise AutoalignError(f"{folder}: the frames must be in one folder")
-    names = [p.name for p in capture.frames]
+    folder, names = _frame_folder(capture)
     workdir.mkdir(parents=True, exist_ok=True)
     db = workdir / "database.db"
     if db.exists():
         db.unlink()
+    step("structure from motion: features", 0)
+    _extract_features(db, folder, names, capture.K_opencv)
+    step("structure from motion: matching", 1)
+    _match(db, len(names))
+    step("structure from motion: mapping", 2)
+    keyframes = _keyframes(names)
+    rec = _map_keyframes(db, folder, workdir / "sparse", keyframes, len(names), fixed_K=capture.K_opencv is not None)
+    step("structure from motion: mapping", 3)
+    if rec is None:
+        raise AutoalignError(f"{folder}: too few matches between the frames to reconstruct the cameras; film the "
+                             "scene with more overlap and texture, slower, or give --intrinsics")
+    extra = _register_to_keyframes(rec, db, names, progress) if len(keyframes) < len(names) else {}
+    return _result(rec, dict(zip(names, capture.ids)), extra, len(names))
+
+
+def _frame_folder(capture: Capture) -> tuple[Path, list[str]]:
+    """The one folder that holds the capture's frames, and the frames' file names in order."""
+    folder = capture.frames[0].parent
+    if any(p.parent != folder for p in capture.frames):
+        raise AutoalignError(f"{folder}: the frames must be in one folder")
+    return folder, [p.name for p in capture.frames]
+
+
+def _extract_features(db: Path, folder: Path, names: list[str], K: NDArray[np.float64] | None) -> None:
+    """SIFT features of every frame into the database, one camera for all (fixed to ``K``, OpenCV
+    convention, when given; else a simple pinhole whose focal length mapping estimates)."""
+    import pycolmap
+
     reader = pycolmap.ImageReaderOptions()
-    if capture.K_opencv is not None:
-        K = capture.K_opencv
+    if K is not None:
         reader.camera_model = "PINHOLE"
         reader.camera_params = f"{K[0, 0]},{K[1, 1]},{K[0, 2] + 0.5},{K[1, 2] + 0.5}"
     else:
         reader.camera_model = "SIMPLE_PINHOLE"
-    step("structure from motion: features", 0)
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = MAX_FEATURES
     pycolmap.extract_features(db, folder, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                               reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
-    step("structure from motion: matching", 1)
-    if len(names) <= EXHAUSTIVE_MAX:
+
+
+def _match(db: Path, n_frames: int) -> None:
+    """Verified matches between the frames: exhaustive up to :data:`EXHAUSTIVE_MAX` frames, else sequential."""
+    import pycolmap
+
+    if n_frames <= EXHAUSTIVE_MAX:
         pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
     else:
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = SEQUENTIAL_OVERLAP
         pairing.quadratic_overlap = True
         pycolmap.match_sequential(db, pairing_options=pairing, device=pycolmap.Device.cpu)
-    step("structure from motion: mapping", 2)
+
+
+def _keyframes(names: list[str]) -> list[str]:
+    """The frames incremental mapping runs on: all up to :data:`EXHAUSTIVE_MAX`, else every
+    :data:`KEYFRAME_EVERY`-th and the last."""
+    return names if len(names) <= EXHAUSTIVE_MAX else sorted(set(names[::KEYFRAME_EVERY]) | {names[-1]})
+
+
+def _map_keyframes(db: Path, folder: Path, sparse: Path, keyframes: list[str], n_frames: int,
+                   fixed_K: bool) -> pycolmap.Reconstruction | None:
+    """Incremental mapping of ``keyframes`` (of ``n_frames``), in ``sparse``: the model with the most
+    frames registered, None when there is none; the intrinsics stay as given when ``fixed_K``."""
+    import pycolmap
+
     options = pycolmap.IncrementalPipelineOptions()
-    if capture.K_opencv is not None:
+    if fixed_K:
         options.ba_refine_focal_length = False
         options.ba_refine_principal_point = False
         options.ba_refine_extra_params = False
     options.multiple_models = False
-    keyframes = names if len(names) <= EXHAUSTIVE_MAX else sorted(set(names[::KEYFRAME_EVERY]) | {names[-1]})
-    if len(keyframes) < len(names):
+    if len(keyframes) < n_frames:
         options.image_names = keyframes
     options.ba_global_frames_ratio = options.ba_global_points_ratio = GLOBAL_BA_GROWTH
     options.ba_global_max_num_iterations = GLOBAL_BA_ITERATIONS
-    (workdir / "sparse").mkdir(parents=True, exist_ok=True)
-    models = pycolmap.incremental_mapping(db, folder, workdir / "sparse", options)
-    step("structure from motion: mapping", 3)
-    if not models:
-        raise AutoalignError(f"{folder}: too few matches between the frames to reconstruct the cameras; film the "
-                             "scene with more overlap and texture, slower, or give --intrinsics")
-    rec = max(models.values(), key=lambda r: r.num_reg_images())
+    sparse.mkdir(parents=True, exist_ok=True)
+    models = pycolmap.incremental_mapping(db, folder, sparse, options)
+    return max(models.values(), key=lambda r: r.num_reg_images()) if models else None
+
+
+def _result(rec: pycolmap.Reconstruction, id_of: dict[str, int],
+            extra: dict[str, tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]],
+            n_frames: int) -> SfmResult:
+    """The cameras, points and observations of ``rec`` and of the frames registered to it
+    (``extra``, see :func:`_register_to_keyframes`), by frame id (``id_of``: file name -> frame id),
+    in the OpenCV pixel convention; ``n_frames``: the frames given."""
     cam = next(iter(rec.cameras.values()))
-    extra = _register_to_keyframes(rec, db, names, progress) if len(keyframes) < len(names) else {}
     f = cam.focal_length_x, cam.focal_length_y
     K = np.array([[f[0], 0.0, cam.principal_point_x - 0.5], [0.0, f[1], cam.principal_point_y - 0.5], [0.0, 0.0, 1.0]])
-    id_of = {name: i for name, i in zip(names, capture.ids)}
     point_ids = sorted(rec.points3D)
     index = {pid: k for k, pid in enumerate(point_ids)}
     points = np.array([rec.points3D[p].xyz for p in point_ids], dtype=np.float64).reshape(-1, 3)
@@ -160,7 +202,7 @@ def run_sfm(capture: Capture, workdir: str | os.PathLike[str], progress: Progres
         T_cw[id_of[name]] = T
         obs[id_of[name]] = (xy - 0.5, np.array([index[p] for p in pids], dtype=np.int64))
     return SfmResult(dict(sorted(T_cw.items())), K, points, colors, obs, float(rec.compute_mean_reprojection_error()),
-                     len(names))
+                     n_frames)
 
 
 def _register_to_keyframes(rec: pycolmap.Reconstruction, db_path: Path, names: list[str],
