@@ -422,18 +422,24 @@ def _success_lines(ax: Any, series: dict[str, tuple[list[float], list[float]]], 
     ax.grid(True, alpha=0.3)
 
 
+def _mean_success_by(rs: list[dict[str, Any]], x_of: Callable[[dict[str, Any]], float]
+                     ) -> tuple[list[float], list[float]]:
+    """The distinct ``x_of`` values of ``rs``, sorted, and the share of successes (cols) at each."""
+    pts = defaultdict(list)
+    for r in rs:
+        pts[x_of(r)].append(bool(r["success_cols"]))
+    xs = sorted(pts)
+    return xs, [float(np.mean(pts[x])) for x in xs]
+
+
 def plot_success_vs_views(records: list[dict[str, Any]], path: Path) -> None:
     plt = _plt()
     rs = [r for r in records if r["part"] in ("views", "main")]
     trials = {(r["model_id"], r["trial"]) for r in rs if r["part"] == "views"} or None
-    series = {}
-    for m in _methods(rs):
-        pts = defaultdict(list)
-        for r in rs:
-            if r["method"] == m and (trials is None or (r["model_id"], r["trial"]) in trials):
-                pts[int(r["views"])].append(bool(r["success_cols"]))
-        xs = sorted(pts)
-        series[m] = (xs, [float(np.mean(pts[x])) for x in xs])
+    series = {m: _mean_success_by([r for r in rs if r["method"] == m
+                                   and (trials is None or (r["model_id"], r["trial"]) in trials)],
+                                  lambda r: int(r["views"]))
+              for m in _methods(rs)}
     fig, ax = plt.subplots(figsize=(6, 4))
     _success_lines(ax, series, "number of views")
     ax.set_xscale("log", base=2)
@@ -477,14 +483,10 @@ def plot_success_vs_noise(records: list[dict[str, Any]], path: Path) -> None:
     kinds = sorted({r["noise_kind"] for r in noisy}) or ["erode", "dilate", "shift"]
     fig, axes = plt.subplots(1, len(kinds), figsize=(4.5 * len(kinds), 4), squeeze=False)
     for ax, kind in zip(axes[0], kinds):
-        series = {}
-        for m in _methods(noisy or clean):
-            pts = defaultdict(list)
-            for r in clean + [r for r in noisy if r["noise_kind"] == kind]:
-                if r["method"] == m:
-                    pts[float(r.get("noise_fraction", 0.0))].append(bool(r["success_cols"]))
-            xs = sorted(pts)
-            series[m] = (xs, [float(np.mean(pts[x])) for x in xs])
+        kind_rs = clean + [r for r in noisy if r["noise_kind"] == kind]
+        series = {m: _mean_success_by([r for r in kind_rs if r["method"] == m],
+                                      lambda r: float(r.get("noise_fraction", 0.0)))
+                  for m in _methods(noisy or clean)}
         _success_lines(ax, series, f"fraction of views with {kind} masks")
         ax.set_title(kind)
     _legend(axes[0][0])
