@@ -37,6 +37,7 @@ from autoalign.experiments.studies.metrics import (
     pose_errors,
     track_fit,
 )
+from autoalign.experiments.studies.photo_tracks import photo_tracks
 from autoalign.experiments.studies.shared_data import REAL_SCENES
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.mesh import load_mesh
@@ -138,11 +139,9 @@ def dataset_label_differences(scene: Path, refine_dir: Path) -> dict[int, dict[s
 def corrections_by_tracks(scene: Path, refine_dir: Path, tmp: Path) -> dict:
     """The camera corrections of ``--refine-cameras`` (``refine.json``, kept or not) judged by the
     photos' own feature tracks (:func:`~autoalign.experiments.studies.metrics.track_fit` on
-    :func:`~autoalign.experiments.studies.recon_real.photo_tracks`), which use neither masks nor labels:
+    :func:`~autoalign.experiments.studies.photo_tracks.photo_tracks`), which use neither masks nor labels:
     the median reprojection error with the given and with the corrected cameras, the views that
     got worse, and the given camera that fits the tracks worst, before and after."""
-    from autoalign.experiments.studies.recon_real import photo_tracks
-
     per_view = json.loads((refine_dir / "refine.json").read_text())["cameras"]["per_view"]
     given = read_cameras(scene)
     K = next(iter(given.values()))[0]

@@ -33,14 +33,12 @@ from autoalign.experiments.benchmarks.bench_pipeline import (
 from autoalign.experiments.benchmarks.bench_scene import symmetries
 from autoalign.experiments.result_files import write_results
 from autoalign.experiments.studies.metrics import label_difference, track_fit
+from autoalign.experiments.studies.photo_tracks import photo_tracks
 from autoalign.experiments.studies.real_scenes import scene_inputs
 from autoalign.experiments.studies.shared_data import REAL_SCENES
 from autoalign.geometry.se3 import make_pose
-from autoalign.io.atomic_files import write_json_atomic
 from autoalign.io.bop import read_cameras
 from autoalign.io.models import ModelSet
-from autoalign.recon.capture import read_capture
-from autoalign.recon.sfm import SfmResult, run_sfm
 
 
 def run_scene(scene: Path, tmp: Path) -> dict:
@@ -80,15 +78,6 @@ def axis_split(ours: dict, given: dict, sim3: np.ndarray) -> tuple[list[float], 
         along.append(float(abs(d[2])))
         across.append(float(np.hypot(d[0], d[1])))
     return along, across
-
-
-def photo_tracks(scene: Path, tmp: Path) -> SfmResult:
-    """Our structure from motion of the scene's photos (with its ``cam_K``; COLMAP's files in
-    ``tmp/tracks``): the photos' own feature tracks, for :func:`~autoalign.experiments.studies.metrics.track_fit`."""
-    K = next(iter(read_cameras(scene).values()))[0]
-    (tmp / "tracks").mkdir(parents=True, exist_ok=True)
-    write_json_atomic(tmp / "tracks" / "K.json", {"cam_K": K.ravel().tolist()})
-    return run_sfm(read_capture(scene / "rgb", tmp / "tracks", intrinsics=tmp / "tracks" / "K.json"), tmp / "tracks")
 
 
 def camera_track_fit(scene: Path, tmp: Path) -> dict:
