@@ -578,6 +578,9 @@ _CATALOGUE: list[tuple[str, Callable[[], list[trimesh.Trimesh]], str,
     ("pull_handle", _pull_handle, "none", list, []),
 ]
 
+PROCEDURAL_COUNT = len(_CATALOGUE)
+"""How many procedural models there are (BOP object ids 1 to this)."""
+
 
 def procedural_models() -> list[ProceduralModel]:
     """The 44 procedural models, in a fixed order (BOP object id = position + 1).

@@ -128,9 +128,9 @@ def resolve_models(models: str) -> str:
 def model_ids(models: str) -> tuple[int, ...]:
     """All model ids of a model source."""
     if models == PROCEDURAL:
-        from autoalign.experiments.scenes.procedural_models import _CATALOGUE
+        from autoalign.experiments.scenes.procedural_models import PROCEDURAL_COUNT
 
-        return tuple(range(1, len(_CATALOGUE) + 1))
+        return tuple(range(1, PROCEDURAL_COUNT + 1))
     from autoalign.experiments.scenes.procedural_models import load_bop_models_info
 
     info = load_bop_models_info(models)
