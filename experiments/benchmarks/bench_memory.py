@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 
 from autoalign.experiments import RESULTS
+from autoalign.experiments.commands import autoalign_command
 from autoalign.experiments.result_files import write_results
 from autoalign.experiments.scenes.procedural_models import procedural_models
 from autoalign.experiments.scenes.synthetic import (
@@ -136,7 +137,7 @@ def run_command(root: Path, out: Path, command: str, full_size: bool) -> dict:
         args = ["check", scene, "--labels", str(root / "scene" / "scene_gt.json"), "--models", str(root / "models")]
     args += ["--out", str(out), "--quiet"]
     cmd = ([sys.executable, "-c", _FULL_SIZE[command], *args] if full_size
-           else [sys.executable, "-m", "autoalign.cli.main", *args])
+           else autoalign_command(*args))
     t0 = time.perf_counter()
     pid = subprocess.Popen(cmd, stdout=subprocess.DEVNULL).pid
     _, status, usage = os.wait4(pid, 0)

@@ -20,7 +20,6 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import sys
 import tempfile
 import time
@@ -31,6 +30,7 @@ import numpy as np
 import open3d as o3d
 
 from autoalign.experiments import RESULTS
+from autoalign.experiments.commands import run_autoalign
 from autoalign.experiments.result_files import write_results
 from autoalign.experiments.scenes.stream import DEPTH_SCALE, Stream, render_stream
 from autoalign.experiments.scenes.synthetic import perturb_pose, raycast_visible_masks
@@ -41,15 +41,6 @@ from autoalign.io.atomic_files import write_json_atomic
 from autoalign.io.bop import read_cameras, scene_gt_of
 
 KEYFRAME_EVERY = 5
-
-
-def _run(cmd: list[str]) -> tuple[float, subprocess.CompletedProcess]:
-    t0 = time.perf_counter()
-    p = subprocess.run(cmd, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    if p.returncode not in (0, 3):
-        raise RuntimeError(f"{' '.join(cmd)} failed ({p.returncode}): {p.stderr[-2000:]}")
-    return wall, p
 
 
 def rigid_alignment(ours: dict, truth: dict, scaling: bool) -> np.ndarray:
@@ -222,7 +213,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=RESULTS)
     a = p.parse_args(argv)
     W, H = (int(x) for x in a.size.split("x"))
-    cli = [sys.executable, "-m", "autoalign.cli.main"]
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         t0 = time.perf_counter()
@@ -230,9 +220,9 @@ def main(argv: list[str] | None = None) -> int:
         t_render = time.perf_counter() - t0
         if a.rgb_only:
             (root / "capture" / "depth").rename(root / "depth_withheld")
-        t_recon, _ = _run(cli + ["recon", str(root / "capture"), "--intrinsics", str(root / "capture" / "intrinsics.json"),
-                                 "--depth-scale", str(DEPTH_SCALE), "--out", str(root / "scene"), "--quiet"]
-                          + (["--propose"] if a.propose else []))
+        t_recon = run_autoalign("recon", str(root / "capture"), "--intrinsics", str(root / "capture" / "intrinsics.json"),
+                                "--depth-scale", str(DEPTH_SCALE), "--out", str(root / "scene"), "--quiet",
+                                *(["--propose"] if a.propose else [])).check().wall_s
         rec = json.loads((root / "scene" / "recon.json").read_text())
         ours, truth = read_cameras(root / "scene"), read_cameras(root / "capture" / "gt")
         sim3 = rigid_alignment(ours, truth, True)
@@ -247,9 +237,9 @@ def main(argv: list[str] | None = None) -> int:
         assignment = keyframe_masks(root / "scene", stream, T, keys, a.propose)
         write_json_atomic(root / "instances.json", {"instances": {str(k): j + 1 for k, j in assignment.items()}})
         write_coarse_init(root / "init.json", stream, truth, keys[0], assignment, (W, H))
-        t_refine, _ = _run(cli + ["refine", str(root / "scene"), "--models", str(root / "capture" / "gt" / "models"),
-                                  "--instances", str(root / "instances.json"), "--init", str(root / "init.json"),
-                                  "--out", str(root / "labels"), "--quiet"])
+        t_refine = run_autoalign("refine", str(root / "scene"), "--models", str(root / "capture" / "gt" / "models"),
+                                 "--instances", str(root / "instances.json"), "--init", str(root / "init.json"),
+                                 "--out", str(root / "labels"), "--quiet").check().wall_s
         labels = json.loads((root / "labels" / "refine.json").read_text())
         errs = label_errors(json.loads((root / "labels" / "scene_gt.json").read_text()), truth, stream, labels)
         true_scale = float(np.cbrt(np.linalg.det(sim3[:3, :3])))  # mm per reconstruction unit
@@ -257,13 +247,13 @@ def main(argv: list[str] | None = None) -> int:
         solved_one = None
         if a.rgb_only:  # the scale from one known object alone (the others unmodelled)
             write_json_atomic(root / "one.json", {"instances": {"0": 1}})
-            _run(cli + ["refine", str(root / "scene"), "--models", str(root / "capture" / "gt" / "models"),
-                        "--instances", str(root / "one.json"), "--init", str(root / "init.json"),
-                        "--out", str(root / "labels_one"), "--quiet"])
+            run_autoalign("refine", str(root / "scene"), "--models", str(root / "capture" / "gt" / "models"),
+                          "--instances", str(root / "one.json"), "--init", str(root / "init.json"),
+                          "--out", str(root / "labels_one"), "--quiet").check()
             solved_one = json.loads((root / "labels_one" / "refine.json").read_text())["scale"]["mm_per_unit"]
-        t_export, _ = _run(cli + ["export", str(root / "scene"), "--labels", str(root / "labels" / "scene_gt.json"),
-                                  "--models", str(root / "capture" / "gt" / "models"), "--out", str(root / "bop"),
-                                  "--coco", "--quiet"])
+        t_export = run_autoalign("export", str(root / "scene"), "--labels", str(root / "labels" / "scene_gt.json"),
+                                 "--models", str(root / "capture" / "gt" / "models"), "--out", str(root / "bop"),
+                                 "--coco", "--quiet").check().wall_s
         gt, ious = export_mask_ious(root / "bop", stream)
     row = {
         "frames": a.frames, "size": f"{W}x{H}", "objects": n_obj, "render_s": t_render,

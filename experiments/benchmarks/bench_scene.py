@@ -18,15 +18,14 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
 from autoalign.experiments import RESULTS
+from autoalign.experiments.commands import run_autoalign
 from autoalign.experiments.result_files import write_results
 from autoalign.experiments.scenes.procedural_models import (
     procedural_models,
@@ -111,14 +110,10 @@ def common_motion(T_cw: dict[int, np.ndarray], true_T: dict[int, np.ndarray]) ->
 
 
 def time_command(root: Path, *extra: str, init: bool = True) -> tuple[float, dict]:
-    cmd = [sys.executable, "-m", "autoalign.cli.main", "refine", str(root / "scene"), "--models", str(root / "models"),
-           *(["--init", str(root / "init_gt.json")] if init else []), "--out", str(root / "out"), "--quiet", *extra]
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    if proc.returncode not in (0, 3):
-        raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}): {proc.stderr[-2000:]}")
-    return wall, json.loads((root / "out" / "refine.json").read_text())
+    run = run_autoalign("refine", str(root / "scene"), "--models", str(root / "models"),
+                        *(["--init", str(root / "init_gt.json")] if init else []), "--out", str(root / "out"), "--quiet",
+                        *extra).check()
+    return run.wall_s, json.loads((root / "out" / "refine.json").read_text())
 
 
 def main(argv: list[str] | None = None) -> int:

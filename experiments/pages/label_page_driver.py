@@ -10,13 +10,14 @@ import re
 import shutil
 import signal
 import subprocess
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from autoalign.experiments.commands import autoalign_command
 
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome")
 STARTUP_S = 120.0
@@ -53,8 +54,8 @@ class LabelServerProcess:
     output: str = ""
 
     def start(self) -> "LabelServerProcess":
-        cmd = [sys.executable, "-m", "autoalign.cli.main", "label", str(self.scene), "--models", str(self.models),
-               "--out", str(self.out), "--no-browser", *self.extra]
+        cmd = autoalign_command("label", str(self.scene), "--models", str(self.models), "--out", str(self.out),
+                                "--no-browser", *self.extra)
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         t0 = time.monotonic()
         lines = []

@@ -19,15 +19,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
 from autoalign.experiments import RESULTS
+from autoalign.experiments.commands import run_autoalign
 from autoalign.experiments.result_files import write_results
 from autoalign.experiments.scenes.procedural_models import load_bop_models_info
 from autoalign.experiments.scenes.synthetic import perturb_pose
@@ -160,14 +159,10 @@ def run_scene(scene: Path, seed_kind: str, tmp: Path, figure: Path | None = None
     comparing our labels with the dataset's there (:func:`feature_distances`)."""
     instances, init, truth = scene_inputs(scene, tmp)
     out = tmp / f"out_{scene.name}_{seed_kind}"
-    cmd = [sys.executable, "-m", "autoalign.cli.main", "refine", str(scene), "--models", str(scene / "models"),
-           "--instances", str(instances), "--out", str(out), "--quiet"]
-    cmd += (["--init", str(init)] if seed_kind.startswith("init") else []) + (["--refine-cameras"] if seed_kind.endswith("cameras") else [])
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    if proc.returncode not in (0, 3):
-        raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}): {proc.stderr[-2000:]}")
+    args = ["refine", str(scene), "--models", str(scene / "models"), "--instances", str(instances), "--out", str(out),
+            "--quiet"]
+    args += (["--init", str(init)] if seed_kind.startswith("init") else []) + (["--refine-cameras"] if seed_kind.endswith("cameras") else [])
+    wall = run_autoalign(*args).check().wall_s
     rec = json.loads((out / "refine.json").read_text())
     fdist = feature_distances(scene, out, tmp, figure)
     vs_dataset = dataset_label_differences(scene, out)

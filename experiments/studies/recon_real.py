@@ -17,10 +17,8 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +29,7 @@ from autoalign.experiments.benchmarks.bench_pipeline import (
     rigid_alignment,
 )
 from autoalign.experiments.benchmarks.bench_scene import symmetries
+from autoalign.experiments.commands import run_autoalign
 from autoalign.experiments.result_files import write_results
 from autoalign.experiments.studies.metrics import label_difference, track_fit
 from autoalign.experiments.studies.photo_tracks import photo_tracks
@@ -48,12 +47,11 @@ def run_scene(scene: Path, tmp: Path) -> dict:
     K = next(iter(given.values()))[0]
     (tmp / scene.name / "K.json").write_text(json.dumps({"cam_K": K.ravel().tolist()}))
     out = tmp / scene.name / "scene"
-    t0 = time.perf_counter()
-    p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "recon", str(capture), "--intrinsics",
-                        str(tmp / scene.name / "K.json"), "--out", str(out), "--quiet"], capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    if p.returncode not in (0, 3):
-        return {"scene": scene.name, "error": p.stderr.strip()[-500:], "wall_s": wall, "frames": len(given)}
+    run = run_autoalign("recon", str(capture), "--intrinsics", str(tmp / scene.name / "K.json"), "--out", str(out),
+                        "--quiet")
+    wall = run.wall_s
+    if not run.ok:
+        return {"scene": scene.name, "error": run.stderr.strip()[-500:], "wall_s": wall, "frames": len(given)}
     rec = json.loads((out / "recon.json").read_text())
     ours = read_cameras(out)
     sim3 = rigid_alignment(ours, given, scaling=True)
@@ -94,11 +92,8 @@ def camera_track_fit(scene: Path, tmp: Path) -> dict:
 
 
 def _refine(scene: Path, models: Path, instances: Path, init: Path, out: Path) -> dict:
-    p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", str(scene), "--models", str(models),
-                        "--instances", str(instances), "--init", str(init), "--out", str(out), "--quiet"],
-                       capture_output=True, text=True)
-    if p.returncode not in (0, 3):
-        raise RuntimeError(f"refine {scene} failed ({p.returncode}): {p.stderr[-1000:]}")
+    run_autoalign("refine", str(scene), "--models", str(models), "--instances", str(instances), "--init", str(init),
+                  "--out", str(out), "--quiet").check()
     return json.loads((out / "refine.json").read_text())
 
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -29,6 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from autoalign.experiments.commands import run_autoalign
 from autoalign.experiments.result_files import write_results
 from autoalign.experiments.scenes.procedural_models import procedural_models
 from autoalign.experiments.scenes.synthetic import (
@@ -145,21 +145,19 @@ def run_cli(s: StudyScene, seed_kind: str, workdir: Path) -> dict:
     mesh_path = sdir / "model.ply"
     s.mesh.trimesh.export(mesh_path)
     out = sdir / "out"
-    cmd = [sys.executable, "-m", "autoalign.cli.main", "refine", str(sdir), "--model", str(mesh_path),
-           "--out", str(out), "--quiet"]
+    args = ["refine", str(sdir), "--model", str(mesh_path), "--out", str(out), "--quiet"]
     if seed_kind in ("init", "corrupt"):
         init = sdir / "init_gt.json"
         write_json_atomic(init, scene_gt_dict(s.T_init, s.scene.cameras[:1], s.scene.image_ids[:1]))
-        cmd += ["--init", str(init)]
+        args += ["--init", str(init)]
     elif seed_kind == "click":
         u, v = uv_to_opencv(np.array(s.click[1:]))  # the CLI takes OpenCV pixel coordinates
-        cmd += ["--click", f"{s.click[0]}:{u:g},{v:g}"]
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    if proc.returncode not in (0, 3):  # 3: written, but the verdict flags the pose
+        args += ["--click", f"{s.click[0]}:{u:g},{v:g}"]
+    run = run_autoalign(*args)
+    wall = run.wall_s
+    if not run.ok:
         return {"scene": s.name, "seed": seed_kind, "err_mm": float("inf"), "err_deg": float("inf"),
-                "wall_s": wall, "error": proc.stderr.strip()[-500:]}
+                "wall_s": wall, "error": run.stderr.strip()[-500:]}
     rec = json.loads((out / "refine.json").read_text())
     T = np.asarray(rec["pose"]["T_wm"], dtype=np.float64)
     e_t, e_r = pose_errors(T, s.T_gt, s.mesh.centre)
