@@ -73,7 +73,7 @@ def test_point_that_opencv_projects_to_integer_ij_lights_pixel_ij(tmp_path, seed
 
 @pytest.mark.parametrize("seed", range(3))
 def test_check_renders_the_dot_opencv_projects_to_ij_at_pixel_ij(seed):
-    """The check's renderer (``render_labels``, open3d) keeps the same convention as the refine's
+    """The check's renderer (``render_labels``, mitsuba) keeps the same convention as the refine's
     (above): a 0.05 px sphere at the point OpenCV projects to (j, i) lights pixel (row i, col j)
     only, and the ray it casts through pixel (i, j) projects to (j, i) in ``cv2.projectPoints``."""
     from autoalign.io.models import ColouredMesh

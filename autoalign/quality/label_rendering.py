@@ -1,4 +1,5 @@
-"""The labelled instances of one image ray-cast into one colour image (open3d ``RaycastingScene``).
+"""The labelled instances of one image ray-cast into one colour image (mitsuba, the product's ray
+caster :class:`~autoalign.rasterizers.ray_casting.RayCaster`).
 
 Every labelled object's mesh is placed at its label's pose (model-to-camera, mm) and one ray per
 pixel centre is cast; the nearest surface wins. Pixels: the rays go through the pixel centres of
@@ -8,19 +9,22 @@ through ``cam_K^-1 [j, i, 1]`` of the OpenCV / BOP convention the files use
 (tests/test_pixel_convention.py checks it against ``cv2.projectPoints``). The refine's renderer
 (:mod:`autoalign.rasterizers`) casts its rays in the same convention; this one also gives each
 pixel's instance, depth and colour, which the check needs for several objects at once.
+tests/test_label_rendering.py checks it against open3d's ``RaycastingScene``.
 """
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 from numpy.typing import NDArray
 
 from autoalign.geometry.camera import K_from_opencv
+from autoalign.geometry.se3 import make_pose
 from autoalign.io.models import ColouredMesh
+from autoalign.rasterizers.ray_casting import RayCaster, RayHits
 
 Box = tuple[int, int, int, int]
 """Pixels ``(u0, v0, u1, v1)``: columns ``u0..u1 - 1``, rows ``v0..v1 - 1``."""
@@ -82,62 +86,101 @@ def _projected_box(vertices_c: Sequence[NDArray[np.float64]], K_internal: NDArra
     return box if box[0] < box[2] and box[1] < box[3] else None
 
 
+@dataclass
+class LabelHits:
+    """The nearest labelled surface seen through each pixel of ``box`` (row-major, n pixels):
+    ``index`` (n,) int32, the placed mesh's position in the list given (-1: none), and ``hits`` its
+    triangle, barycentric coordinates and ray parameter ``t``, the depth z (mm; inf: none)."""
+
+    box: Box
+    index: NDArray[np.int32]
+    hits: RayHits
+
+
+class _CasterCache:
+    """The ray casters of the last meshes rendered, by mesh identity: the check renders the same
+    few models in every image, and a caster's BVH costs about 3 us a triangle to build."""
+
+    def __init__(self, size: int = 32) -> None:
+        self._size = size
+        self._casters: OrderedDict[int, tuple[ColouredMesh, RayCaster]] = OrderedDict()
+
+    def get(self, mesh: ColouredMesh) -> RayCaster:
+        """The caster of ``mesh`` (kept alive here, so its id stays its own)."""
+        key = id(mesh)
+        if key in self._casters:
+            self._casters.move_to_end(key)
+        else:
+            self._casters[key] = (mesh, RayCaster(mesh, watertight=True))
+            if len(self._casters) > self._size:
+                self._casters.popitem(last=False)
+        return self._casters[key][1]
+
+
+_CASTERS = _CasterCache()
+
+
+def cast_labels(placed: Sequence[PlacedMesh], K: NDArray[np.float64], width: int, height: int) -> LabelHits | None:
+    """One ray per pixel (:func:`pixel_rays`) of ``width x height`` with OpenCV / BOP ``cam_K`` ``K``
+    (px), cast at each instance of ``placed`` within the box of its projection
+    (:func:`_projected_box`: the other rays cannot hit it); the nearest hit wins. None when no
+    instance's box meets the image."""
+    K_internal = K_from_opencv(K)  # the one conversion from the file convention
+    poses = [make_pose(np.asarray(p.R_m2c, dtype=np.float64), np.asarray(p.t_m2c, dtype=np.float64)) for p in placed]
+    boxes = [_projected_box([p.mesh.vertices @ T[:3, :3].T + T[:3, 3]], K_internal, width, height)
+             for p, T in zip(placed, poses, strict=True)]
+    within = [b for b in boxes if b is not None]
+    if not within:
+        return None
+    box = (min(b[0] for b in within), min(b[1] for b in within), max(b[2] for b in within), max(b[3] for b in within))
+    rays = pixel_rays(K_internal, width, height, box)
+    n, w = len(rays), box[2] - box[0]
+    index = np.full(n, -1, dtype=np.int32)
+    nearest = RayHits(np.full(n, np.inf, np.float32), np.zeros(n, np.int64), np.zeros((n, 2), np.float32))
+    for k, (p, T, b) in enumerate(zip(placed, poses, boxes, strict=True)):
+        if b is None:
+            continue
+        sel = ((np.arange(b[1], b[3]) - box[1])[:, None] * w + (np.arange(b[0], b[2]) - box[0])[None, :]).ravel()
+        h = _CASTERS.get(p.mesh).first_hits(T, np.zeros(3), rays[sel])
+        closer = h.t < nearest.t[sel]
+        s = sel[closer]
+        nearest.t[s], nearest.prim[s], nearest.bary[s], index[s] = h.t[closer], h.prim[closer], h.bary[closer], k
+    return LabelHits(box, index, nearest)
+
+
 def render_labels(placed: Sequence[PlacedMesh], K: NDArray[np.float64], width: int, height: int) -> Rendering:
     """Ray-cast the labelled instances ``placed`` into one colour image of ``width x height`` pixels,
     OpenCV / BOP ``cam_K`` ``K`` (px).
 
-    One ray per pixel (:func:`pixel_rays`), cast only within the box of the objects' projections
-    (:func:`_projected_box`: the other rays cannot hit); the nearest surface among all objects
-    wins, its colour is the barycentric blend ``(1-u-v) c0 + u c1 + v c2`` of the hit triangle's
-    vertex colours (open3d's ``primitive_uvs``). Background is black with instance -1.
+    The nearest surface among all objects at each pixel (:func:`cast_labels`); its colour is the
+    barycentric blend ``(1-u-v) c0 + u c1 + v c2`` of the hit triangle's vertex colours. The rays'
+    unit z component makes the hit's ray parameter its depth z (mm). Background is black with
+    instance -1.
     """
-    K_internal = K_from_opencv(K)  # the one conversion from the file convention
-    scene = o3d.t.geometry.RaycastingScene()
-    gid_to_index: dict[int, int] = {}
-    vertices_c = []
-    for idx, p in enumerate(placed):
-        V_c = p.mesh.vertices @ np.asarray(p.R_m2c, dtype=np.float64).T + np.asarray(p.t_m2c, dtype=np.float64)
-        vertices_c.append(V_c)
-        gid = scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(V_c, dtype=np.float32)),
-                                  o3d.core.Tensor(np.ascontiguousarray(p.mesh.faces, dtype=np.uint32)))
-        gid_to_index[int(gid)] = idx
     full = Rendering(np.zeros((height, width, 3), np.uint8), np.full((height, width), -1, np.int32),
                      np.full((height, width), np.inf, np.float32))
-    box = _projected_box(vertices_c, K_internal, width, height)
-    if box is None:
+    cast = cast_labels(placed, K, width, height)
+    if cast is None:
         return full
-    u0, v0, u1, v1 = box
-    rays = np.zeros(((u1 - u0) * (v1 - v0), 6), dtype=np.float32)
-    rays[:, 3:] = pixel_rays(K_internal, width, height, box)
-    hits = scene.cast_rays(o3d.core.Tensor(rays))
-    del rays
-    rgb, inst, depth = _shade(hits, placed, gid_to_index)
+    u0, v0, u1, v1 = cast.box
+    rgb, inst = _shade(cast, placed)
     full.rgb[v0:v1, u0:u1] = rgb.reshape(v1 - v0, u1 - u0, 3)
     full.instance[v0:v1, u0:u1] = inst.reshape(v1 - v0, u1 - u0)
-    full.depth[v0:v1, u0:u1] = depth.reshape(v1 - v0, u1 - u0)
+    full.depth[v0:v1, u0:u1] = cast.hits.t.reshape(v1 - v0, u1 - u0)
     return full
 
 
-def _shade(hits: dict[str, o3d.core.Tensor], placed: Sequence[PlacedMesh], gid_to_index: dict[int, int]
-           ) -> tuple[NDArray[np.uint8], NDArray[np.int32], NDArray[np.float32]]:
-    """Per ray (n,): colour (n, 3) uint8, instance (-1: none) and depth (mm, inf: none) of open3d's hits."""
-    t_hit = hits["t_hit"].numpy()
-    hit = np.isfinite(t_hit)
-    gids = hits["geometry_ids"].numpy().astype(np.int64)
-    prims = hits["primitive_ids"].numpy().astype(np.int64)
-    uvs = hits["primitive_uvs"].numpy()
-    n = len(t_hit)
-    rgb = np.zeros((n, 3), dtype=np.float32)
-    inst = np.full(n, -1, dtype=np.int32)
-    for gid, idx in gid_to_index.items():
-        sel = np.flatnonzero(hit & (gids == gid))
+def _shade(cast: LabelHits, placed: Sequence[PlacedMesh]) -> tuple[NDArray[np.uint8], NDArray[np.int32]]:
+    """Per ray (n,): colour (n, 3) uint8 and instance number (-1: none) of the hits."""
+    rgb = np.zeros((len(cast.index), 3), dtype=np.float32)
+    inst = np.full(len(cast.index), -1, dtype=np.int32)
+    for k, p in enumerate(placed):
+        sel = np.flatnonzero(cast.index == k)
         if sel.size == 0:
             continue
-        p = placed[idx]
-        tri = p.mesh.faces[prims[sel]]
-        u, v = uvs[sel, 0:1], uvs[sel, 1:2]
+        tri = p.mesh.faces[cast.hits.prim[sel]]
+        u, v = cast.hits.bary[sel, 0:1], cast.hits.bary[sel, 1:2]
         C = p.mesh.colours
         rgb[sel] = (1.0 - u - v) * C[tri[:, 0]] + u * C[tri[:, 1]] + v * C[tri[:, 2]]
         inst[sel] = p.instance
-    depth = np.where(hit, t_hit, np.inf).astype(np.float32)
-    return np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8), inst, depth
+    return np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8), inst
