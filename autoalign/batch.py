@@ -383,8 +383,8 @@ def refine_task(task: Task) -> dict[str, Any]:
     ``task["out"]``. Its record: the status (0 ok, 3 written but flagged), seconds and its last
     warnings; a mistake in the scene's inputs gives ``{"id", "error"}`` instead (not done, so that
     it runs again once fixed); Ctrl-C raises ``KeyboardInterrupt`` (not done; :func:`run_tasks` stops)."""
-    from autoalign.jobs.refine_folder import refine_folder
     from autoalign.jobs.job import FolderJob, RunLog, one_line
+    from autoalign.jobs.refine_folder import refine_folder
 
     log = RunLog()
     t0 = time.perf_counter()

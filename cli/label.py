@@ -77,8 +77,8 @@ def run_label(args: argparse.Namespace) -> int:
     from autoalign.io.bop import check_scene_dir
     from autoalign.io.models import ModelSet
     from autoalign.io.out_folder import check_outputs_spare_inputs
-    from autoalign.label.session import LabelSession
     from autoalign.jobs.job import OUTPUT_FILES
+    from autoalign.label.session import LabelSession
 
     scene = check_scene_dir(args.scene)
     out = Path(args.out) if args.out else scene / "label_session"

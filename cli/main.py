@@ -45,7 +45,6 @@ from autoalign.cli.common import (
 )
 from autoalign.errors import AutoalignError
 from autoalign.io.out_folder import write_outputs  # noqa: F401 - where the tests and scripts found it
-from autoalign.jobs.refine_folder import refine_folder
 from autoalign.jobs.job import (
     LOSSES,
     OPTIMIZERS,
@@ -53,6 +52,7 @@ from autoalign.jobs.job import (
     FolderJob,
     FolderOutcome,
 )
+from autoalign.jobs.refine_folder import refine_folder
 from autoalign.runtime.interrupts import Interrupts, is_command_process
 
 # ------------------------------------------------------------------------------------------

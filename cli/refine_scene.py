@@ -12,7 +12,6 @@ import json
 from pathlib import Path
 
 from autoalign.cli.common import WARNINGS
-
 from autoalign.jobs.job import FolderOutcome
 
 

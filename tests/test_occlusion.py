@@ -35,7 +35,7 @@ from autoalign.geometry.se3 import (
 )
 from autoalign.io.instances import read_instance_scenes, read_instances
 from autoalign.io.models import ModelSet
-from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+from autoalign.rasterizers.pyramid import AS_GIVEN, MeshPyramid
 from autoalign.scene.joint import refine_jointly
 from autoalign.scene.occlusion import JointEvaluation, OcclusionObjective
 
@@ -64,7 +64,7 @@ def _objective(root: Path, models: ModelSet, ignore: bool = True) -> tuple[Occlu
     found = read_instance_scenes(root / "scene", read_instances(root / "scene"))
     if not ignore:
         found = replace(found, scenes=[replace(s, ignore=None) for s in found.scenes])
-    return OcclusionObjective(found, [SoftSilhouetteRasterizer(models.mesh(i.obj_id)) for i in found.instances]), found
+    return OcclusionObjective(found, [models.pyramid(i.obj_id) for i in found.instances], detail=AS_GIVEN), found
 
 
 def _total_grad(ev: JointEvaluation, n: int) -> np.ndarray:
@@ -128,7 +128,7 @@ def test_joint_refinement_labels_an_instance_whose_occluders_masks_are_missing(p
     scene = tmp_path / "scene"
     shutil.copytree(root / "scene", scene)
     found = read_instance_scenes(scene, read_instances(scene))
-    obj = OcclusionObjective(found, [SoftSilhouetteRasterizer(models.mesh(i.obj_id)) for i in found.instances])
+    obj = OcclusionObjective(found, [models.pyramid(i.obj_id) for i in found.instances], detail=AS_GIVEN)
     ev = obj.evaluate(truth, FULL)
     behind = int(np.argmax([sum(len(f.instances) > 1 for f in fits) for fits in ev.fits]))
     front = 1 - behind
@@ -140,7 +140,7 @@ def test_joint_refinement_labels_an_instance_whose_occluders_masks_are_missing(p
     meshes = [models.mesh(i.obj_id) for i in found.instances]
     start = [perturb_pose(T, 2.0, 2.0, rng, m.centre) for T, m in zip(truth, meshes)]
     alone = [refine(found.scenes[k], meshes[k], start[k]).T_wm for k in range(2)]
-    joint = refine_jointly(found, meshes, alone).poses
+    joint = refine_jointly(found, [MeshPyramid(m) for m in meshes], alone).poses
 
     def err(T, k):
         c = meshes[k].centre[None]

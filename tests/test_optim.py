@@ -10,7 +10,7 @@ from autoalign.experiments.scenes.synthetic import make_scene
 from autoalign.experiments.studies.protocol import ImageSetup, make_trial
 from autoalign.experiments.studies.runner import get_model
 from autoalign.geometry.se3 import apply_twist, rotation_angle_deg, transform_points
-from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+from autoalign.rasterizers.pyramid import AS_GIVEN, MeshPyramid
 
 
 def _max_reprojection_px(T: np.ndarray, T_gt: np.ndarray, vertices_m: np.ndarray, scene) -> float:
@@ -32,7 +32,7 @@ def test_lm_stops_at_the_noise_floor_without_extra_renders() -> None:
     level = Level(1.0, 0.5, 15)
     renders, poses, stops = [], [], []
     for ftol in (1e-3, 0.0):
-        obj = SilhouetteObjective(SoftSilhouetteRasterizer(entry.mesh), scene)
+        obj = SilhouetteObjective(MeshPyramid(entry.mesh), scene, detail=AS_GIVEN)
         T, trace = levenberg_marquardt(obj, geo.T_gt, level, ftol=ftol)
         assert trace.converged
         stops.append(trace.stop)
@@ -58,7 +58,7 @@ def test_lm_stops_after_an_accepted_step_that_gains_too_little() -> None:
     scene = make_scene(entry.mesh, geo.T_gt, geo.cameras)
     start = apply_twist(geo.T_gt, np.array([2.0, -2.0, 1.0, *np.radians([1.0, 1.5, -0.5])]),
                         transform_points(geo.T_gt, entry.mesh.centre[None])[0])
-    obj = SilhouetteObjective(SoftSilhouetteRasterizer(entry.mesh), scene)
+    obj = SilhouetteObjective(MeshPyramid(entry.mesh), scene, detail=AS_GIVEN)
     T_quarter, _ = levenberg_marquardt(obj, start, Level(0.25, 1.0, 40))
     runs = []
     for ftol in (1e-3, 0.0):
@@ -80,7 +80,7 @@ def test_stops_are_named_budget_and_caller() -> None:
     scene = make_scene(entry.mesh, geo.T_gt, geo.cameras)
     start = apply_twist(geo.T_gt, np.array([6.0, -4.0, 3.0, *np.radians([4.0, -3.0, 5.0])]),
                         transform_points(geo.T_gt, entry.mesh.centre[None])[0])
-    obj = SilhouetteObjective(SoftSilhouetteRasterizer(entry.mesh), scene)
+    obj = SilhouetteObjective(MeshPyramid(entry.mesh), scene, detail=AS_GIVEN)
     _, budget = levenberg_marquardt(obj, start, Level(0.25, 1.0, 1))
     _, caller = levenberg_marquardt(obj, start, Level(0.25, 1.0, 10), callback=lambda it, ev: True)
     assert (budget.stop, caller.stop) == (Stop.BUDGET, Stop.CALLER)
@@ -95,7 +95,7 @@ def test_every_solver_ends_with_a_reason_and_the_final_evaluation() -> None:
     scene = make_scene(entry.mesh, geo.T_gt, geo.cameras)
     start = apply_twist(geo.T_gt, np.array([3.0, -2.0, 1.0, *np.radians([2.0, -1.0, 1.0])]),
                         transform_points(geo.T_gt, entry.mesh.centre[None])[0])
-    obj = SilhouetteObjective(SoftSilhouetteRasterizer(entry.mesh), scene)
+    obj = SilhouetteObjective(MeshPyramid(entry.mesh), scene, detail=AS_GIVEN)
     level = Level(0.25, 1.0, 3)
     for name, solve in OPTIMIZERS.items():
         T, trace = solve(obj, start, level)

@@ -105,6 +105,7 @@ def test_check_and_overlays_take_str(scene: autoalign.Scene, tmp_path: Path) -> 
     from autoalign.io.models import ModelSet, load_coloured_mesh
     from autoalign.quality.overlay import encode_png, photo_at, render_overlay
     from autoalign.quality.scene_check import check_scene
+    from autoalign.rasterizers.pyramid import MeshPyramid
 
     labels = two_image_labels(tmp_path)
     report = check_scene(SCENE, labels, MODELS)
@@ -112,7 +113,8 @@ def test_check_and_overlays_take_str(scene: autoalign.Scene, tmp_path: Path) -> 
     assert load_coloured_mesh(MODEL).has_colours and set(ModelSet.read(MODELS).coloured_meshes([1], Path(labels))) == {1}
     assert photo_at(SCENE, 0, 320, 240).shape == (240, 320, 3)
     T = autoalign.read_init_pose(INIT, scene)
-    img = render_overlay(scene, autoalign.load_mesh(MODEL), T, T, np.ones(len(scene)))
+    img = render_overlay(scene, MeshPyramid(autoalign.load_mesh(MODEL)).fine(), T, T, np.ones(len(scene)),
+                         np.ones(len(scene)))
     write_bytes_atomic(str(tmp_path / "o.png"), encode_png(img))
     assert (tmp_path / "o.png").is_file() and img.ndim == 3
 

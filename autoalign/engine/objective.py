@@ -11,7 +11,8 @@ from numpy.typing import NDArray
 from autoalign.geometry.camera import Camera
 from autoalign.io.bop import Scene
 from autoalign.losses import LOSSES, ViewTerms, robust_view_weights, targets_in_crops
-from autoalign.rasterizers.soft_silhouette import Silhouettes, SoftSilhouetteRasterizer
+from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
+from autoalign.rasterizers.soft_silhouette import Silhouettes
 
 
 @dataclass(frozen=True)
@@ -62,23 +63,20 @@ class SilhouetteObjective:
     """Weighted multi-view silhouette loss of one scene, with resampled targets per scale.
 
     Args:
-        rasterizer: renders the object mesh (used at full resolution).
-        coarse_rasterizer: renders a simplified mesh at levels below full resolution (optional).
-        search_rasterizer: an even simpler mesh for levels at 1/8 resolution or less (optional).
+        pyramid: the object's mesh and its simplified versions (:class:`~autoalign.rasterizers.pyramid.MeshPyramid`).
         scene: cameras and target masks.
         loss: one of :data:`autoalign.losses.LOSSES`.
         robust: re-weight views with Cauchy weights on ``1 - IoU`` (see :func:`~autoalign.losses.robust_view_weights`).
+        detail: the mesh's detail at each level's resolution (:class:`~autoalign.rasterizers.pyramid.MeshDetail`).
     """
 
-    def __init__(self, rasterizer: SoftSilhouetteRasterizer, scene: Scene, loss: str = "l2",
-                 robust: bool = True, coarse_rasterizer: SoftSilhouetteRasterizer | None = None,
-                 search_rasterizer: SoftSilhouetteRasterizer | None = None) -> None:
+    def __init__(self, pyramid: MeshPyramid, scene: Scene, loss: str = "l2", robust: bool = True,
+                 detail: MeshDetail = MeshDetail()) -> None:
         if loss not in LOSSES:
             raise ValueError(f"unknown loss {loss!r}; choose one of {sorted(LOSSES)}")
-        self.rasterizer = rasterizer
-        self.coarse_rasterizer = coarse_rasterizer or rasterizer
-        self.search_rasterizer = search_rasterizer or self.coarse_rasterizer
-        self.centre_m = rasterizer.mesh.centre  # the point twists turn about, model frame (mm)
+        self.pyramid = pyramid
+        self.detail = detail
+        self.centre_m = pyramid.mesh.centre  # the point twists turn about, model frame (mm)
         self.scene = scene
         self.loss_name = loss
         self.loss_fn = LOSSES[loss]
@@ -113,9 +111,7 @@ class SilhouetteObjective:
                  with_derivatives: bool = True) -> Evaluation:
         """Render at ``level`` and compare. Without ``weights`` they are computed here (robust or 1)."""
         views = self.at_scale(level.scale, level.max_views)
-        rast = (self.rasterizer if level.scale >= 1.0 else
-                self.coarse_rasterizer if level.scale > 0.125 else self.search_rasterizer)
-        sil = rast.render(T_wm, views.cameras, level.sigma, with_jacobian=with_derivatives)
+        sil = self.pyramid.at(level.scale, self.detail).render(T_wm, views.cameras, level.sigma, with_jacobian=with_derivatives)
         self.renders += 1
         if views.ignore is not None:
             sil = sil.without(targets_in_crops(views.ignore, sil) > 0.5)

@@ -30,7 +30,8 @@ from autoalign.geometry.mesh import Mesh
 from autoalign.geometry.se3 import rotation_angle_deg, transform_points
 from autoalign.io.bop import Scene
 from autoalign.losses import targets_in_crops
-from autoalign.quality.overlap import iou_from_counts, mask_iou
+from autoalign.quality.overlap import iou_from_counts, view_ious
+from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
 DEFAULT_SCHEDULE: tuple[Level, ...] = (Level(0.25, 1.0, 40), Level(1.0, 0.5, 30))
@@ -65,12 +66,8 @@ class RefineOptions:
         polish_margin: at the last level a finalist other than the best is polished only when its
             estimated loss is below the best's by more than this fraction (see :func:`_polish`);
             ``-inf`` polishes every one.
-        coarse_faces: below full resolution the mesh is simplified to this many triangles
-            (a pixel there spans millimetres).
-        search_faces: the mesh simplified further for the orientation search (1/8 resolution).
-        fine_faces: at full resolution, meshes with more triangles are simplified to this many
-            (quadric decimation; for the LINEMOD scans the silhouettes of 20k-face versions agree
-            with the originals' at IoU >= 0.999 in every view); ``None`` renders the mesh as given.
+        detail: how many triangles the mesh is drawn with at each resolution
+            (:class:`~autoalign.rasterizers.pyramid.MeshDetail`).
         flips: after the search level, also refine the best hypothesis turned half a turn about
             each principal axis of the mesh (with 8 scored orientations kept, the search settled on
             such a flip of thin or flat objects in 2 of 44 simulated trials; with 16, in none of
@@ -112,9 +109,7 @@ class RefineOptions:
     orbits: bool = True
     orbit_margin: float = 0.001
     weak_turns: tuple[float, ...] = (30.0, 60.0, 90.0, 120.0, 150.0, 180.0, -150.0, -120.0, -90.0, -60.0, -30.0)
-    coarse_faces: int = 5000
-    search_faces: int = 1500
-    fine_faces: int | None = 20000
+    detail: MeshDetail = MeshDetail()
 
 
 class Stage(enum.Enum):
@@ -253,7 +248,9 @@ def _final_loss(obj: SilhouetteObjective, T: NDArray[np.float64], level: Level,
 
 
 def _hard_ious_of(ev: Evaluation, scene: Scene) -> NDArray[np.float64]:
-    """Per-view hard IoU from the hard masks of a full-resolution evaluation (no new ray casting)."""
+    """:func:`~autoalign.quality.overlap.view_ious` from the hard masks of a full-resolution
+    evaluation, without casting them again (the scene's ignored pixels are already off the
+    evaluation's silhouettes and never on the instance's own mask)."""
     sil = ev.silhouettes
     tg = [m > 0.5 for m in scene.masks]
     t_crop = targets_in_crops(tg, sil) > 0.5
@@ -266,8 +263,7 @@ def _hard_ious_of(ev: Evaluation, scene: Scene) -> NDArray[np.float64]:
 def hard_ious(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.float64]) -> NDArray[np.float64]:
     """Per-view IoU of the ray-cast silhouette at ``T_wm`` with the scene's masks, full resolution
     (pixels the scene ignores left out)."""
-    return np.array([mask_iou(m, t > 0.5, scene.compared(k))
-                     for k, (m, t) in enumerate(zip(rast.hard_masks(T_wm, scene.cameras), scene.masks))])
+    return view_ious(rast.hard_masks(T_wm, scene.cameras), scene)
 
 
 SAME_BASIN_SIZE = 0.1
@@ -391,29 +387,13 @@ def _final_state(obj: SilhouetteObjective, best: Hypothesis, weights: NDArray[np
     return ev, pose_uncertainty(ev.gn, ev.terms.grad, ev.weights, ev.value, len(ev.silhouettes.band), best.T_final[:3, :3])
 
 
-@dataclass
-class _Renderers:
-    """The mesh at the detail of each use: ``fine`` at full resolution, ``coarse`` below it,
-    ``search`` for the orientation search (1/8 resolution)."""
-
-    fine: SoftSilhouetteRasterizer
-    coarse: SoftSilhouetteRasterizer
-    search: SoftSilhouetteRasterizer
-
-    @staticmethod
-    def of(mesh: Mesh, opts: RefineOptions, searching: bool) -> "_Renderers":
-        fine = SoftSilhouetteRasterizer(mesh if opts.fine_faces is None else mesh.simplified(opts.fine_faces))
-        coarse = SoftSilhouetteRasterizer(mesh.simplified(opts.coarse_faces))
-        search = SoftSilhouetteRasterizer(mesh.simplified(opts.search_faces)) if searching else coarse
-        return _Renderers(fine, coarse, search)
-
-
-def _seed(scene: Scene, mesh: Mesh, seed: Seed, opts: RefineOptions, search: SoftSilhouetteRasterizer,
+def _seed(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,
           progress: Progress | None) -> list[NDArray[np.float64]]:
     """Stage 1: the starting poses: the seed itself, or the best-scoring orientations of a rotation
     grid placed at the click's or the visual hull's centre, each polished by a pattern search."""
     if seed is not None and not isinstance(seed, Click):
         return [np.asarray(seed, dtype=np.float64)]
+    mesh, search = pyramid.mesh, pyramid.with_faces(opts.detail.search)
     centre = click_centre(scene, seed, mesh.diameter) if isinstance(seed, Click) else hull_centre(scene, mesh.diameter)
     poses = poses_at(rotation_grid(opts.n_rotations), centre, mesh.centre)
     if progress is not None:
@@ -448,7 +428,7 @@ def _with_candidate(obj: SilhouetteObjective, final: list[Finalist], parent: Hyp
     return sorted(final + polished, key=lambda f: f.hypothesis.rank())
 
 
-def _disambiguate(obj: SilhouetteObjective, renderers: _Renderers, scene: Scene, mesh: Mesh, final: list[Finalist],
+def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: list[Finalist],
                   others: list[Hypothesis], given_pose: bool, opts: RefineOptions,
                   progress: Progress | None) -> tuple[list[Finalist], Standing, Evaluation, Uncertainty, float | None]:
     """Stage 4: poses the polish cannot tell apart from the best by descent.
@@ -471,8 +451,8 @@ def _disambiguate(obj: SilhouetteObjective, renderers: _Renderers, scene: Scene,
         best = standing.ranked[0]
         cands = orbit(best.T_final, runner.T_final)
         if len(cands):
-            ious = np.array([float(np.mean(hard_ious(renderers.fine, scene, T))) for T in cands])
-            if ious.max() > float(np.mean(hard_ious(renderers.fine, scene, best.T_final))) + opts.orbit_margin:
+            ious = np.array([float(np.mean(hard_ious(obj.pyramid.fine(opts.detail), scene, T))) for T in cands])
+            if ious.max() > float(np.mean(hard_ious(obj.pyramid.fine(opts.detail), scene, best.T_final))) + opts.orbit_margin:
                 final = _with_candidate(obj, final, best, cands[int(np.argmax(ious))], Stage.ORBIT, levels[-1], opts,
                                         progress)
                 standing = _rank(final, others, mesh.centre, opts)
@@ -480,7 +460,7 @@ def _disambiguate(obj: SilhouetteObjective, renderers: _Renderers, scene: Scene,
     ev, uncertainty = _final_state(obj, best.hypothesis, best.weights, levels)
     turn_gap = None
     if given_pose and opts.weak_turns and uncertainty.weak_turn_axes:
-        own, scores, cands = weak_turn_scores(renderers.coarse, scene, best.hypothesis.T_final,
+        own, scores, cands = weak_turn_scores(obj.pyramid.with_faces(opts.detail.coarse), scene, best.hypothesis.T_final,
                                               uncertainty.weak_turn_axes, mesh.centre, opts.weak_turns)
         k = int(np.argmax(scores))
         turn_gap = own - float(scores[k])
@@ -492,7 +472,7 @@ def _disambiguate(obj: SilhouetteObjective, renderers: _Renderers, scene: Scene,
     return final, standing, ev, uncertainty, turn_gap
 
 
-def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions | None = None,
+def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: RefineOptions | None = None,
            progress: Progress | None = None) -> RefineResult:
     """Find the world-from-model pose of ``mesh`` whose silhouettes match the masks of ``scene``.
 
@@ -502,7 +482,8 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
     Args:
         scene: calibrated views with target masks (mm, BOP world frame). Views whose mask is
             empty are left out (:meth:`Scene.without_empty_masks`; ``RefineResult.image_ids`` lists the used ones).
-        mesh: the object model (mm).
+        mesh: the object model (mm), or its :class:`~autoalign.rasterizers.pyramid.MeshPyramid` (e.g.
+            :meth:`ModelSet.pyramid <autoalign.io.models.ModelSet.pyramid>`) to share its rasterizers with other calls.
         seed: a coarse world-from-model pose (4x4), a :class:`Click`, or ``None`` (visual hull).
             Without a pose the orientation is searched with ``options.n_rotations`` hypotheses.
         options: see :class:`RefineOptions`.
@@ -515,14 +496,14 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     given_pose = seed is not None and not isinstance(seed, Click)
-    renderers = _Renderers.of(mesh, opts, searching=not given_pose)
-    obj = SilhouetteObjective(renderers.fine, scene, opts.loss, opts.robust, coarse_rasterizer=renderers.coarse,
-                              search_rasterizer=renderers.search)
+    pyramid = mesh if isinstance(mesh, MeshPyramid) else MeshPyramid(mesh)
+    mesh = pyramid.mesh
+    obj = SilhouetteObjective(pyramid, scene, opts.loss, opts.robust, opts.detail)
     levels = opts.schedule
     timings["setup"] = time.perf_counter() - t_start
 
     t0 = time.perf_counter()
-    starts = _seed(scene, mesh, seed, opts, renderers.search, progress)
+    starts = _seed(scene, pyramid, seed, opts, progress)
     timings["seed"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -530,19 +511,19 @@ def refine(scene: Scene, mesh: Mesh, seed: Seed = None, options: RefineOptions |
         finalists, others = _search(obj, starts, mesh, opts, progress)
         rest = levels[1:] or levels  # a one-level schedule polishes the search's result at that level
     else:
-        finalists, others = [Hypothesis(starts[0], starts[0], float("nan"), float("nan"), "seed")], []
+        finalists, others = [Hypothesis(starts[0], starts[0], float("nan"), float("nan"), Stage.START)], []
         rest = levels
     timings["hypotheses"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     final, dropped = _polish(obj, finalists, rest, opts, progress)
-    final, standing, final_ev, uncertainty, turn_gap = _disambiguate(obj, renderers, scene, mesh, final,
+    final, standing, final_ev, uncertainty, turn_gap = _disambiguate(obj, scene, mesh, final,
                                                                      others + dropped, given_pose, opts, progress)
     timings["refine"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     best = final[0].hypothesis
-    iou_before = hard_ious(renderers.fine, scene, best.T_init)
+    iou_before = hard_ious(obj.pyramid.fine(opts.detail), scene, best.T_init)
     iou_after = _hard_ious_of(final_ev, scene)
     timings["report"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from autoalign.errors import AutoalignError
 from autoalign.geometry.mesh import Mesh, load_mesh
+from autoalign.rasterizers.pyramid import MeshPyramid
 
 GREY = (0.5, 0.5, 0.5)
 """Colour (RGB, 0..1) of a mesh without vertex colours."""
@@ -90,6 +91,7 @@ class ModelSet:
     units: str | None = None
     _meshes: dict[int, Mesh] = field(default_factory=dict, repr=False)
     _coloured: dict[int, ColouredMesh] = field(default_factory=dict, repr=False)
+    _pyramids: dict[int, MeshPyramid] = field(default_factory=dict, repr=False)
 
     @staticmethod
     def read(folder: str | Path, units: str | None = None, with_info: bool = True) -> "ModelSet":
@@ -121,6 +123,13 @@ class ModelSet:
                                      "or leave that instance out of the instances file")
             self._meshes[obj_id] = load_mesh(p, units=self.units)
         return self._meshes[obj_id]
+
+    def pyramid(self, obj_id: int) -> MeshPyramid:
+        """The mesh of ``obj_id`` with its simplified versions and their rasterizers, made once: every
+        stage that renders the object shares it."""
+        if obj_id not in self._pyramids:
+            self._pyramids[obj_id] = MeshPyramid(self.mesh(obj_id))
+        return self._pyramids[obj_id]
 
     def coloured(self, obj_id: int, named_in: Path | None = None) -> ColouredMesh:
         """The file's mesh of ``obj_id`` with its vertex colours (mm), loaded once; ``named_in``: the

@@ -78,19 +78,20 @@ def _refine_object(job: FolderJob, click: Any, log: RunLog, progress: Stages) ->
     from autoalign.geometry.mesh import load_mesh
     from autoalign.io.bop import read_scene
     from autoalign.quality.overlay import render_overlay
-    from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+    from autoalign.rasterizers.pyramid import MeshPyramid
 
     scene = read_scene(job.scene, job.instance)
     mesh = load_mesh(job.model, units=job.units)
+    pyramid = MeshPyramid(mesh)
     seed, seed_record = _seed(job, scene, click)
     options = RefineOptions(loss=job.loss, optimizer=job.optimizer, robust=job.robust)
     progress.start("loading the renderer" if seed_record.kind == "init" else "seeding")
     try:
-        result = refine(scene, mesh, seed, options, progress=progress)
+        result = refine(scene, pyramid, seed, options, progress=progress)
         progress("overlay", 0, 1)
         t0 = time.perf_counter()
-        overlay = render_overlay(scene, mesh, result.T_init, result.T_wm, result.iou_after,
-                                 rasterizer=SoftSilhouetteRasterizer(mesh))
+        overlay = render_overlay(scene, pyramid.fine(options.detail), result.T_init, result.T_wm, result.iou_before,
+                                 result.iou_after)
         progress("overlay", 1, 1)
     finally:
         progress.close()
@@ -138,8 +139,8 @@ def _seed(job: FolderJob, scene: Any, click: Any) -> tuple[Any, Any]:
 def _object_report(job: FolderJob, scene: Any, mesh: Any, result: Any, seed: Any, options: Any,
                    log: RunLog) -> RefineReport:
     """The report of one object's refinement (:class:`~autoalign.jobs.report.RefineReport`)."""
-    from autoalign.quality.verdict import judge
     from autoalign.jobs.report import RefineReport, RunnerUp
+    from autoalign.quality.verdict import judge
 
     ids = [int(i) for i in result.image_ids or scene.image_ids]
     verdict = judge(result.iou_after, result.weights, ids, scene.empty, bool(result.ambiguous),

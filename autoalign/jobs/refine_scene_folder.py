@@ -35,7 +35,13 @@ from autoalign.jobs.job import (
     one_line,
     write_json_outputs,
 )
-from autoalign.jobs.report import InstanceReport, ScaleReport, SceneReport, cameras_record
+from autoalign.jobs.report import (
+    InstanceReport,
+    ScaleReport,
+    SceneReport,
+    cameras_record,
+)
+from autoalign.rasterizers.pyramid import MeshDetail
 from autoalign.scene.refine import SceneRefinement, refine_scene
 from autoalign.scene.scale import (
     ScaleGuess,
@@ -73,7 +79,7 @@ def refine_scene_folder(job: FolderJob, log: RunLog, progress: Stages, t_start: 
                                inputs.guess is not None, progress)
         progress("overlay", 0, 1)
         t0 = time.perf_counter()
-        overlay = scene_overlay(refined, inputs.models, Path(job.scene))
+        overlay = scene_overlay(refined, inputs.models, Path(job.scene), options.detail)
         progress("overlay", 1, 1)
     finally:
         progress.close()
@@ -185,10 +191,10 @@ def corrected_cameras(scene_dir: Path, found: InstanceScenes) -> dict[str, Any]:
     return corrected
 
 
-def scene_overlay(refined: SceneRefinement, models: ModelSet, scene_dir: Path) -> np.ndarray:
-    """The overlay of every instance in up to 9 views spread over the scene."""
+def scene_overlay(refined: SceneRefinement, models: ModelSet, scene_dir: Path, detail: MeshDetail) -> np.ndarray:
+    """The overlay of every instance in up to 9 views spread over the scene, each drawn at its
+    pyramid's full-resolution ``detail``."""
     from autoalign.quality.overlay import instance_label, render_instances_overlay
-    from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
     found = refined.found
     n = len(found.image_ids)
@@ -196,7 +202,7 @@ def scene_overlay(refined: SceneRefinement, models: ModelSet, scene_dir: Path) -
     cams = [found.cameras[i] for i in views]
     layers = []
     for r, scene in zip(refined.results, found.scenes):
-        rast = SoftSilhouetteRasterizer(models.mesh(r.instance.obj_id))
+        rast = models.pyramid(r.instance.obj_id).fine(detail)
         masks = {im: np.asarray(m) > 0.5 for im, m in zip(scene.image_ids, scene.masks)}
         layers.append((instance_label(r.instance.obj_id, r.verdict.status), masks,
                        np.stack(rast.hard_masks(r.result.T_wm, cams))))

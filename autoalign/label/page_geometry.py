@@ -16,8 +16,8 @@ from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import make_pose, so3_exp
 from autoalign.io.bop import Scene
 from autoalign.io.models import ModelSet
-from autoalign.quality.overlap import mask_iou
-from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+from autoalign.quality.overlap import view_ious
+from autoalign.rasterizers.pyramid import MeshDetail
 
 CONTOUR_EPS_PX = 0.5
 """Contours are simplified (Douglas-Peucker) to within this many pixels before they go to the page."""
@@ -52,22 +52,21 @@ def outlines(silhouettes: dict[int, NDArray[np.bool_]]) -> Outlines:
 
 
 def fit(scene: Scene, silhouettes: dict[int, NDArray[np.bool_]]) -> dict[int, float]:
-    """Per-view hard IoU of the silhouettes with ``scene``'s masks (the pixels other masks claim
-    left out, as :func:`~autoalign.engine.refine.hard_ious`), by image id."""
-    return {im: mask_iou(silhouettes[im], np.asarray(t) > 0.5, scene.compared(k))
-            for k, (im, t) in enumerate(zip(scene.image_ids, scene.masks))}
+    """Per-view hard IoU of the silhouettes with ``scene``'s masks
+    (:func:`~autoalign.quality.overlap.view_ious`), by image id."""
+    ious = view_ious([silhouettes[im] for im in scene.image_ids], scene)
+    return {im: float(v) for im, v in zip(scene.image_ids, ious)}
 
 
 class SilhouetteRenderer:
-    """Ray-cast silhouettes of the models in a scene's views, one rasterizer per object (made on
-    first use). Not thread-safe: callers hold the session's render lock (drjit, one thread at a time)."""
+    """Ray-cast silhouettes of the models in a scene's views, at the full-resolution ``detail`` of
+    each model's pyramid (:meth:`~autoalign.io.models.ModelSet.pyramid`, the refinement's too). Not
+    thread-safe: callers hold the session's render lock (drjit, one thread at a time)."""
 
-    def __init__(self, models: ModelSet, image_ids: list[int], views: list[Camera]) -> None:
-        self.models, self.image_ids, self.views = models, image_ids, views
-        self._rasterizers: dict[int, SoftSilhouetteRasterizer] = {}
+    def __init__(self, models: ModelSet, image_ids: list[int], views: list[Camera], detail: MeshDetail) -> None:
+        self.models, self.image_ids, self.views, self.detail = models, image_ids, views, detail
 
     def silhouettes(self, obj_id: int, T_wm: NDArray[np.float64]) -> dict[int, NDArray[np.bool_]]:
         """Object ``obj_id``'s silhouette at ``T_wm`` in every view, by image id."""
-        if obj_id not in self._rasterizers:
-            self._rasterizers[obj_id] = SoftSilhouetteRasterizer(self.models.mesh(obj_id))
-        return dict(zip(self.image_ids, self._rasterizers[obj_id].hard_masks(T_wm, self.views)))
+        rasterizer = self.models.pyramid(obj_id).fine(self.detail)
+        return dict(zip(self.image_ids, rasterizer.hard_masks(T_wm, self.views)))

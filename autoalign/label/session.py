@@ -109,7 +109,7 @@ class LabelSession(SessionScene):
         self.jobs = JobRunner(self.state)
         self._undo = UndoHistory()
         self._render = threading.Lock()
-        self._renderer = SilhouetteRenderer(models, self.image_ids, self.views)
+        self._renderer = SilhouetteRenderer(models, self.image_ids, self.views, self.options.detail)
         self._contours: dict[int, tuple[int, Outlines]] = {}  # instance -> (pose_revision, its outlines)
 
     @property
@@ -222,7 +222,7 @@ class LabelSession(SessionScene):
         index = self.instance_at(image_id, u, v)
         iu, iv = uv_from_opencv(np.array([u, v], dtype=np.float64))
         with self._render:
-            result = refine(self.scene_of(index), self.models.mesh(obj_id), Click(image_id, float(iu), float(iv)),
+            result = refine(self.scene_of(index), self.models.pyramid(obj_id), Click(image_id, float(iu), float(iv)),
                             self.options, progress=progress)
             self._store_pose(index, obj_id, result.T_wm, "click", self._judged(index, obj_id, result))
         return index
@@ -231,7 +231,7 @@ class LabelSession(SessionScene):
         """Refine instance ``index`` from its current pose (after a nudge or a drag)."""
         with self._render:
             inst = self._placed(index)
-            result = refine(self.scene_of(index), self.models.mesh(inst.obj_id), inst.T_wm.copy(), self.options,
+            result = refine(self.scene_of(index), self.models.pyramid(inst.obj_id), inst.T_wm.copy(), self.options,
                             progress=progress)
             self._store_pose(index, inst.obj_id, result.T_wm, "refine", self._judged(index, inst.obj_id, result))
 
@@ -249,8 +249,8 @@ class LabelSession(SessionScene):
                                      "place more, or refine the one from where it is")
             scenes = [self.scene_of(i.index) for i in chosen]
             together = replace(self.found, instances=[Instance(i.index, i.obj_id) for i in chosen], scenes=scenes)
-            joint = refine_jointly(together, [self.models.mesh(i.obj_id) for i in chosen], [i.T_wm for i in chosen],
-                                   robust=self.options.robust, progress=progress)
+            joint = refine_jointly(together, [self.models.pyramid(i.obj_id) for i in chosen], [i.T_wm for i in chosen],
+                                   detail=self.options.detail, robust=self.options.robust, progress=progress)
             for k, (inst, scene) in enumerate(zip(chosen, scenes)):
                 judged = judged_jointly(joint, k, scene, self.models, inst.obj_id)
                 self._store_pose(inst.index, inst.obj_id, joint.poses[k], "together", judged)

@@ -1,4 +1,5 @@
-"""Intersection over union of hard masks: one definition for every place that scores a fit.
+"""Intersection over union of hard masks: one definition for every place that scores a fit, and
+one scene-level IoU (:func:`view_ious`) for every place that reports one.
 
 Two empty masks agree perfectly (IoU 1): a view where neither the silhouette nor the mask has a
 pixel says nothing against the pose.
@@ -6,8 +7,12 @@ pixel says nothing against the pose.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from autoalign.io.bop import Scene
 
 
 def iou_from_counts(inter: ArrayLike, area_a: ArrayLike, area_b: ArrayLike) -> NDArray[np.float64]:
@@ -23,3 +28,13 @@ def mask_iou(a: NDArray[np.bool_], b: NDArray[np.bool_], compared: NDArray[np.bo
     if compared is not None:
         a, b = a & compared, b & compared
     return float(iou_from_counts(np.count_nonzero(a & b), np.count_nonzero(a), np.count_nonzero(b)))
+
+
+def view_ious(silhouettes: Sequence[NDArray[np.bool_]], scene: Scene) -> NDArray[np.float64]:
+    """Per-view IoU of hard silhouettes (one full-resolution mask per view of ``scene``) with the
+    scene's masks thresholded at 0.5, the pixels the scene ignores (other masks' claims) left out:
+    the IoU that ``refine.json``, the overlay and the label page report."""
+    if len(silhouettes) != len(scene):
+        raise ValueError(f"{len(silhouettes)} silhouettes for {len(scene)} views")
+    return np.array([mask_iou(s, np.asarray(t) > 0.5, scene.compared(k))
+                     for k, (s, t) in enumerate(zip(silhouettes, scene.masks))], dtype=np.float64)

@@ -1,6 +1,6 @@
 """A picture of how well a pose fits: target masks with the silhouette outline before and after.
 
-``render_overlay(scene, mesh, T_before, T_after, ious_after)`` draws a grid (BGR; :func:`encode_png`
+``render_overlay(scene, rasterizer, T_before, T_after, ious_before, ious_after)`` draws a grid (BGR; :func:`encode_png`
 makes it a PNG) of up to 12 views (evenly chosen over the scene, always including the worst-fitting
 view after refinement). Each tile is cropped and zoomed around the object and shows
 
@@ -22,9 +22,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from autoalign.errors import AutoalignError
-from autoalign.geometry.mesh import Mesh
 from autoalign.io.bop import Scene, photo_path, read_photo
-from autoalign.quality.overlap import mask_iou
+from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
 MAX_TILES = 12
 TILE_W, TILE_H = 320, 240
@@ -129,26 +128,23 @@ def _tile(target: NDArray[np.bool_], before: NDArray[np.bool_], after: NDArray[n
     return img
 
 
-def render_overlay(scene: Scene, mesh: Mesh, T_before: ArrayLike, T_after: ArrayLike, ious_after: ArrayLike,
-                   rasterizer: object | None = None, max_views: int = MAX_TILES) -> NDArray[np.uint8]:
+def render_overlay(scene: Scene, rasterizer: SoftSilhouetteRasterizer, T_before: ArrayLike, T_after: ArrayLike,
+                   ious_before: ArrayLike, ious_after: ArrayLike, max_views: int = MAX_TILES) -> NDArray[np.uint8]:
     """The overlay grid as a BGR uint8 image (see the module docstring); nothing is written.
 
     Args:
         scene: the views and target masks.
-        mesh: the object model (mm).
+        rasterizer: draws the object model (mm): the one its IoUs were measured with
+            (:meth:`MeshPyramid.fine <autoalign.rasterizers.pyramid.MeshPyramid.fine>`).
         T_before / T_after: world-from-model poses (4x4, mm) drawn in red / green.
-        ious_after: per-view IoU at ``T_after`` (chooses the worst view and labels the tiles).
-        rasterizer: a :class:`~autoalign.rasterizers.soft_silhouette.SoftSilhouetteRasterizer`
-            of ``mesh`` to reuse (one is built otherwise).
+        ious_before / ious_after: per-view IoU at ``T_before`` / ``T_after``
+            (:func:`~autoalign.quality.overlap.view_ious`; ``ious_after`` chooses the worst view).
         max_views: at most this many tiles.
     """
+    before_ious = np.asarray(ious_before, dtype=np.float64).ravel()
     ious = np.asarray(ious_after, dtype=np.float64).ravel()
-    if len(ious) != len(scene):
-        raise ValueError(f"ious_after has {len(ious)} values for {len(scene)} views")
-    if rasterizer is None:
-        from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
-
-        rasterizer = SoftSilhouetteRasterizer(mesh)
+    if len(ious) != len(scene) or len(before_ious) != len(scene):
+        raise ValueError(f"{len(before_ious)} and {len(ious)} IoUs before and after for {len(scene)} views")
     idx = choose_views(ious, max_views)
     worst = int(np.nanargmin(ious)) if np.any(np.isfinite(ious)) else -1
     cams = [scene.cameras[i] for i in idx]
@@ -157,8 +153,7 @@ def render_overlay(scene: Scene, mesh: Mesh, T_before: ArrayLike, T_after: Array
     tiles = []
     for j, i in enumerate(idx):
         target = np.asarray(scene.masks[i]) > 0.5
-        iou_before = mask_iou(before[j], target, scene.compared(i))
-        label = f"im {scene.image_ids[i]}  IoU {iou_before:.3f} -> {ious[i]:.3f}" + ("  worst" if i == worst else "")
+        label = f"im {scene.image_ids[i]}  IoU {before_ious[i]:.3f} -> {ious[i]:.3f}" + ("  worst" if i == worst else "")
         tiles.append(_tile(target, before[j], after[j], label, i == worst))
     cols = min(4, len(tiles))
     rows = -(-len(tiles) // cols)

@@ -26,10 +26,9 @@ from autoalign.engine.objective import Level
 from autoalign.engine.solver import FTOL, LevenbergMarquardt, Stop, minimise
 from autoalign.engine.uncertainty import Uncertainty, sandwich, uncertainty_of
 from autoalign.geometry.camera import Camera
-from autoalign.geometry.mesh import Mesh
 from autoalign.geometry.se3 import apply_twist, transform_points
 from autoalign.io.instances import InstanceScenes
-from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.scene.cameras import CameraPrior, camera_block
 from autoalign.scene.occlusion import JointEvaluation, OcclusionObjective
 from autoalign.scene.scale import grown_pose, scaled_cameras
@@ -221,19 +220,18 @@ class JointProblem:
         return B, np.concatenate(parts)
 
 
-def refine_jointly(found: InstanceScenes, meshes: list[Mesh], poses: list[NDArray[np.float64]],
+def refine_jointly(found: InstanceScenes, pyramids: list[MeshPyramid], poses: list[NDArray[np.float64]],
                    with_cameras: bool = False, level: Level = LEVEL, prior: CameraPrior | None = None,
-                   fine_faces: int | None = 20000, robust: bool = True, with_scale: bool = False,
+                   detail: MeshDetail = MeshDetail(), robust: bool = True, with_scale: bool = False,
                    scale_from: list[bool] | None = None, progress: Progress | None = None) -> JointRefinement:
-    """Refine the poses of all instances of ``found`` together from ``poses`` (world from model,
-    mm), occlusion-aware, with ``with_cameras`` a correction of every camera and with ``with_scale``
+    """Refine the poses of all instances of ``found`` (their meshes: ``pyramids``, drawn at
+    ``detail.fine``) together from ``poses`` (world from model, mm), occlusion-aware, with ``with_cameras`` a correction of every camera and with ``with_scale``
     the scene's scale (``robust``: views weighted by their fit, as in
     :class:`~autoalign.engine.refine.RefineOptions`). ``scale_from`` (per instance, default all): the
     instances whose fit decides the scale; the others move with it but do not pull it.
     Levenberg-Marquardt (:func:`~autoalign.engine.solver.minimise`) with IRLS view weights."""
-    rasts = [SoftSilhouetteRasterizer(m if fine_faces is None else m.simplified(fine_faces)) for m in meshes]
-    objective = OcclusionObjective(found, rasts, robust)
-    centres_m = [r.mesh.centre for r in rasts]
+    objective = OcclusionObjective(found, pyramids, robust, detail)
+    centres_m = objective.centres_m
     p = np.mean([transform_points(T, c[None])[0] for T, c in zip(poses, centres_m)], axis=0)
     problem = JointProblem(objective, level, centres_m, p, prior or CameraPrior(), with_cameras, with_scale, scale_from)
     x0 = problem.start(poses)

@@ -5,7 +5,7 @@ In a view a pixel belongs to the nearest surface among all the instances' meshes
 
     V_i(p) = S_i(p) * prod over j in front of i at p of (1 - S_j(p))
 
-with ``S`` each mesh's own soft silhouette (:class:`SoftSilhouetteRasterizer`). Which of two meshes
+with ``S`` each mesh's own soft silhouette (:class:`~autoalign.rasterizers.soft_silhouette.SoftSilhouetteRasterizer`). Which of two meshes
 is in front at a pixel is decided by ray casting both where both are hit there; on their soft
 edges (one of them missed) by the order of the pair over the view's pixels where both are hit,
 or, where they nowhere overlap, by which is hit nearer. ``V_i`` is compared with ``i``'s mask (the
@@ -33,7 +33,8 @@ from autoalign.io.instances import InstanceScenes
 from autoalign.losses import robust_view_weights
 from autoalign.quality.overlap import iou_from_counts
 from autoalign.rasterizers.camera_batch import CameraBatch
-from autoalign.rasterizers.soft_silhouette import Silhouettes, SoftSilhouetteRasterizer
+from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
+from autoalign.rasterizers.soft_silhouette import Silhouettes
 
 
 @dataclass
@@ -109,21 +110,23 @@ class OcclusionObjective:
 
     Args:
         found: the instances and their views (:func:`~autoalign.io.instances.read_instance_scenes`).
-        rasterizers: one per instance, in ``found.instances`` order.
+        pyramids: each instance's mesh pyramid, in ``found.instances`` order (drawn at ``detail.fine``).
         robust: weigh views by their fit (:func:`~autoalign.losses.robust_view_weights`); else all 1.
+        detail: the meshes' detail (:class:`~autoalign.rasterizers.pyramid.MeshDetail`).
     """
 
-    def __init__(self, found: InstanceScenes, rasterizers: list[SoftSilhouetteRasterizer], robust: bool = True) -> None:
-        self.rasterizers = rasterizers
+    def __init__(self, found: InstanceScenes, pyramids: list[MeshPyramid], robust: bool = True,
+                 detail: MeshDetail = MeshDetail()) -> None:
+        self.rasterizers = [p.fine(detail) for p in pyramids]
         self.robust = robust
-        self.objectives = [SilhouetteObjective(r, s) for r, s in zip(rasterizers, found.scenes)]
+        self.objectives = [SilhouetteObjective(p, s, detail=detail) for p, s in zip(pyramids, found.scenes)]
         used = sorted({im for s in found.scenes for im in s.image_ids})
         by_id = dict(zip(found.image_ids, found.cameras))
         self.image_ids = used
         self.cameras = [by_id[im] for im in used]
         pos = {im: g for g, im in enumerate(used)}
         self.views_of = [np.array([pos[im] for im in s.image_ids], dtype=np.int64) for s in found.scenes]
-        self.centres_m = [r.mesh.centre for r in rasterizers]
+        self.centres_m = [r.mesh.centre for r in self.rasterizers]
         self._hard_totals: dict[float, list[NDArray[np.float64]]] = {}
 
     def use_cameras(self, cameras: dict[int, Camera]) -> None:

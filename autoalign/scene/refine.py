@@ -39,7 +39,6 @@ from autoalign.engine.refine import RefineOptions, RefineResult, refine
 from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
 from autoalign.quality.verdict import Verdict, judge
-from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 from autoalign.scene.cameras import corrections_accepted
 from autoalign.scene.joint import JointRefinement, refine_jointly
 from autoalign.scene.scale import grown_pose, rescaled, scale_from_masks, scaled_cameras
@@ -86,7 +85,7 @@ def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, N
             if progress is not None:
                 progress(f"{label}: {stage}", done, total)
 
-        result = refine(scene, models.mesh(inst.obj_id), seeds.get(inst.index), options, progress=step)
+        result = refine(scene, models.pyramid(inst.obj_id), seeds.get(inst.index), options, progress=step)
         out.append(InstanceResult(inst, result, verdict_of(result, scene.empty, models, inst.obj_id),
                                   time.perf_counter() - t0))
     return out
@@ -144,15 +143,16 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
                 seeds = {r.instance.index: grown_pose(r.result.T_wm, models.mesh(r.instance.obj_id).centre, guess.factor)
                          for r in alone}
                 continue
-        meshes = [models.mesh(r.instance.obj_id) for r in alone]
+        pyramids = [models.pyramid(r.instance.obj_id) for r in alone]
         start = [r.result.T_wm for r in alone]
         t0 = time.perf_counter()
-        attempt = (refine_jointly(found, meshes, start, with_cameras=True, robust=opts.robust, with_scale=solve_scale,
-                                  scale_from=scale_from, progress=progress) if refine_cameras else None)
+        attempt = (refine_jointly(found, pyramids, start, with_cameras=True, detail=opts.detail, robust=opts.robust,
+                                  with_scale=solve_scale, scale_from=scale_from, progress=progress)
+                   if refine_cameras else None)
         if attempt is not None and corrections_accepted(attempt.view_misfit_before, attempt.view_misfit_after):
             joint = attempt
         else:
-            joint = refine_jointly(found, meshes, start, robust=opts.robust, with_scale=solve_scale,
+            joint = refine_jointly(found, pyramids, start, detail=opts.detail, robust=opts.robust, with_scale=solve_scale,
                                    scale_from=scale_from, progress=progress)
         if solve_scale:
             found = found.through({**scaled_cameras(found.camera_by_id, joint.scale), **joint.cameras})
@@ -168,8 +168,8 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
         unc = joint.uncertainties[k]
         gap = None
         if unc.weak_turn_axes and opts.weak_turns:  # the joint system's weak turns, tried at its pose
-            own, scores, _ = weak_turn_scores(SoftSilhouetteRasterizer(meshes[k].simplified(opts.coarse_faces)),
-                                              found.scenes[k], joint.poses[k], unc.weak_turn_axes, meshes[k].centre,
+            own, scores, _ = weak_turn_scores(pyramids[k].with_faces(opts.detail.coarse), found.scenes[k],
+                                              joint.poses[k], unc.weak_turn_axes, pyramids[k].mesh.centre,
                                               opts.weak_turns)
             gap = own - float(scores.max())
         after.append(replace(r.result, T_wm=joint.poses[k], iou_after=joint.evaluation.hard_iou(k),

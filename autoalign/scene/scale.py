@@ -38,7 +38,7 @@ from autoalign.geometry.se3 import make_pose
 from autoalign.io.bop import read_json_file
 from autoalign.io.instances import InstanceScenes
 from autoalign.io.models import ModelSet
-from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+from autoalign.rasterizers.pyramid import MeshDetail
 
 
 @dataclass(frozen=True)
@@ -92,7 +92,7 @@ def scale_from_masks(found: InstanceScenes, models: ModelSet,
                     ratios.append(f * np.sqrt(hull_area / (4.0 * area)) / z)
         else:
             T = make_pose(R, X - R @ mesh.centre)
-            drawn = SoftSilhouetteRasterizer(mesh.simplified(RENDER_FACES)).hard_masks(T, [cam for cam, _ in views])
+            drawn = models.pyramid(inst.obj_id).with_faces(AREA_DETAIL).hard_masks(T, [cam for cam, _ in views])
             ratios += [float(np.sqrt(d.sum() / a)) for d, a in zip(drawn, areas) if d.any()]
         if ratios:
             per_instance.append(_robust(np.asarray(ratios)))
@@ -118,8 +118,7 @@ def scale_by_overlap(found: InstanceScenes, models: ModelSet, init_path: str | o
     from autoalign.quality.overlap import mask_iou
 
     factors = np.exp(np.arange(np.log(0.6), np.log(1.6), np.log(1.02))) if factors is None else factors
-    rasts = {inst.index: SoftSilhouetteRasterizer(models.mesh(inst.obj_id).simplified(RENDER_FACES))
-             for inst in found.instances}
+    rasts = {inst.index: models.pyramid(inst.obj_id).at(resolution) for inst in found.instances}
     small = [[cv2.resize(m, None, fx=resolution, fy=resolution, interpolation=cv2.INTER_AREA) > 0.5 for m in sc.masks]
              for sc in found.scenes]
     scores = []
@@ -148,7 +147,7 @@ def _robust(ratios: NDArray[np.float64]) -> ScaleGuess:
     return ScaleGuess(med, float((hi - lo) / 2.0 / med), len(ratios))
 
 
-RENDER_FACES = 5000
+AREA_DETAIL = MeshDetail().coarse
 """The model is drawn with at most this many triangles for the scale's estimate (its area only)."""
 
 
