@@ -37,7 +37,7 @@ COLOURS = {"paper": "tab:red", "autoalign": "tab:blue", "adam": "tab:green", "au
 METHOD_NOTES = {
     "paper": "the paper's greedy argmax-IoU procedure (experiments/studies/paper_method.py), from T_init",
     "autoalign": "autoalign.engine.refine.refine(scene, mesh, seed=None): visual-hull centre + 384 orientation "
-                 "hypotheses (best {n_coarse} polished by hard-IoU pattern search{n_coarse_note}), LM "
+                 "hypotheses (best {n_starts} climbed on hard IoU{n_starts_note}), LM "
                  "coarse-to-fine (the paper's T_init carries no orientation information)",
     "adam": "the same with RefineOptions(optimizer='adam')",
     "autoalign-seeded": "refine(scene, mesh, seed=T_init): local refinement from the paper's initial pose",
@@ -50,10 +50,11 @@ METHOD_NOTES = {
 # ----------------------------------------------------------------------------------------------
 
 def atomic_savefig(fig: Any, path: str | Path) -> None:
-    """Save a matplotlib figure as PNG via a temporary file and ``os.replace``."""
+    """Save a matplotlib figure as PNG via a temporary file and ``os.replace``, then close it."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
     write_bytes_atomic(path, buf.getvalue())
+    _plt().close(fig)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -288,19 +289,20 @@ def _paper_choices(opts: dict[str, Any] | None) -> str:
             "at that start, the paper's at T_init.\n")
 
 
-def _n_coarse(records: list[dict[str, Any]], method: str) -> dict[str, str]:
-    """The fields of :data:`METHOD_NOTES`: ``n_coarse``, how many scored orientations the engine
-    polished and refined in ``method``'s trials (``RefineOptions.n_coarse``, recorded per trial; 8
-    before the search kept 16), and ``n_coarse_note``, which says so when that is not today's."""
+def _n_starts(records: list[dict[str, Any]], method: str) -> dict[str, str]:
+    """The fields of :data:`METHOD_NOTES`: ``n_starts``, how many scored orientations started the
+    engine's search in ``method``'s trials (``RefineOptions.search.n_starts``, recorded per trial as
+    ``n_coarse``, its former name; 8 before the search kept 16), and ``n_starts_note``, which says so
+    when that is not today's."""
     from autoalign.engine.refine import RefineOptions
 
     values = {r.get("n_coarse") for r in records if r.get("method") == method}
     text = " / ".join(str(v) for v in sorted(int(v) for v in values if v is not None))
     if None in values:
         text += " (some trials: not recorded)" if text else "? (not recorded)"
-    now = RefineOptions().n_coarse
-    note = f"; RefineOptions.n_coarse was {text} in these trials and is {now} now" if values - {now} else ""
-    return {"n_coarse": text, "n_coarse_note": note}
+    now = RefineOptions().search.n_starts
+    note = f"; RefineOptions.search.n_starts was {text} in these trials and is {now} now" if values - {now} else ""
+    return {"n_starts": text, "n_starts_note": note}
 
 
 def markdown(records: list[dict[str, Any]], config: dict[str, Any] | None = None) -> str:
@@ -338,7 +340,7 @@ def markdown(records: list[dict[str, Any]], config: dict[str, Any] | None = None
                  "ADD for asymmetric and ADD-S for symmetric models.\n")
     parts.append("\n### Methods\n")
     for m in methods:
-        parts.append(f"- `{m}`: {METHOD_NOTES.get(m, '').format(**_n_coarse(records, m))}\n")
+        parts.append(f"- `{m}`: {METHOD_NOTES.get(m, '').format(**_n_starts(records, m))}\n")
     if cfg:
         parts.append(f"\nLast run settings: `{json.dumps(cfg)}`\n")
     return "".join(parts)
@@ -403,7 +405,6 @@ def plot_error_vs_iteration(records: list[dict[str, Any]], path: Path) -> None:
     _legend(axes[0])
     fig.suptitle("Error against iteration (median, quartiles shaded)")
     atomic_savefig(fig, path)
-    plt.close(fig)
 
 
 def _legend(ax: Any) -> None:
@@ -447,7 +448,6 @@ def plot_success_vs_views(records: list[dict[str, Any]], path: Path) -> None:
     _legend(ax)
     ax.set_title("Success against number of views")
     atomic_savefig(fig, path)
-    plt.close(fig)
 
 
 def plot_success_vs_initial_error(records: list[dict[str, Any]], path: Path) -> None:
@@ -472,7 +472,6 @@ def plot_success_vs_initial_error(records: list[dict[str, Any]], path: Path) -> 
     _legend(axes[0])
     fig.suptitle("Success against initial error (main condition, binned)")
     atomic_savefig(fig, path)
-    plt.close(fig)
 
 
 def plot_success_vs_noise(records: list[dict[str, Any]], path: Path) -> None:
@@ -492,7 +491,6 @@ def plot_success_vs_noise(records: list[dict[str, Any]], path: Path) -> None:
     _legend(axes[0][0])
     fig.suptitle("Success against mask noise")
     atomic_savefig(fig, path)
-    plt.close(fig)
 
 
 PLOTS: dict[str, Callable[[list[dict[str, Any]], Path], None]] = {
