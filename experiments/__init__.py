@@ -5,7 +5,8 @@
   autoalign.experiments.studies.NAME``).
 * ``benchmarks/``: speed and memory (``python -m autoalign.experiments.benchmarks.bench_NAME``),
   each writing its table to ``results/``.
-* ``result_files``: how a study or benchmark writes ``NAME.json`` and ``NAME.md`` there.
+* ``result_files``: how a study or benchmark writes ``NAME.json`` and ``NAME.md`` there;
+  ``commands``: how it runs the ``autoalign`` command in a child process, timed.
 * ``pages/``: the label page driven in a real browser (Playwright), for its tests and benchmarks.
 * ``scenes/``: synthetic scenes and models (open3d ray-cast masks, procedural meshes, a
   simulated RGB-D stream, the bundled example).
