@@ -101,8 +101,8 @@ class RayCaster:
         R, p = np.asarray(T_wm, dtype=np.float64)[:3, :3], np.asarray(T_wm, dtype=np.float64)[:3, 3]
         d_m = np.asarray(directions, dtype=np.float64) @ R  # rows R^T d
         o_m = R.T @ (np.asarray(origin, dtype=np.float64) - p)
-        ray = mi.Ray3f(mi.Point3f(*(float(x) for x in o_m.astype(np.float32))),
-                       mi.Vector3f(*(jit_array(mi.Float, d_m[:, i], np.float32) for i in range(3))))
+        o = [self._dr.opaque(mi.Float, float(x)) for x in o_m.astype(np.float32)]  # opaque: one kernel for all origins
+        ray = mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*(jit_array(mi.Float, d_m[:, i], np.float32) for i in range(3))))
         pi = self._scene.ray_intersect_preliminary(ray)
         t = np.array(pi.t, dtype=np.float32)
         hit = np.isfinite(t)
