@@ -64,8 +64,8 @@ class RayCaster:
     def __init__(self, mesh: Mesh | TriangleMesh, watertight: bool = False) -> None:
         """Builds the mesh's BVH (mitsuba's Embree, high quality: about 3 us a triangle).
         ``watertight``: Embree's robust intersections, where no ray slips between two triangles
-        that share an edge (without: about one pixel in 10^5 of a scanned mesh sees the surface
-        behind instead)."""
+        that share an edge (without: on LM-O's scanned meshes about one ray in 10^5 that hits sees
+        the surface behind instead)."""
         mi = mitsuba()
         self._mi = mi
         self._dr = drjit()
@@ -168,4 +168,3 @@ class RayCaster:
             w = dr.gather(mi.Float64, jit_array(mi.Float64, weights[:, c], np.float64), r)
             dr.scatter_reduce(dr.ReduceOp.Add, sums, w, kv * dr.opaque(UInt, C) + c, active=hit)
         return np.array(sums, dtype=np.float64).reshape(K, V, C).transpose(0, 2, 1)
-
