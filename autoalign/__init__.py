@@ -39,17 +39,27 @@ _LAZY = {
     "read_scene": "autoalign.io.bop", "Scene": "autoalign.io.bop", "read_init_pose": "autoalign.io.bop",
     "load_mesh": "autoalign.geometry.mesh", "Mesh": "autoalign.geometry.mesh", "mesh_from_trimesh": "autoalign.geometry.mesh",
     "Camera": "autoalign.geometry.camera", "Click": "autoalign.engine.seeding", "AutoalignError": "autoalign.errors",
-    "Level": "autoalign.engine.objective",
+    "Level": "autoalign.engine.objective", "SearchOptions": "autoalign.engine.refine",
+    "RankingOptions": "autoalign.engine.refine", "DisambiguationOptions": "autoalign.engine.refine",
+    "MeshDetail": "autoalign.rasterizers.pyramid", "MeshPyramid": "autoalign.rasterizers.pyramid",
 }
 
 if TYPE_CHECKING:  # pragma: no cover
     from autoalign.engine.objective import Level  # noqa: F401
-    from autoalign.engine.refine import RefineOptions, RefineResult, refine  # noqa: F401
+    from autoalign.engine.refine import (  # noqa: F401
+        DisambiguationOptions,
+        RankingOptions,
+        RefineOptions,
+        RefineResult,
+        SearchOptions,
+        refine,
+    )
     from autoalign.engine.seeding import Click  # noqa: F401
     from autoalign.errors import AutoalignError  # noqa: F401
     from autoalign.geometry.camera import Camera  # noqa: F401
     from autoalign.geometry.mesh import Mesh, load_mesh, mesh_from_trimesh  # noqa: F401
     from autoalign.io.bop import Scene, read_init_pose, read_scene  # noqa: F401
+    from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid  # noqa: F401
 
 
 def __getattr__(name: str) -> Any:

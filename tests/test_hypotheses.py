@@ -16,12 +16,13 @@ from scipy.spatial.transform import Rotation
 import autoalign
 from autoalign.engine.hypotheses import (
     best_poses,
+    climb_poses,
     flips,
     orbit,
-    polish_poses,
     poses_at,
     score_poses,
 )
+from autoalign.engine.refine import DisambiguationOptions, RankingOptions, SearchOptions
 from autoalign.engine.seeding import hull_centre, rotation_grid
 from autoalign.experiments.scenes.synthetic import make_scene, translate_mask
 from autoalign.experiments.studies.metrics import Symmetries, pose_errors
@@ -103,7 +104,7 @@ def test_coarse_to_fine_scoring_keeps_the_best_of_full_scoring() -> None:
 
 
 @pytest.mark.parametrize("name", ["l_bracket", "mug"])
-def test_polish_walks_back_turns_about_the_model_axes(name: str) -> None:
+def test_the_climb_walks_back_turns_about_the_model_axes(name: str) -> None:
     """A pose turned 10 degrees about the model x axis then 5 about y (through the centre) is
     walked back by the two rounds: each round's best candidate is the undoing turn (re-centring
     may shift it by a fraction of a low-resolution pixel, not turn it)."""
@@ -111,19 +112,19 @@ def test_polish_walks_back_turns_about_the_model_axes(name: str) -> None:
     rast = SoftSilhouetteRasterizer(mesh.simplified(1500))
     c = mesh.centre
     start = geo.T_gt @ _turn(5.0, [0, 1, 0], c) @ _turn(10.0, [1, 0, 0], c)
-    polished = polish_poses(rast, scene, start[None], (10.0, 5.0))[0]
-    assert rotation_angle_deg(polished[:3, :3], geo.T_gt[:3, :3]) < 1e-6
-    shift = np.linalg.norm(transform_points(polished, c[None]) - transform_points(geo.T_gt, c[None]))
+    climbed = climb_poses(rast, scene, start[None], (10.0, 5.0))[0]
+    assert rotation_angle_deg(climbed[:3, :3], geo.T_gt[:3, :3]) < 1e-6
+    shift = np.linalg.norm(transform_points(climbed, c[None]) - transform_points(geo.T_gt, c[None]))
     assert shift < 1.0, shift
 
 
-def test_polish_moves_the_grid_poses_closer() -> None:
+def test_the_climb_moves_the_grid_poses_closer() -> None:
     mesh, sym, geo, scene = _trial("z_bracket", 0)
     rast = SoftSilhouetteRasterizer(mesh.simplified(1500))
     poses = poses_at(rotation_grid(384), hull_centre(scene, mesh.diameter), mesh.centre)
     top = best_poses(rast, scene, poses, 8)
-    polished = polish_poses(rast, scene, top)
-    err = np.array([[pose_errors(T, geo.T_gt, mesh.centre, None, sym).rot_err_deg for T in P] for P in (top, polished)])
+    climbed = climb_poses(rast, scene, top)
+    err = np.array([[pose_errors(T, geo.T_gt, mesh.centre, None, sym).rot_err_deg for T in P] for P in (top, climbed)])
     assert err[1].min() < err[0].min() and np.median(err[1]) < np.median(err[0]), err
 
 
@@ -142,8 +143,8 @@ def test_recentring_stays_near_the_seed_it_is_anchored_to() -> None:
     drift = {}
     for name, a in (("anchored", anchor), ("free", None)):
         top = best_poses(rast, scene, poses, 4, anchor=a)
-        polished = polish_poses(rast, scene, top, anchor=a)
-        centres = polished[:, :3, :3] @ mesh.centre + polished[:, :3, 3]
+        climbed = climb_poses(rast, scene, top, anchor=a)
+        centres = climbed[:, :3, :3] @ mesh.centre + climbed[:, :3, 3]
         drift[name] = float(np.linalg.norm(centres - anchor, axis=1).max())
     assert drift["anchored"] <= ANCHOR_REACH * radius + 1e-6
     assert drift["free"] > ANCHOR_REACH * radius, drift  # the masks do pull: the bound is what held them
@@ -184,10 +185,10 @@ def test_search_finds_the_pose_it_used_to_miss(name: str, trial: int) -> None:
 def test_without_orbits_the_keyed_gear_fails() -> None:
     """The gear case above is real: without the orbit the search misses the gear's key. (The flat
     frame and the pen, which needed the flips, are found without them since the search keeps 16
-    scored orientations, ``RefineOptions.n_coarse``, and counts one basin once; none of the 88
+    scored orientations, ``RefineOptions.search.n_starts``, and counts one basin once; none of the 88
     trials 1-2 of the 44 procedural models needs them then, so they stay as a safety net.)"""
     mesh, sym, geo, scene = _trial("gear_keyed", 1)
-    res = autoalign.refine(scene, mesh, options=autoalign.RefineOptions(orbits=False))
+    res = autoalign.refine(scene, mesh, options=autoalign.RefineOptions(disambiguation=DisambiguationOptions(orbits=False)))
     e = pose_errors(res.T_wm, geo.T_gt, mesh.centre, None, sym)
     assert e.rot_err_deg > 10.0, e.rot_err_deg
 
@@ -200,8 +201,9 @@ def test_pruning_saves_renders_not_answers() -> None:
     for name, expect_ambiguous in (("z_bracket", False), ("can_plain", True)):
         mesh, sym, geo, scene = _trial(name, 0)
         pruned = autoalign.refine(scene, mesh)
-        full = autoalign.refine(scene, mesh, options=autoalign.RefineOptions(abandon=np.inf, competitive=np.inf,
-                                                                               polish_margin=-np.inf))
+        everything = autoalign.RefineOptions(search=SearchOptions(abandon=np.inf),
+                                             ranking=RankingOptions(competitive=np.inf, polish_margin=-np.inf))
+        full = autoalign.refine(scene, mesh, options=everything)
         assert pruned.renders < full.renders, (name, pruned.renders, full.renders)
         assert pruned.ambiguous == expect_ambiguous
         # iterations and history follow the winner's whole path, search levels included (a

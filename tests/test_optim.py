@@ -72,15 +72,20 @@ def test_lm_stops_after_an_accepted_step_that_gains_too_little() -> None:
         assert _max_reprojection_px(T, geo.T_gt, entry.mesh.vertices, scene) < 0.05
 
 
-def test_stops_are_named_budget_and_caller() -> None:
-    """A far start with a one-iteration budget stops on the budget; a callback that says stop is
-    named as the reason; neither counts as converged."""
+def _mug_objective(twist: np.ndarray) -> tuple[SilhouetteObjective, np.ndarray]:
+    """The mug in 12 views, its objective (the mesh as given at every level) and a start the
+    twist ``(v mm, w rad)`` away from the truth, about the mesh centre."""
     entry = get_model("procedural44", 3)
     geo = make_trial(entry.mesh.centre, entry.mesh.diameter, 0, 3, 0, 12, 100.0, ImageSetup())
     scene = make_scene(entry.mesh, geo.T_gt, geo.cameras)
-    start = apply_twist(geo.T_gt, np.array([6.0, -4.0, 3.0, *np.radians([4.0, -3.0, 5.0])]),
-                        transform_points(geo.T_gt, entry.mesh.centre[None])[0])
-    obj = SilhouetteObjective(MeshPyramid(entry.mesh), scene, detail=AS_GIVEN)
+    start = apply_twist(geo.T_gt, twist, transform_points(geo.T_gt, entry.mesh.centre[None])[0])
+    return SilhouetteObjective(MeshPyramid(entry.mesh), scene, detail=AS_GIVEN), start
+
+
+def test_stops_are_named_budget_and_caller() -> None:
+    """A far start with a one-iteration budget stops on the budget; a callback that says stop is
+    named as the reason; neither counts as converged."""
+    obj, start = _mug_objective(np.array([6.0, -4.0, 3.0, *np.radians([4.0, -3.0, 5.0])]))
     _, budget = levenberg_marquardt(obj, start, Level(0.25, 1.0, 1))
     _, caller = levenberg_marquardt(obj, start, Level(0.25, 1.0, 10), callback=lambda it, ev: True)
     assert (budget.stop, caller.stop) == (Stop.BUDGET, Stop.CALLER)
@@ -90,12 +95,7 @@ def test_stops_are_named_budget_and_caller() -> None:
 def test_every_solver_ends_with_a_reason_and_the_final_evaluation() -> None:
     """LM, GN and Adam run in the one loop: each names why it stopped (a :class:`Stop` with a
     message) and hands back the evaluation at the pose it returns (Adam's included)."""
-    entry = get_model("procedural44", 3)
-    geo = make_trial(entry.mesh.centre, entry.mesh.diameter, 0, 3, 0, 12, 100.0, ImageSetup())
-    scene = make_scene(entry.mesh, geo.T_gt, geo.cameras)
-    start = apply_twist(geo.T_gt, np.array([3.0, -2.0, 1.0, *np.radians([2.0, -1.0, 1.0])]),
-                        transform_points(geo.T_gt, entry.mesh.centre[None])[0])
-    obj = SilhouetteObjective(MeshPyramid(entry.mesh), scene, detail=AS_GIVEN)
+    obj, start = _mug_objective(np.array([3.0, -2.0, 1.0, *np.radians([2.0, -1.0, 1.0])]))
     level = Level(0.25, 1.0, 3)
     for name, solve in OPTIMIZERS.items():
         T, trace = solve(obj, start, level)

@@ -337,7 +337,7 @@ def check_simulate(root: Path, stdout: str) -> None:
     assert sum(r["success_cols"] for r in records) >= 3 and all(r["views"] == 8 for r in records)
     md = (out / "results.md").read_text()
     assert "| autoalign | 4 |" in md
-    assert "hypotheses (best 16 polished by hard-IoU pattern search)" in md and "n_coarse was" not in md
+    assert "hypotheses (best 16 climbed on hard IoU)" in md and "n_starts was" not in md
     assert len((out / "trials.csv").read_text().splitlines()) == 5
     assert (out / "plots" / "success_vs_initial_error.png").stat().st_size > 1000
     assert "4 trials run, 0 already done, 0 failed" in stdout
@@ -487,7 +487,7 @@ def test_the_readme_counts_the_tests_that_need_the_shared_folder(tmp_path: Path)
 
 def test_stored_simulation_report_says_which_search_its_trials_ran() -> None:
     """The stored results.md is what the report makes of the stored trials, and says that their
-    search polished the best 8 orientations (the engine keeps 16 now, as the README says)."""
+    search started from the best 8 orientations (the engine keeps 16 now, as the README says)."""
     from autoalign.batch import read_records
     from autoalign.engine.refine import RefineOptions
     from autoalign.experiments.studies.report import markdown
@@ -497,8 +497,8 @@ def test_stored_simulation_report_says_which_search_its_trials_ran() -> None:
         pytest.skip("no stored simulation results (an installed package without the repository)")
     md = markdown(read_records(folder / "trials.jsonl"), json.loads((folder / "config.json").read_text()))
     assert md == (folder / "results.md").read_text()
-    assert RefineOptions().n_coarse == 16
-    assert ("hypotheses (best 8 polished by hard-IoU pattern search; RefineOptions.n_coarse was 8 in these "
+    assert RefineOptions().search.n_starts == 16
+    assert ("hypotheses (best 8 climbed on hard IoU; RefineOptions.search.n_starts was 8 in these "
             "trials and is 16 now)") in md
 
 

@@ -268,7 +268,7 @@ def test_masks_failing_like_sam_leave_poses_right_or_flagged(tmp_path):
 def test_masks_failing_like_sam_without_a_seed_leave_poses_right_or_flagged(tmp_path):
     """The same kind of scene with no seed: the search finds every object (5 of 5 within 2 mm /
     2 deg measured), and none is wrong with verdict ok. With 8 hypotheses kept from the
-    orientation scores instead of 16 (``RefineOptions.n_coarse``) one was 180 deg off, 'ok'."""
+    orientation scores instead of 16 (``RefineOptions.search.n_starts``) one was 180 deg off, 'ok'."""
     from autoalign.experiments.studies.sam_failures import run_scene, within
 
     rows = run_scene(tmp_path, 104, seeds=("none",))

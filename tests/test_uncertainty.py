@@ -103,12 +103,12 @@ def test_init_turned_about_the_weak_axis_is_not_returned(k):
     settles where its button is out of sight (97 and 138 deg off with the turns switched off); the
     turns about the weakly observed roll axis find the true one."""
     from autoalign.engine.hypotheses import turns
-    from autoalign.engine.refine import RefineOptions
+    from autoalign.engine.refine import DisambiguationOptions, RefineOptions
     from autoalign.geometry.se3 import rotation_angle_deg
 
     mesh, scene, T, rng = _flashlight_scene([5, k])
     T0 = turns(perturb_pose(T, 3.0, 3.0, rng, mesh.centre), np.array([0.0, 0.0, 1.0]), mesh.centre, (100.0 + 40 * k,))[0]
-    stuck = refine(scene, mesh, T0, RefineOptions(weak_turns=()))
+    stuck = refine(scene, mesh, T0, RefineOptions(disambiguation=DisambiguationOptions(weak_turns=())))
     assert rotation_angle_deg(stuck.T_wm[:3, :3], T[:3, :3]) > 45.0
     found = refine(scene, mesh, T0)
     assert rotation_angle_deg(found.T_wm[:3, :3], T[:3, :3]) < 1.0

@@ -1,5 +1,5 @@
-"""Orientation hypotheses: cheap scoring of many at low resolution (hard ray-cast IoU), a local
-pattern search that sharpens the best of them, and the extra candidates a search needs on
+"""Orientation hypotheses: cheap scoring of many at low resolution (hard ray-cast IoU), a hill
+climb over small turns that sharpens the best of them, and the extra candidates a search needs on
 near-symmetric objects (half-turn flips, cyclic orbits).
 
 Every hypothesis is first re-centred so that its silhouettes' centroids match the masks'
@@ -245,16 +245,16 @@ def best_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.f
     return poses[np.argsort(-scores)[:n]]
 
 
-def polish_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.float64],
-                 steps_deg: tuple[float, ...] = (10.0, 5.0), scale: float = 0.125,
-                 max_views: int = 20, anchor: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
-    """Each pose (K, 4, 4) moved by a pattern search on its hard IoU (:func:`score_poses`).
+def climb_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.float64],
+                steps_deg: tuple[float, ...] = (10.0, 5.0), scale: float = 0.125,
+                max_views: int = 20, anchor: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+    """Each pose (K, 4, 4) moved uphill on its hard IoU (:func:`score_poses`) by small turns.
 
     For each step ``d`` in ``steps_deg`` in turn, a pose is replaced by the best of itself and its
     six turns by ``+-d`` degrees about the model's x, y and z axes through the mesh centre, each
     re-centred (without that, a candidate's translation error decides more than its turn does).
     The orientation grid's best poses are typically 15-30 degrees off; the optimiser's iterations
-    from the polished ones are fewer (see the README's simulation results).
+    from the climbed ones are fewer (see the simulation results in docs/results.md).
     """
     poses = np.array(poses, dtype=np.float64)
     c = rast.mesh.centre

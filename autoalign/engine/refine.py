@@ -15,9 +15,9 @@ from numpy.typing import NDArray
 
 from autoalign.engine.hypotheses import (
     best_poses,
+    climb_poses,
     flips,
     orbit,
-    polish_poses,
     poses_at,
     weak_turn_scores,
 )
@@ -40,75 +40,106 @@ Seed = NDArray[np.float64] | Click | None
 Progress = Callable[[str, int, int], None]
 
 
-@dataclass
-class RefineOptions:
-    """Settings of :func:`refine`.
+@dataclass(frozen=True)
+class SearchOptions:
+    """The orientation search, when the seed gives no orientation (a click or the visual hull).
 
     Attributes:
-        loss: ``l2`` (default: per-pixel residuals give Gauss-Newton a full-rank model and it
-            converged in 3-4x fewer iterations than ``iou``/``dice``; see README), ``bce``, ``iou``, ``dice``.
-        optimizer: ``lm`` (Levenberg-Marquardt, default), ``gn`` (Gauss-Newton) or ``adam``.
-        robust: Cauchy re-weighting of views by their misfit.
-        schedule: coarse-to-fine levels (scale, sigma in px, iterations).
-        n_rotations: orientation hypotheses scored when the orientation is unknown.
-        n_coarse: best-scoring hypotheses refined at ``search_level`` (16: on masks that miss parts
-            or cover another object the 1/8-resolution score ranks orientations coarsely; with 8,
-            the real LM-O driller's right basin was reached from none of them, and on synthetic
-            SAM-like masks 4 of 30 objects ended wrong, 2 'ok'; with 16, 2, both flagged).
-        polish_deg: before that, each is moved to the best of itself and its turns by +- these
-            angles (degrees) about the model axes, by hard IoU (:func:`~autoalign.engine.hypotheses.polish_poses`).
-        n_mid: best distinct ones of those refined at the first schedule level.
-        n_final: best distinct ones of those refined through the rest of the schedule (3: on the
+        n_rotations: orientations of the rotation grid scored at the seed's centre.
+        n_starts: best-scoring ones that start the search (16: on masks that miss parts or cover
+            another object the 1/8-resolution score ranks orientations coarsely; with 8, the real
+            LM-O driller's right basin was reached from none of them, and on synthetic SAM-like
+            masks 4 of 30 objects ended wrong, 2 'ok'; with 16, 2, both flagged).
+        climb_deg: before that, each climbs to the best of itself and its turns by +- these angles
+            (degrees) about the model axes, by hard IoU (:func:`~autoalign.engine.hypotheses.climb_poses`).
+        level: the cheap level every start is refined at (its ``ftol`` the full-resolution one: a
+            hypothesis still far off descends slowly, 1-2% per step, and with ``ftol / scale`` the
+            search lost the true orientation in 5 of 264 simulated trials with eroded or shifted masks).
+        n_mid: best distinct ones of those refined at the schedule's first level.
+        n_final: best distinct ones of those polished through the rest of the schedule (3: on the
             real LM-O watering can the right basin came third at the first level, behind two half turns).
-        search_level: the cheap level of the hypothesis search (its ``ftol`` the full-resolution one).
-        ambiguity_tol: runner-up within this relative loss of the winner (and at another pose) means ambiguous;
-            so does one within ``competitive`` whose mean IoU is higher.
+        abandon: a hypothesis is given up when after two iterations its loss is above this multiple
+            of the best loss found in the same stage (replayed on logged searches of the 44
+            simulated models, giving up at 3x would not have lost the answer in any; 4x leaves a margin).
+        flips: after ``level``, also refine the best hypothesis turned half a turn about each
+            principal axis of the mesh (with 8 starts the search settled on such a flip of thin or
+            flat objects in 2 of 44 simulated trials; with 16, in none of 88: a safety net).
+    """
+
+    n_rotations: int = 384
+    n_starts: int = 16
+    climb_deg: tuple[float, ...] = (10.0, 5.0)
+    level: Level = Level(0.125, 1.0, 10, max_views=20, ftol=FTOL)
+    n_mid: int = 3
+    n_final: int = 3
+    abandon: float = 4.0
+    flips: bool = True
+
+
+@dataclass(frozen=True)
+class RankingOptions:
+    """Which hypotheses go on to the next level, which are polished, and when two are ambiguous.
+
+    Attributes:
+        competitive: a distinct hypothesis goes on to the next level only if its loss there is
+            within this factor of the best one's.
         polish_margin: at the last level a finalist other than the best is polished only when its
             estimated loss is below the best's by more than this fraction (see :func:`_polish`);
             ``-inf`` polishes every one.
+        ambiguity_tol: a runner-up within this relative loss of the winner (and at another pose)
+            means ambiguous; so does one within ``competitive`` whose mean IoU is higher.
+    """
+
+    competitive: float = 1.5
+    polish_margin: float = 0.0
+    ambiguity_tol: float = 0.05
+
+
+@dataclass(frozen=True)
+class DisambiguationOptions:
+    """Poses the polish cannot tell apart from the best by descent (:func:`_disambiguate`).
+
+    Attributes:
+        orbits: when the runner-up reached the last level within ``competitive`` of the best (a
+            loss estimated from one render there can be off by 10%) and is a 1/n turn (n = 3..12)
+            away, try the other poses of that turn's orbit (see :func:`~autoalign.engine.hypotheses.orbit`)
+            and polish the one whose full-resolution hard IoU beats the winner's by ``margin``.
+        weak_turns: from a given pose, the result turned by these angles (degrees) about each weakly
+            observed axis (:mod:`autoalign.engine.uncertainty`) is scored by hard IoU at 1/4
+            resolution, and the best turn, if it beats the result by ``margin``, is polished too: a
+            nearly symmetric object can settle where its distinguishing detail is out of sight. ``()``: off.
+        margin: mean hard IoU by which an orbit pose or a turn must beat the best to be polished.
+    """
+
+    orbits: bool = True
+    weak_turns: tuple[float, ...] = (30.0, 60.0, 90.0, 120.0, 150.0, 180.0, -150.0, -120.0, -90.0, -60.0, -30.0)
+    margin: float = 0.001
+
+
+@dataclass(frozen=True)
+class RefineOptions:
+    """Settings of :func:`refine`, grouped by concern.
+
+    Attributes:
+        loss: ``l2`` (default: per-pixel residuals give Gauss-Newton a full-rank model and it
+            converged in 3-4x fewer iterations than ``iou``/``dice``; see the results), ``bce``, ``iou``, ``dice``.
+        optimizer: ``lm`` (Levenberg-Marquardt, default), ``gn`` (Gauss-Newton) or ``adam``.
+        robust: Cauchy re-weighting of views by their misfit.
+        schedule: coarse-to-fine levels (scale, sigma in px, iterations) a pose is polished through.
+        search: the orientation search (:class:`SearchOptions`).
+        ranking: which hypotheses go on (:class:`RankingOptions`).
+        disambiguation: orbits and weak turns (:class:`DisambiguationOptions`).
         detail: how many triangles the mesh is drawn with at each resolution
             (:class:`~autoalign.rasterizers.pyramid.MeshDetail`).
-        flips: after the search level, also refine the best hypothesis turned half a turn about
-            each principal axis of the mesh (with 8 scored orientations kept, the search settled on
-            such a flip of thin or flat objects in 2 of 44 simulated trials; with 16, in none of
-            88: a safety net).
-        weak_turns: from a given pose, the result turned by these angles (degrees) about each weakly
-            observed axis (:mod:`autoalign.engine.uncertainty`) is scored by hard IoU at 1/4 resolution, and
-            the best turn, if it beats the result by ``orbit_margin``, is refined too: a nearly
-            symmetric object can settle where its distinguishing detail is out of sight. ``()``: off.
-        orbits: when the runner-up reached the last level within ``competitive`` of the best (a
-            loss estimated from one render there can be off by 10%) and is a 1/n turn (n = 3..12) away,
-            try the other poses of that turn's orbit (see :func:`~autoalign.engine.hypotheses.orbit`)
-            and refine the one whose full-resolution hard IoU beats the winner's by ``orbit_margin``.
-        competitive: a distinct hypothesis is refined to the next level only if its loss at this one
-            is within this factor of the best one's.
-        abandon: in the search, a hypothesis is given up when after two iterations its loss is
-            above this multiple of the best loss found in the same stage (replayed on logged
-            searches of the 44 simulated models, giving up at 3x would not have lost the answer
-            in any of them; 4x leaves a margin).
     """
 
     loss: str = "l2"
     optimizer: str = "lm"
     robust: bool = True
     schedule: tuple[Level, ...] = DEFAULT_SCHEDULE
-    n_rotations: int = 384
-    n_coarse: int = 16
-    polish_deg: tuple[float, ...] = (10.0, 5.0)
-    n_mid: int = 3
-    n_final: int = 3
-    # In the search a hypothesis may still be far off and descend slowly (1-2% per step): the
-    # full-resolution ftol, not ftol / scale (0.8%, with which the search lost the true
-    # orientation in 5 of the 264 simulated trials with eroded or shifted masks).
-    search_level: Level = Level(0.125, 1.0, 10, max_views=20, ftol=FTOL)
-    ambiguity_tol: float = 0.05
-    polish_margin: float = 0.0
-    competitive: float = 1.5
-    abandon: float = 4.0
-    flips: bool = True
-    orbits: bool = True
-    orbit_margin: float = 0.001
-    weak_turns: tuple[float, ...] = (30.0, 60.0, 90.0, 120.0, 150.0, 180.0, -150.0, -120.0, -90.0, -60.0, -30.0)
+    search: SearchOptions = SearchOptions()
+    ranking: RankingOptions = RankingOptions()
+    disambiguation: DisambiguationOptions = DisambiguationOptions()
     detail: MeshDetail = MeshDetail()
 
 
@@ -283,21 +314,21 @@ def _differs(A: NDArray[np.float64], B: NDArray[np.float64], centre_m: NDArray[n
 
 def _search(obj: SilhouetteObjective, starts: list[NDArray[np.float64]], mesh: Mesh, opts: RefineOptions,
             progress: Progress | None) -> tuple[list[Hypothesis], list[Hypothesis]]:
-    """The orientation funnel: every start at ``opts.search_level`` (plus the best one's half
+    """The orientation funnel: every start at ``opts.search.level`` (plus the best one's half
     turns), the best ``n_mid`` distinct at the schedule's first level, of which the best
     ``n_final`` distinct and competitive ones are returned as finalists (best first), with all the
-    others. A hypothesis is given up once, after two iterations, its loss is ``opts.abandon``
+    others. A hypothesis is given up once, after two iterations, its loss is ``opts.search.abandon``
     times the best of its stage so far."""
     levels = opts.schedule
     others: list[Hypothesis] = []
     pool = [Hypothesis(T, T, float("nan"), float("nan"), Stage.START) for T in starts]
-    funnel = [(opts.search_level, opts.n_mid), (levels[0], opts.n_final)]
+    funnel = [(opts.search.level, opts.search.n_mid), (levels[0], opts.search.n_final)]
     for stage, (level, keep) in enumerate(funnel):
         done: list[Hypothesis] = []
 
         def run(todo: list[Hypothesis]) -> None:
             for j, h in enumerate(todo):
-                bar = opts.abandon * min((d.loss for d in done), default=np.inf)
+                bar = opts.search.abandon * min((d.loss for d in done), default=np.inf)
                 Tc, tr = _run_schedule(obj, h.T_final, (level,), opts.optimizer,
                                        give_up=lambda it, ev, bar=bar: it >= 1 and ev.value / len(ev.weights) > bar)
                 loss, miou, _ = _final_loss(obj, Tc, level, tr[-1])
@@ -306,7 +337,7 @@ def _search(obj: SilhouetteObjective, starts: list[NDArray[np.float64]], mesh: M
                     progress(f"hypotheses {stage + 1}/{len(funnel)}", j + 1, len(todo))
 
         run(pool)
-        if stage == 0 and opts.flips:  # the half turns of the best one compete too, from its path
+        if stage == 0 and opts.search.flips:  # the half turns of the best one compete too, from its path
             best = min(done, key=lambda h: h.loss)
             run([Hypothesis(best.T_init, T, float("nan"), float("nan"), Stage.FLIP, best.path)
                  for T in flips(best.T_final, mesh.principal_axes, mesh.centre)])
@@ -323,9 +354,9 @@ def _search(obj: SilhouetteObjective, starts: list[NDArray[np.float64]], mesh: M
 
 
 def _competitive(loss: float, best_loss: float, opts: RefineOptions) -> bool:
-    """Whether a hypothesis' loss is within ``opts.competitive`` of the best's, so that it goes on
+    """Whether a hypothesis' loss is within ``opts.ranking.competitive`` of the best's, so that it goes on
     (the 1e-4 keeps near-zero losses of exact masks comparable)."""
-    return loss <= best_loss * opts.competitive + 1e-4
+    return loss <= best_loss * opts.ranking.competitive + 1e-4
 
 
 def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple[Level, ...], opts: RefineOptions,
@@ -333,11 +364,11 @@ def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple
             ) -> tuple[list["Finalist"], list[Hypothesis]]:
     """Take the finalists (best first) through ``levels`` together.
 
-    After each level below the last, one no longer within ``opts.competitive`` of the best stops
+    After each level below the last, one no longer within ``opts.ranking.competitive`` of the best stops
     there (it can be neither the answer nor ambiguous with it). At the last level only the best is
     polished: another is rendered once and its loss scaled by the best's polishing gain (from the
     same level before, the same gain); it is polished too only if that estimate is below the best's
-    loss (by ``opts.polish_margin``). On a symmetric object the runner-up is an equivalent pose,
+    loss (by ``opts.ranking.polish_margin``). On a symmetric object the runner-up is an equivalent pose,
     and polishing it bought nothing; on the real LM-O can a half-turned pose was polished first and
     the right one, estimated 1.8% lower, was left unpolished behind it when only a 5% lower estimate
     was polished.
@@ -354,7 +385,7 @@ def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple
             if at_last and k > 0:
                 ev = obj.evaluate(h.T_final, lv, with_derivatives=False)
                 estimate = ev.value / len(ev.weights) * gain
-                if estimate >= scored[0].hypothesis.loss * (1.0 - opts.polish_margin):
+                if estimate >= scored[0].hypothesis.loss * (1.0 - opts.ranking.polish_margin):
                     scored.append(Finalist(Hypothesis(h.T_init, h.T_final, estimate, float(np.mean(ev.terms.iou)),
                                                       Stage.FINAL, h.path, estimated=True), ev.weights))
                     continue
@@ -390,16 +421,16 @@ def _final_state(obj: SilhouetteObjective, best: Hypothesis, weights: NDArray[np
 def _seed(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,
           progress: Progress | None) -> list[NDArray[np.float64]]:
     """Stage 1: the starting poses: the seed itself, or the best-scoring orientations of a rotation
-    grid placed at the click's or the visual hull's centre, each polished by a pattern search."""
+    grid placed at the click's or the visual hull's centre, each climbed to the best of its small turns."""
     if seed is not None and not isinstance(seed, Click):
         return [np.asarray(seed, dtype=np.float64)]
     mesh, search = pyramid.mesh, pyramid.with_faces(opts.detail.search)
     centre = click_centre(scene, seed, mesh.diameter) if isinstance(seed, Click) else hull_centre(scene, mesh.diameter)
-    poses = poses_at(rotation_grid(opts.n_rotations), centre, mesh.centre)
+    poses = poses_at(rotation_grid(opts.search.n_rotations), centre, mesh.centre)
     if progress is not None:
         progress("scoring orientations", 0, 1)
-    top = best_poses(search, scene, poses, opts.n_coarse, anchor=centre)
-    starts = list(polish_poses(search, scene, top, opts.polish_deg, anchor=centre))
+    top = best_poses(search, scene, poses, opts.search.n_starts, anchor=centre)
+    starts = list(climb_poses(search, scene, top, opts.search.climb_deg, anchor=centre))
     if progress is not None:
         progress("scoring orientations", 1, 1)
     return starts
@@ -413,7 +444,7 @@ def _rank(final: list[Finalist], others: list[Hypothesis], centre_m: NDArray[np.
     # ambiguous: the runner-up's loss is almost the best's, or competitive while its IoU is higher
     # (the robust loss and the IoU disagree on which fits: masks that fail in some views)
     ambiguous = bool(runner is not None and runner.stage is Stage.FINAL
-                     and (runner.loss <= ranked[0].loss * (1.0 + opts.ambiguity_tol) + 1e-4
+                     and (runner.loss <= ranked[0].loss * (1.0 + opts.ranking.ambiguity_tol) + 1e-4
                           or (_competitive(runner.loss, ranked[0].loss, opts)
                               and runner.mean_iou >= ranked[0].mean_iou)))
     return Standing(ranked, runner, ambiguous)
@@ -446,25 +477,25 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
     levels = opts.schedule
     standing = _rank(final, others, mesh.centre, opts)
     runner = standing.runner_up
-    if (opts.orbits and runner is not None and runner.stage is Stage.FINAL
+    if (opts.disambiguation.orbits and runner is not None and runner.stage is Stage.FINAL
             and _competitive(runner.loss, standing.ranked[0].loss, opts)):
         best = standing.ranked[0]
         cands = orbit(best.T_final, runner.T_final)
         if len(cands):
             ious = np.array([float(np.mean(hard_ious(obj.pyramid.fine(opts.detail), scene, T))) for T in cands])
-            if ious.max() > float(np.mean(hard_ious(obj.pyramid.fine(opts.detail), scene, best.T_final))) + opts.orbit_margin:
+            if ious.max() > float(np.mean(hard_ious(obj.pyramid.fine(opts.detail), scene, best.T_final))) + opts.disambiguation.margin:
                 final = _with_candidate(obj, final, best, cands[int(np.argmax(ious))], Stage.ORBIT, levels[-1], opts,
                                         progress)
                 standing = _rank(final, others, mesh.centre, opts)
     best = final[0]
     ev, uncertainty = _final_state(obj, best.hypothesis, best.weights, levels)
     turn_gap = None
-    if given_pose and opts.weak_turns and uncertainty.weak_turn_axes:
+    if given_pose and opts.disambiguation.weak_turns and uncertainty.weak_turn_axes:
         own, scores, cands = weak_turn_scores(obj.pyramid.with_faces(opts.detail.coarse), scene, best.hypothesis.T_final,
-                                              uncertainty.weak_turn_axes, mesh.centre, opts.weak_turns)
+                                              uncertainty.weak_turn_axes, mesh.centre, opts.disambiguation.weak_turns)
         k = int(np.argmax(scores))
         turn_gap = own - float(scores[k])
-        if scores[k] > own + opts.orbit_margin:
+        if scores[k] > own + opts.disambiguation.margin:
             final = _with_candidate(obj, final, best.hypothesis, cands[k], Stage.WEAK_TURN, levels[-1], opts, progress)
             standing = _rank(final, others, mesh.centre, opts)
             if final[0] is not best:

@@ -167,10 +167,10 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
     for k, r in enumerate(alone):
         unc = joint.uncertainties[k]
         gap = None
-        if unc.weak_turn_axes and opts.weak_turns:  # the joint system's weak turns, tried at its pose
+        if unc.weak_turn_axes and opts.disambiguation.weak_turns:  # the joint system's weak turns, tried at its pose
             own, scores, _ = weak_turn_scores(pyramids[k].with_faces(opts.detail.coarse), found.scenes[k],
                                               joint.poses[k], unc.weak_turn_axes, pyramids[k].mesh.centre,
-                                              opts.weak_turns)
+                                              opts.disambiguation.weak_turns)
             gap = own - float(scores.max())
         after.append(replace(r.result, T_wm=joint.poses[k], iou_after=joint.evaluation.hard_iou(k),
                              weights=joint.evaluation.weights[k], uncertainty=unc, turn_gap=gap))

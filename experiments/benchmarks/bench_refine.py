@@ -41,7 +41,7 @@ from autoalign.experiments.scenes.synthetic import (
 )
 from autoalign.geometry.mesh import Mesh, mesh_from_trimesh
 from autoalign.geometry.se3 import make_pose, rotation_angle_deg, transform_points
-from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+from autoalign.rasterizers.pyramid import AS_GIVEN, MeshPyramid
 
 
 def blob_mesh(target_faces: int) -> Mesh:
@@ -64,7 +64,7 @@ def bench_case(mesh: Mesh, n_views: int, width: int, height: int, seed: int, opt
     T_gt = make_pose(R, -R @ mesh.centre)
     scene = make_scene(mesh, T_gt, cams)
     T0 = perturb_pose(T_gt, 10.0, 20.0, rng, mesh.centre)
-    obj = SilhouetteObjective(SoftSilhouetteRasterizer(mesh), scene, "l2")
+    obj = SilhouetteObjective(MeshPyramid(mesh), scene, "l2", detail=AS_GIVEN)
     level = Level(1.0, 1.0, 1)
     obj.evaluate(T0, level)  # warm-up: kernel compilation, target resampling
     reps = 3

@@ -333,7 +333,7 @@ def run_task(task: dict[str, Any]) -> dict[str, Any]:
         poses = [res.T_init] + hist if hist is not None else [res.T_init, res.T_wm]
         extra.update(iterations=int(res.iterations), stopped="ambiguous" if res.ambiguous else "done",
                      renders=int(res.renders), view_renders=int(res.renders) * len(scene), rays=None,
-                     n_coarse=int(opts.n_coarse),
+                     n_coarse=int(opts.search.n_starts),  # the record keeps the field's former name
                      per_iteration_poses=hist is not None, timings={k: round(v, 4) for k, v in res.timings.items()})
     else:
         raise ValueError(f"unknown method {method!r}; choose one of {METHODS}")
