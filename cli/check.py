@@ -1,6 +1,6 @@
 """``autoalign check``: a ground-truth-free quality check of 6-DoF pose labels (feature and edge distance).
 
-Start-up imports only the standard library and :mod:`autoalign.errors`; numpy, OpenCV, open3d and
+Start-up imports only the standard library and :mod:`autoalign.errors`; numpy, OpenCV and
 trimesh load inside :func:`run_check` (nothing here imports torch or jax). Its helpers come from
 :mod:`autoalign.cli.common` (:mod:`autoalign.cli.main` registers this module, never the other way round).
 """
@@ -154,7 +154,7 @@ def run_check(args: argparse.Namespace) -> int:
     """``autoalign check``: see ``autoalign check --help``. Returns 0 once the check ran."""
     from autoalign.runtime.interrupts import preload
 
-    preload("numpy", "cv2", "open3d", "trimesh")  # extension modules, with Ctrl-C deferred
+    preload("numpy", "cv2", "trimesh")  # extension modules, with Ctrl-C deferred
     from autoalign.cli.common import ProgressBar, warn
     from autoalign.io.out_folder import prepare_out_dir, remove_empty_dirs
 
