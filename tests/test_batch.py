@@ -113,7 +113,7 @@ def test_bad_batch_lists_are_one_line_errors(batch, tmp_path):
 # Interrupts and faults (issue 26)
 # ----------------------------------------------------------------------------------------------
 
-N_SHORT = 6
+N_SHORT = 12  # long enough that "2 s into the batch" is inside it with 2 workers (6 took 2-3 s)
 SCENE_OUTPUTS = ("scene_gt.json", "refine.json", "overlay.png")
 
 
