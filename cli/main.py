@@ -46,6 +46,7 @@ from autoalign.cli.common import (
 from autoalign.errors import AutoalignError
 from autoalign.io.out_folder import write_outputs  # noqa: F401 - where the tests and scripts found it
 from autoalign.jobs.job import (
+    DEPTH_MODES,
     LOSSES,
     OPTIMIZERS,
     OUTPUT_FILES,  # noqa: F401 - the tests read it here
@@ -145,8 +146,9 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
     sel.add_argument("--obj-id", metavar="K", type=positive_int, default=1,
                      help="BOP object id written to scene_gt.json and looked for in the --init file (default: 1)")
     sel.add_argument("--instance", metavar="N", type=nonnegative_int, default=0,
-                     help="which instance's masks to use, mask_visib/{im_id:06d}_{N:06d}.png; also picks the N-th "
-                          "entry with obj_id K in the --init file (default: 0)")
+                     help="which instance's masks to use, mask_visib/{im_id:06d}_{N:06d}.png; in the --init file, "
+                          "the entry at position N if it has obj_id K (a whole scene_gt.json), else the N-th "
+                          "entry with obj_id K (default: 0)")
     seed = p.add_argument_group("starting pose (at most one; default: visual hull of the masks + orientation search)")
     ex = seed.add_mutually_exclusive_group()
     ex.add_argument("--init", metavar="SCENE_GT_JSON",
@@ -159,6 +161,14 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
                          "V (row, down) as in OpenCV (the top-left pixel's centre is 0,0), e.g. 3:412,233; "
                          "the position is found along "
                          "that ray and the orientation is searched")
+    _add_algorithm_arguments(p)
+    _add_batch_and_output_arguments(p)
+    p.set_defaults(func=run_refine)
+    return p
+
+
+def _add_algorithm_arguments(p: argparse.ArgumentParser) -> None:
+    """``refine``'s loss, solver, cameras, scale, depth and robustness options."""
     alg = p.add_argument_group("algorithm")
     alg.add_argument("--loss", choices=LOSSES, default="l2",
                      help="silhouette loss per view: l2 = squared pixel differences (default, fastest to "
@@ -174,9 +184,17 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
                           "from motion without depth); solve the scene's scale from the objects' known size with "
                           "the poses and write the metric scene_camera.json. On by itself when the scene's "
                           "recon.json says it has no metric scale")
+    alg.add_argument("--depth", choices=DEPTH_MODES, default="auto",
+                     help="auto (default): with one object, when the scene has depth/ (times scene_camera.json's "
+                          "depth_scale = mm), the measured depth joins the masks as evidence (a sensor noise model, "
+                          "nearer measurements taken as occluders); off: masks only")
     alg.add_argument("--no-robust", action="store_true",
                      help="weigh all views equally; by default views whose mask disagrees with the others "
                           "(occlusion, bad segmentation) are down-weighted (Cauchy weights on 1 - IoU)")
+
+
+def _add_batch_and_output_arguments(p: argparse.ArgumentParser) -> None:
+    """``refine``'s options for many scenes and for what it prints."""
     many = p.add_argument_group("many scenes")
     many.add_argument("--batch", metavar="LIST",
                       help="instead of SCENE_DIR: a text file with one scene folder per line (relative to the "
@@ -193,8 +211,6 @@ def add_refine_parser(subparsers: Any) -> argparse.ArgumentParser:
     out.add_argument("--json", action="store_true",
                      help="print one JSON object on stdout (pose, mean IoU before/after, time, ambiguous, "
                           "warnings, output paths) and nothing else there")
-    p.set_defaults(func=run_refine)
-    return p
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -286,7 +302,7 @@ def _main(argv: list[str] | None) -> int:
 # autoalign refine
 # ------------------------------------------------------------------------------------------
 
-BATCH_SHARED = ("models", "model", "units", "obj_id", "instance", "instances", "loss", "optimizer")
+BATCH_SHARED = ("models", "model", "units", "obj_id", "instance", "instances", "loss", "optimizer", "depth")
 """Options of ``refine`` passed on to every scene of a batch (with the flags below)."""
 BATCH_FLAGS = ("refine_cameras", "solve_scale", "no_robust")
 
@@ -351,7 +367,7 @@ def run_refine(args: argparse.Namespace) -> int:
     job = FolderJob(scene=args.scene, out=args.out, model=args.model, models=args.models, units=args.units,
                     obj_id=args.obj_id, instance=args.instance, instances=args.instances, init=args.init,
                     click=args.click, loss=args.loss, optimizer=args.optimizer, refine_cameras=args.refine_cameras,
-                    solve_scale=args.solve_scale, robust=not args.no_robust)
+                    solve_scale=args.solve_scale, robust=not args.no_robust, depth=args.depth)
     outcome = refine_folder(job, LOG, ProgressBar(enabled=not args.quiet), t_start)
     elapsed = time.perf_counter() - t_start
     if args.models is not None:

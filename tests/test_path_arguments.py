@@ -79,6 +79,7 @@ def test_instances_and_models_take_str(tmp_path: Path) -> None:
 
 def test_export_takes_str(tmp_path: Path) -> None:
     from autoalign.io import export
+    from autoalign.io import bop
     from autoalign.io.bop import read_labels
     from autoalign.io.models import ModelSet
 
@@ -87,8 +88,8 @@ def test_export_takes_str(tmp_path: Path) -> None:
     cameras = export.cameras_to_export(SCENE, labels, None)
     assert cameras == Path(SCENE) / "scene_camera.json"
     assert export.image_size(SCENE, 0) == (640, 480)
-    assert export.depth_scales(SCENE)[0] == 1.0
-    assert export.read_depth(SCENE, 0, 1.0, (640, 480)) is None  # the example has no depth
+    assert bop.depth_scales(SCENE)[0] == 1.0
+    assert bop.read_depth(SCENE, 0, 1.0, (640, 480)) is None  # the example has no depth
     frames = export.export_frames(SCENE, read_labels(labels), models, labels, cameras_path=str(cameras))
     truth = autoalign.read_scene(SCENE)
     for f in frames:  # the true labels give the example's own (open3d ray-cast) masks back

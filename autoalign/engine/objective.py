@@ -9,10 +9,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.geometry.camera import Camera
+from autoalign.geometry.se3 import transform_points
 from autoalign.io.bop import Scene
 from autoalign.losses import LOSSES, ViewTerms, robust_view_weights, targets_in_crops
+from autoalign.losses.depth import MAX_SAMPLES, DepthNoise, DepthTerms, depth_terms
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.rasterizers.soft_silhouette import Silhouettes
+
+DEPTH_SAMPLES_MIN = 250
+"""Below full resolution the depth term samples fewer pixels (in proportion), but at least these."""
 
 
 @dataclass(frozen=True)
@@ -39,17 +44,23 @@ class Level:
 @dataclass(frozen=True)
 class LevelViews:
     """The views of one resolution level: cameras, area-resampled targets in [0, 1], per-view
-    target sums, and the pixels not compared (``None``: all are), all at that resolution."""
+    target sums, and the pixels not compared (``None``: all are), all at that resolution; and the
+    same views' full-resolution cameras, masks and measured depth (``None``: no depth term)."""
 
     cameras: list[Camera]
     targets: list[NDArray[np.float32]]
     totals: NDArray[np.float64]
     ignore: list[NDArray[np.bool_]] | None
+    full_cameras: list[Camera]
+    full_masks: list[NDArray[np.float32]]
+    depths: list[NDArray[np.float32]] | None = None
 
 
 @dataclass
 class Evaluation:
-    """Objective value and derivatives at one pose. ``value = sum_i w_i loss_i``; ``grad``/``gn`` alike."""
+    """Objective value and derivatives at one pose. ``value = sum_i w_i loss_i``; ``grad``/``gn``
+    alike. ``terms`` are the views' whole terms (mask plus depth), ``depth`` the depth's own part
+    (``None`` without depth)."""
 
     value: float
     grad: NDArray[np.float64]
@@ -57,6 +68,7 @@ class Evaluation:
     terms: ViewTerms
     weights: NDArray[np.float64]
     silhouettes: Silhouettes
+    depth: DepthTerms | None = None
 
 
 class SilhouetteObjective:
@@ -68,14 +80,18 @@ class SilhouetteObjective:
         loss: one of :data:`autoalign.losses.LOSSES`.
         robust: re-weight views with Cauchy weights on ``1 - IoU`` (see :func:`~autoalign.losses.robust_view_weights`).
         detail: the mesh's detail at each level's resolution (:class:`~autoalign.rasterizers.pyramid.MeshDetail`).
+        depth: the depth sensor's noise: with it, and the scene's measured depth
+            (:attr:`~autoalign.io.bop.Scene.depths`), each view's term adds the depth term
+            (:mod:`autoalign.losses.depth`) to the mask term; ``None``: masks only.
     """
 
     def __init__(self, pyramid: MeshPyramid, scene: Scene, loss: str = "l2", robust: bool = True,
-                 detail: MeshDetail = MeshDetail()) -> None:
+                 detail: MeshDetail = MeshDetail(), depth: DepthNoise | None = None) -> None:
         if loss not in LOSSES:
             raise ValueError(f"unknown loss {loss!r}; choose one of {sorted(LOSSES)}")
         self.pyramid = pyramid
         self.detail = detail
+        self.depth = depth
         self.centre_m = pyramid.mesh.centre  # the point twists turn about, model frame (mm)
         self.scene = scene
         self.loss_name = loss
@@ -99,7 +115,9 @@ class SilhouetteObjective:
 
             tg = [resampled(m, c) for m, c in zip(scene.masks, cams)]
             ignore = None if scene.ignore is None else [resampled(g, c) > 0.5 for g, c in zip(scene.ignore, cams)]
-            self._levels[key] = LevelViews(cams, tg, np.array([float(t.sum()) for t in tg]), ignore)
+            depths = scene.depths if self.depth is not None else None
+            self._levels[key] = LevelViews(cams, tg, np.array([float(t.sum()) for t in tg]), ignore, scene.cameras,
+                                           scene.masks, depths)
         return self._levels[key]
 
     def use_cameras(self, cameras: list[Camera]) -> None:
@@ -111,12 +129,31 @@ class SilhouetteObjective:
                  with_derivatives: bool = True) -> Evaluation:
         """Render at ``level`` and compare. Without ``weights`` they are computed here (robust or 1)."""
         views = self.at_scale(level.scale, level.max_views)
-        sil = self.pyramid.at(level.scale, self.detail).render(T_wm, views.cameras, level.sigma, with_jacobian=with_derivatives)
+        rasterizer = self.pyramid.at(level.scale, self.detail)
+        sil = rasterizer.render(T_wm, views.cameras, level.sigma, with_jacobian=with_derivatives)
         self.renders += 1
-        if views.ignore is not None:
-            sil = sil.without(targets_in_crops(views.ignore, sil) > 0.5)
+        depth = None
+        if views.depths is not None:
+            depth = depth_terms(rasterizer.caster, rasterizer.mesh, T_wm, views.full_cameras, views.depths,
+                                transform_points(T_wm, self.centre_m[None])[0], self.depth,
+                                max(DEPTH_SAMPLES_MIN, int(MAX_SAMPLES * level.scale)), views.full_masks)
+        ignore = self._ignored(views, depth, level.scale)
+        if ignore is not None:
+            sil = sil.without(targets_in_crops(ignore, sil) > 0.5)
         terms = self.loss_fn(sil, targets_in_crops(views.targets, sil), views.totals)
-        return self.combine(terms, sil, weights)
+        if depth is not None:
+            terms = ViewTerms(terms.loss + depth.loss, terms.grad + depth.grad, terms.gn + depth.gn, terms.iou)
+        return replace(self.combine(terms, sil, weights), depth=depth)
+
+    @staticmethod
+    def _ignored(views: LevelViews, depth: DepthTerms | None, scale: float) -> list[NDArray[np.bool_]] | None:
+        """The pixels not compared with the masks: those the scene ignores, and those the measured
+        depth shows hidden by an unmodelled occluder (the visible mask is empty there, and the
+        silhouette must not be pulled out of them)."""
+        if depth is None or not depth.hidden.any():
+            return views.ignore
+        hidden = [depth.hidden_mask(k, (c.height, c.width), scale) for k, c in enumerate(views.cameras)]
+        return hidden if views.ignore is None else [a | b for a, b in zip(views.ignore, hidden)]
 
     def combine(self, terms: ViewTerms, sil: Silhouettes, weights: NDArray[np.float64] | None = None) -> Evaluation:
         """Weighted sums of per-view terms; without ``weights`` they are computed from the fit."""
@@ -129,7 +166,7 @@ class SilhouetteObjective:
 
     def reweighted(self, ev: Evaluation) -> Evaluation:
         """The same render with weights re-computed from its own fit (IRLS step; no new render)."""
-        return self.combine(ev.terms, ev.silhouettes) if self.robust else ev
+        return replace(self.combine(ev.terms, ev.silhouettes), depth=ev.depth) if self.robust else ev
 
     def view_weights(self, terms: ViewTerms) -> NDArray[np.float64]:
         """Per-view weights for the current fit (:func:`~autoalign.losses.robust_view_weights`; 1 if not robust)."""

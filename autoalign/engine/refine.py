@@ -30,6 +30,7 @@ from autoalign.geometry.mesh import Mesh
 from autoalign.geometry.se3 import rotation_angle_deg, transform_points
 from autoalign.io.bop import Scene
 from autoalign.losses import targets_in_crops
+from autoalign.losses.depth import DepthNoise, DepthTerms
 from autoalign.quality.overlap import iou_from_counts, view_ious
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
@@ -131,6 +132,9 @@ class RefineOptions:
         disambiguation: orbits and weak turns (:class:`DisambiguationOptions`).
         detail: how many triangles the mesh is drawn with at each resolution
             (:class:`~autoalign.rasterizers.pyramid.MeshDetail`).
+        depth: the depth sensor's noise model; the depth term (:mod:`autoalign.losses.depth`) joins
+            the mask term in every view when the scene has measured depth
+            (:func:`~autoalign.io.bop.with_depth`); ``None``: masks only.
     """
 
     loss: str = "l2"
@@ -141,6 +145,7 @@ class RefineOptions:
     ranking: RankingOptions = RankingOptions()
     disambiguation: DisambiguationOptions = DisambiguationOptions()
     detail: MeshDetail = MeshDetail()
+    depth: DepthNoise | None = DepthNoise()
 
 
 class Stage(enum.Enum):
@@ -213,7 +218,9 @@ class RefineResult:
     Attributes:
         T_wm: world-from-model pose (4x4, mm).
         T_init: the starting pose of the winning hypothesis (a scored, polished orientation, or the seed).
-        iou_before / iou_after: per-view hard-mask IoU at full resolution.
+        iou_before / iou_after: per-view hard-mask IoU at full resolution
+            (:func:`~autoalign.quality.overlap.view_ious`; with measured depth, ``iou_after`` also
+            leaves out the pixels the depth shows hidden behind an unmodelled occluder).
         iterations: optimiser iterations of the winner from its start, every level it went through
             (the hypothesis search's included).
         renders: soft renders used in total.
@@ -228,6 +235,7 @@ class RefineResult:
             1/4 resolution) the result fits than the best of its turns about those axes (30-180
             degrees; negative: a turn fit better and was refined); ``None`` when none were tried.
             Near 0 the object is nearly symmetric about such an axis.
+        depth: the depth term at the result, per view (``None``: masks only; :mod:`autoalign.losses.depth`).
     """
 
     T_wm: NDArray[np.float64]
@@ -245,6 +253,7 @@ class RefineResult:
     image_ids: list[int] = field(default_factory=list)
     uncertainty: Uncertainty | None = None
     turn_gap: float | None = None
+    depth: DepthTerms | None = None
 
 
 def _run_schedule(obj: SilhouetteObjective, T: NDArray[np.float64], levels: tuple[Level, ...], optimizer: str,
@@ -529,7 +538,7 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
     given_pose = seed is not None and not isinstance(seed, Click)
     pyramid = mesh if isinstance(mesh, MeshPyramid) else MeshPyramid(mesh)
     mesh = pyramid.mesh
-    obj = SilhouetteObjective(pyramid, scene, opts.loss, opts.robust, opts.detail)
+    obj = SilhouetteObjective(pyramid, scene, opts.loss, opts.robust, opts.detail, opts.depth)
     levels = opts.schedule
     timings["setup"] = time.perf_counter() - t_start
 
@@ -565,4 +574,4 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
         iterations=sum(tr.iterations for _, tr in best.path), renders=obj.renders, timings=timings,
         hypotheses=standing.ranked, ambiguous=standing.ambiguous, runner_up=standing.runner_up,
         weights=final[0].weights, history=history, image_ids=list(scene.image_ids), uncertainty=uncertainty,
-        turn_gap=turn_gap)
+        turn_gap=turn_gap, depth=final_ev.depth)

@@ -174,7 +174,7 @@ def load_mesh(path: str | Path, name: str | None = None, units: str | None = Non
     if units is not None and units not in UNITS_MM:
         raise AutoalignError(f"{path}: unknown units {units!r}; use one of {', '.join(UNITS_MM)}")
     try:
-        loaded = trimesh.load(str(path), force="mesh", process=False)
+        loaded = trimesh.load(str(path), force="mesh", process=False, skip_materials=True)  # geometry only
     except Exception as exc:  # trimesh raises many kinds for unreadable files
         raise AutoalignError(f"{path}: cannot read the mesh ({type(exc).__name__}: {exc}); "
                              "pass a mesh file trimesh reads (PLY, OBJ, STL, GLB, OFF)") from None

@@ -50,6 +50,8 @@ class Scene:
         ignore: per view, the pixels where the silhouette is not compared with the mask (``None``:
             none): those that another instance's mask claims, where this object may be hidden
             behind that one, or that mask may have strayed onto this object.
+        depths: per view, the measured depth (H, W) float32 in mm along the optical axis at the
+            masks' resolution, 0 where there is no measurement (``None``: no depth; see :func:`with_depth`).
     """
 
     cameras: list[Camera]
@@ -60,6 +62,7 @@ class Scene:
     empty: tuple[int, ...] = ()
     image_scale: float = 1.0
     ignore: list[NDArray[np.bool_]] | None = None
+    depths: list[NDArray[np.float32]] | None = None
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -85,7 +88,8 @@ class Scene:
         idx = [int(i) for i in idx]
         return replace(self, cameras=[self.cameras[i] for i in idx], masks=[self.masks[i] for i in idx],
                        image_ids=[self.image_ids[i] for i in idx],
-                       ignore=None if self.ignore is None else [self.ignore[i] for i in idx])
+                       ignore=None if self.ignore is None else [self.ignore[i] for i in idx],
+                       depths=None if self.depths is None else [self.depths[i] for i in idx])
 
     def compared(self, k: int) -> NDArray[np.bool_] | None:
         """View ``k``'s pixels where the silhouette is compared with the mask (``None``: all)."""
@@ -115,6 +119,39 @@ def read_depth_png(path: Path, size: tuple[int, int], frame: str = "the image is
     return d
 
 
+def read_depth(scene_dir: str | os.PathLike[str], image_id: int, depth_scale: float,
+               size: tuple[int, int]) -> NDArray[np.float64] | None:
+    """The depth image of ``image_id`` in mm (``depth/{id:06d}.png`` times ``depth_scale``), or ``None``."""
+    p = Path(scene_dir) / "depth" / f"{image_id:06d}.png"
+    if not p.is_file():
+        return None
+    return read_depth_png(p, size).astype(np.float64) * depth_scale
+
+
+def depth_scales(scene_dir: str | os.PathLike[str]) -> dict[int, float]:
+    """``depth_scale`` per image id from ``scene_camera.json`` (BOP: depth times it is mm; default 1)."""
+    data = read_json_file(Path(scene_dir) / "scene_camera.json", "a BOP scene folder needs scene_camera.json")
+    return {int(k): float(v.get("depth_scale", 1.0)) if isinstance(v, dict) else 1.0 for k, v in data.items()}
+
+
+def with_depth(scene: Scene) -> Scene:
+    """``scene`` with the measured depth of each view (:attr:`Scene.depths`) from its folder's
+    ``depth/{im:06d}.png`` and ``scene_camera.json``'s ``depth_scale``, resampled to the masks'
+    resolution (nearest: depth is not averaged across an object's edge); ``scene`` unchanged
+    when the folder has no ``depth/`` or a view has no depth file (then no view uses depth)."""
+    if scene.path is None or not (scene.path / "depth").is_dir():
+        return scene
+    scales = depth_scales(scene.path)
+    depths = []
+    for im, cam in zip(scene.image_ids, scene.cameras):
+        size = (int(round(cam.width / scene.image_scale)), int(round(cam.height / scene.image_scale)))
+        d = read_depth(scene.path, im, scales.get(im, 1.0), size)
+        if d is None:
+            return scene
+        if scene.image_scale != 1.0:
+            d = cv2.resize(d, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
+        depths.append(d.astype(np.float32))
+    return replace(scene, depths=depths)
 def json_floats(entry: dict[str, Any], key: str, n: int, path: Path, where: str, fix: str) -> NDArray[np.float64]:
     if key not in entry:
         raise AutoalignError(f"{path}: {where} has no '{key}'; {fix}")
@@ -340,7 +377,8 @@ def scene_cameras(cams: dict[int, tuple[NDArray[np.float64], NDArray[np.float64]
 def read_init_pose(path: str | Path, scene: Scene, obj_id: int = 1, instance: int = 0) -> NDArray[np.float64]:
     """World-from-model pose (4x4, mm) from a coarse BOP ``scene_gt.json``.
 
-    Uses the first image (lowest id) that is also a view of ``scene``; within it the
+    Uses the first image (lowest id) that is also a view of ``scene``; within it the entry at
+    position ``instance`` if it has ``obj_id`` (a whole BOP ``scene_gt.json``), else the
     ``instance``-th entry with ``obj_id`` (or the ``instance``-th entry if none has that id).
     """
     path = Path(path)
@@ -362,11 +400,14 @@ def read_init_pose(path: str | Path, scene: Scene, obj_id: int = 1, instance: in
         entries = [entries]
     if not isinstance(entries, list) or not entries or not all(isinstance(e, dict) for e in entries):
         raise AutoalignError(f"{path}: image {im} must hold a list of pose entries; {fix}")
-    same = [e for e in entries if e.get("obj_id") == obj_id]
-    pool = same if same else entries
-    if instance >= len(pool):
-        raise AutoalignError(f"{path}: image {im} has {len(pool)} entries, no instance {instance}; use --instance")
-    e = pool[instance]
+    if instance < len(entries) and entries[instance].get("obj_id") == obj_id:
+        e = entries[instance]  # BOP: the instance is the entry's position (as in mask_visib's file names)
+    else:
+        same = [e for e in entries if e.get("obj_id") == obj_id]
+        pool = same if same else entries
+        if instance >= len(pool):
+            raise AutoalignError(f"{path}: image {im} has {len(pool)} entries, no instance {instance}; use --instance")
+        e = pool[instance]
     T_cm = pose_of_entry(e, path, f"image {im}", fix)
     return invert(by_id[im].T_cw) @ T_cm
 

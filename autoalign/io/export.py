@@ -39,10 +39,10 @@ from autoalign.errors import AutoalignError
 from autoalign.geometry.camera import Camera
 from autoalign.io.bop import (
     Label,
+    depth_scales,
     photo_path,
     read_camera_file,
-    read_depth_png,
-    read_json_file,
+    read_depth,
 )
 from autoalign.io.models import ModelSet
 from autoalign.rasterizers.camera_batch import CameraBatch
@@ -170,7 +170,7 @@ def _canvas_crop(cam: Camera, T_cm: NDArray[np.float64], hull: NDArray[np.float6
 
 def image_size(scene_dir: str | os.PathLike[str], image_id: int) -> tuple[int, int]:
     """``(W, H)`` of an image from its photo, else one of its masks, else its depth image (which
-    :func:`read_depth` then checks against it)."""
+    :func:`~autoalign.io.bop.read_depth` then checks against it)."""
     scene_dir = Path(scene_dir)
     candidates = []
     try:
@@ -186,21 +186,6 @@ def image_size(scene_dir: str | os.PathLike[str], image_id: int) -> tuple[int, i
             return int(img.shape[1]), int(img.shape[0])
     raise AutoalignError(f"{scene_dir}: image {image_id} has no rgb/, mask_visib/ or depth/ file to take its size "
                          "from; add its photo")
-
-
-def read_depth(scene_dir: str | os.PathLike[str], image_id: int, depth_scale: float,
-               size: tuple[int, int]) -> NDArray[np.float64] | None:
-    """The depth image of ``image_id`` in mm (``depth/{id:06d}.png`` times ``depth_scale``), or ``None``."""
-    p = Path(scene_dir) / "depth" / f"{image_id:06d}.png"
-    if not p.is_file():
-        return None
-    return read_depth_png(p, size).astype(np.float64) * depth_scale
-
-
-def depth_scales(scene_dir: str | os.PathLike[str]) -> dict[int, float]:
-    """``depth_scale`` per image id from ``scene_camera.json`` (BOP: depth times it is mm; default 1)."""
-    data = read_json_file(Path(scene_dir) / "scene_camera.json", "a BOP scene folder needs scene_camera.json")
-    return {int(k): float(v.get("depth_scale", 1.0)) if isinstance(v, dict) else 1.0 for k, v in data.items()}
 
 
 def export_frames(scene_dir: str | os.PathLike[str], labels: dict[int, list[Label]], models: ModelSet,

@@ -23,6 +23,7 @@ if TYPE_CHECKING:
 OUTPUT_FILES = ("scene_gt.json", "refine.json", "overlay.png", "scene_camera.json")
 """Every file a refinement may write (``scene_camera.json`` only with ``refine_cameras`` or a solved scale)."""
 LOSSES = ("l2", "bce", "iou", "dice")
+DEPTH_MODES = ("auto", "off")
 OPTIMIZERS = ("lm", "gn", "adam")
 MESH_UNITS = ("mm", "m")
 EXIT_OK = 0
@@ -91,7 +92,8 @@ class FolderJob:
 
     Exactly one of ``model`` (one object: its mesh, mm) and ``models`` (every instance: a BOP models
     folder); ``init`` (a coarse ``scene_gt.json``) or ``click`` (``IM_ID:U,V``, one object only)
-    seeds it; ``units`` of the meshes (``mm``/``m``, default: refuse tiny meshes)."""
+    seeds it; ``units`` of the meshes (``mm``/``m``, default: refuse tiny meshes); ``depth``: ``auto``
+    uses the scene's ``depth/`` when it has one (one object), ``off`` never."""
 
     scene: str
     out: str
@@ -108,6 +110,7 @@ class FolderJob:
     refine_cameras: bool = False
     solve_scale: bool = False
     robust: bool = True
+    depth: str = "auto"
 
     @classmethod
     def from_argv(cls, scene: str, argv: Sequence[str], out: str) -> FolderJob:
@@ -142,6 +145,7 @@ class FolderJob:
         if self.init is not None and self.click is not None:
             raise AutoalignError("give at most one of --init and --click")
         for name, value, allowed in (("--loss", self.loss, LOSSES), ("--optimizer", self.optimizer, OPTIMIZERS),
+                                     ("--depth", self.depth, DEPTH_MODES),
                                      ("--units", self.units, (None, *MESH_UNITS))):
             if value not in allowed:
                 raise AutoalignError(f"{name} {value}: choose one of {', '.join(a for a in allowed if a)}")

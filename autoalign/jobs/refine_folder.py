@@ -76,11 +76,13 @@ def _refine_object(job: FolderJob, click: Any, log: RunLog, progress: Stages) ->
     """:func:`refine_folder` with one object (``job.model``)."""
     from autoalign.engine.refine import RefineOptions, refine
     from autoalign.geometry.mesh import load_mesh
-    from autoalign.io.bop import read_scene
+    from autoalign.io.bop import read_scene, with_depth
     from autoalign.quality.overlay import render_overlay
     from autoalign.rasterizers.pyramid import MeshPyramid
 
     scene = read_scene(job.scene, job.instance)
+    if job.depth == "auto":
+        scene = with_depth(scene)
     mesh = load_mesh(job.model, units=job.units)
     pyramid = MeshPyramid(mesh)
     seed, seed_record = _seed(job, scene, click)

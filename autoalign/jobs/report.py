@@ -23,6 +23,7 @@ from autoalign.engine.refine import RefineOptions, RefineResult
 from autoalign.engine.uncertainty import Uncertainty
 from autoalign.geometry.camera import PIXEL_CONVENTION
 from autoalign.geometry.se3 import rotation_angle_deg, transform_points
+from autoalign.losses.depth import DepthTerms
 from autoalign.quality.verdict import Verdict, low_weight_ids
 from autoalign.scene.joint import JointRefinement
 
@@ -40,6 +41,14 @@ def floats(a: Any) -> Any:
         v = float(arr)
         return v if np.isfinite(v) else None
     return [floats(x) for x in arr]
+
+
+def depth_record(depth: DepthTerms | None) -> dict[str, Any] | None:
+    """The depth term at the result, per view of ``image_ids``: pixels used, pixels where an
+    unmodelled occluder is in front, the residuals' RMS (mm) and the term's loss (noise units)."""
+    if depth is None:
+        return None
+    return {"used_px": depth.used, "hidden_px": depth.hidden, "rms_mm": depth.rms_mm, "loss": depth.loss}
 
 
 def jsonable(obj: Any) -> Any:
@@ -211,7 +220,7 @@ class RefineReport:
             "hypotheses": [{"rank": k, "stage": h.stage_name, "loss": h.loss, "mean_iou": h.mean_iou,
                             "pose_init": pose_record(h.T_init), "pose": pose_record(h.T_final)}
                            for k, h in enumerate(r.hypotheses)],
-            "ambiguous": bool(r.ambiguous), "turn_gap": r.turn_gap,
+            "ambiguous": bool(r.ambiguous), "turn_gap": r.turn_gap, "depth": depth_record(r.depth),
             "runner_up": None if self.runner_up is None else self.runner_up.to_json(),
             "options": self.options, "history": r.history, "outputs": dict(OUTPUTS),
             "warnings": self.warnings + self.notes(),

@@ -20,3 +20,5 @@ def shared_dir() -> Path:
 
 REAL_SCENES = shared_dir() / "real" / "lmo_dev"
 """The real LM-O development scenes."""
+YCBV_RGBD = shared_dir() / "real" / "ycbv_rgbd" / "0000"
+"""Real YCB-Video RGB-D frames (one viewpoint, sensor depth; the labels agree with it to about 2 mm)."""
