@@ -185,8 +185,8 @@ def _add_algorithm_arguments(p: argparse.ArgumentParser) -> None:
                           "the poses and write the metric scene_camera.json. On by itself when the scene's "
                           "recon.json says it has no metric scale")
     alg.add_argument("--depth", choices=DEPTH_MODES, default="auto",
-                     help="auto (default): with one object, when the scene has depth/ (times scene_camera.json's "
-                          "depth_scale = mm), the measured depth joins the masks as evidence (a sensor noise model, "
+                     help="auto (default): when the scene has depth/ (times scene_camera.json's depth_scale = mm) and "
+                          "metric cameras, the measured depth joins the masks as evidence (a sensor noise model, "
                           "nearer measurements taken as occluders); off: masks only")
     alg.add_argument("--no-robust", action="store_true",
                      help="weigh all views equally; by default views whose mask disagrees with the others "

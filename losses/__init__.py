@@ -6,8 +6,20 @@ with respect to the pose twist ``(v [mm], w [rad])``. Optimisers combine them wi
 weights, so second-order and first-order methods see the same objective.
 """
 
-from autoalign.losses.silhouette import LOSSES, ViewTerms, bce, dice, iou, l2, targets_in_crops
-from autoalign.losses.robust import cauchy_weights, implausible_views, robust_view_weights
+from autoalign.losses.robust import (
+           cauchy_weights,
+           implausible_views,
+           robust_view_weights,
+)
+from autoalign.losses.silhouette import (
+           LOSSES,
+           ViewTerms,
+           bce,
+           dice,
+           iou,
+           l2,
+           targets_in_crops,
+)
 
 __all__ = ["LOSSES", "ViewTerms", "bce", "dice", "iou", "l2", "targets_in_crops", "cauchy_weights", "implausible_views",
            "robust_view_weights"]

@@ -31,6 +31,8 @@ from autoalign.rasterizers.ray_casting import RayCaster
 
 CAUCHY_C = 2.5
 """Residuals are down-weighted beyond this many sigmas (Cauchy: weight ``1 / (1 + (r / c sigma)^2)``)."""
+INLIER_SIGMAS = 3.0
+"""A residual within this many sigmas agrees with the measurement (:attr:`DepthTerms.inliers`)."""
 MAX_SAMPLES = 4000
 """At most about this many pixels of a view are cast: the term's cost stays small next to the mask's."""
 
@@ -59,7 +61,8 @@ class DepthNoise:
 class DepthTerms:
     """Per-view depth terms of ``N`` views: ``loss`` (N,), ``grad`` (N, 6), ``gn`` (N, 6, 6) (means
     over the used pixels, in noise units), ``used`` (N,) pixels used, ``hidden`` (N,) pixels where an
-    unmodelled occluder is in front of the object, ``rms_mm`` (N,) the used residuals' RMS (NaN: none);
+    unmodelled occluder is in front of the object, ``rms_mm`` (N,) the used residuals' RMS (NaN: none),
+    ``inliers`` (N,) the share of the used residuals within :data:`INLIER_SIGMAS` sigma (NaN: none);
     ``occluders``: per view the sampled pixels (rows, cols, full resolution) found hidden, and the
     sampling ``stride`` (px) per view."""
 
@@ -69,6 +72,7 @@ class DepthTerms:
     used: NDArray[np.int64]
     hidden: NDArray[np.int64]
     rms_mm: NDArray[np.float64]
+    inliers: NDArray[np.float64]
     occluders: list[tuple[NDArray[np.int64], NDArray[np.int64]]]
     stride: NDArray[np.int64]
 
@@ -119,7 +123,8 @@ def depth_terms(caster: RayCaster, mesh: Mesh, T_wm: NDArray[np.float64], camera
     n = len(cameras)
     none = np.zeros(0, np.int64)
     out = DepthTerms(np.zeros(n), np.zeros((n, 6)), np.zeros((n, 6, 6)), np.zeros(n, np.int64),
-                     np.zeros(n, np.int64), np.full(n, np.nan), [(none, none)] * n, np.ones(n, np.int64))
+                     np.zeros(n, np.int64), np.full(n, np.nan), np.full(n, np.nan), [(none, none)] * n,
+                     np.ones(n, np.int64))
     normals_m = mesh.face_normals
     for k, (cam, measured) in enumerate(zip(cameras, depths)):
         rows, cols, out.stride[k] = sample_pixels(cam, mesh, T_wm, measured, max_samples)
@@ -156,4 +161,5 @@ def depth_terms(caster: RayCaster, mesh: Mesh, T_wm: NDArray[np.float64], camera
         out.gn[k] = (J * a[:, None]).T @ J / m
         out.used[k] = m
         out.rms_mm[k] = float(np.sqrt(np.mean(r * r)))
+        out.inliers[k] = float(np.mean(np.abs(r) < INLIER_SIGMAS * sigma))
     return out

@@ -134,24 +134,27 @@ def depth_scales(scene_dir: str | os.PathLike[str]) -> dict[int, float]:
     return {int(k): float(v.get("depth_scale", 1.0)) if isinstance(v, dict) else 1.0 for k, v in data.items()}
 
 
-def with_depth(scene: Scene) -> Scene:
+def with_depth(scene: Scene, read: dict[int, NDArray[np.float32] | None] | None = None) -> Scene:
     """``scene`` with the measured depth of each view (:attr:`Scene.depths`) from its folder's
     ``depth/{im:06d}.png`` and ``scene_camera.json``'s ``depth_scale``, resampled to the masks'
     resolution (nearest: depth is not averaged across an object's edge); ``scene`` unchanged
-    when the folder has no ``depth/`` or a view has no depth file (then no view uses depth)."""
+    when the folder has no ``depth/`` or a view has no depth file (then no view uses depth).
+    ``read`` (image id -> depth at the masks' resolution) keeps what was read for the next scene
+    of the same folder."""
     if scene.path is None or not (scene.path / "depth").is_dir():
         return scene
-    scales = depth_scales(scene.path)
-    depths = []
+    read = {} if read is None else read
+    scales = None
     for im, cam in zip(scene.image_ids, scene.cameras):
-        size = (int(round(cam.width / scene.image_scale)), int(round(cam.height / scene.image_scale)))
-        d = read_depth(scene.path, im, scales.get(im, 1.0), size)
-        if d is None:
-            return scene
-        if scene.image_scale != 1.0:
-            d = cv2.resize(d, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
-        depths.append(d.astype(np.float32))
-    return replace(scene, depths=depths)
+        if im not in read:
+            scales = depth_scales(scene.path) if scales is None else scales
+            size = (int(round(cam.width / scene.image_scale)), int(round(cam.height / scene.image_scale)))
+            d = read_depth(scene.path, im, scales.get(im, 1.0), size)
+            if d is not None and scene.image_scale != 1.0:
+                d = cv2.resize(d, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
+            read[im] = None if d is None else d.astype(np.float32)
+    depths = [read[im] for im in scene.image_ids]
+    return scene if any(d is None for d in depths) else replace(scene, depths=depths)
 def json_floats(entry: dict[str, Any], key: str, n: int, path: Path, where: str, fix: str) -> NDArray[np.float64]:
     if key not in entry:
         raise AutoalignError(f"{path}: {where} has no '{key}'; {fix}")

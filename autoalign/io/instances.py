@@ -39,6 +39,7 @@ from autoalign.io.bop import (
     read_json_file,
     read_masks,
     scene_cameras,
+    with_depth,
 )
 
 INSTANCES_FIX = 'an instances file is JSON {"instances": {"0": 5, "3": 8}}: instance number -> BOP obj_id'
@@ -75,6 +76,12 @@ class InstanceScenes:
         return replace(self, scenes=[replace(sc, cameras=[cameras.get(im, c) for im, c in zip(sc.image_ids, sc.cameras)])
                                      for sc in self.scenes],
                        cameras=[cameras.get(im, c) for im, c in zip(self.image_ids, self.cameras)])
+
+    def with_depth(self) -> "InstanceScenes":
+        """Every instance's scene with the folder's measured depth (:func:`~autoalign.io.bop.with_depth`,
+        each image read once)."""
+        read: dict[int, NDArray[np.float32] | None] = {}
+        return replace(self, scenes=[with_depth(sc, read) for sc in self.scenes])
 
     @property
     def camera_by_id(self) -> dict[int, Camera]:

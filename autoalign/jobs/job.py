@@ -93,7 +93,7 @@ class FolderJob:
     Exactly one of ``model`` (one object: its mesh, mm) and ``models`` (every instance: a BOP models
     folder); ``init`` (a coarse ``scene_gt.json``) or ``click`` (``IM_ID:U,V``, one object only)
     seeds it; ``units`` of the meshes (``mm``/``m``, default: refuse tiny meshes); ``depth``: ``auto``
-    uses the scene's ``depth/`` when it has one (one object), ``off`` never."""
+    uses the scene's ``depth/`` when it has one (and metric cameras), ``off`` never."""
 
     scene: str
     out: str

@@ -146,7 +146,7 @@ def _object_report(job: FolderJob, scene: Any, mesh: Any, result: Any, seed: Any
 
     ids = [int(i) for i in result.image_ids or scene.image_ids]
     verdict = judge(result.iou_after, result.weights, ids, scene.empty, bool(result.ambiguous),
-                    uncertainty=result.uncertainty, turn_gap=result.turn_gap)
+                    uncertainty=result.uncertainty, turn_gap=result.turn_gap, depth=result.depth)
     return RefineReport(
         scene_dir=Path(job.scene).absolute(), model=Path(job.model).absolute(), obj_id=job.obj_id,
         instance=job.instance, result=result, verdict=verdict, seed=seed, image_ids=ids,

@@ -110,7 +110,8 @@ def refine_scene_folder(job: FolderJob, log: RunLog, progress: Stages, t_start: 
 
 def read_scene_inputs(job: FolderJob, log: RunLog) -> SceneInputs:
     """The instances, models and seeds of ``job``; with a scale to solve, the scene rescaled by a
-    first guess from the masks' areas, then by the factor at which the seeds overlap their masks best."""
+    first guess from the masks' areas, then by the factor at which the seeds overlap their masks best;
+    else, with ``job.depth`` ``auto``, every instance's scene with the folder's measured depth."""
     scene_dir = Path(job.scene)
     instances = read_instances(scene_dir, Path(job.instances) if job.instances else None)
     found = read_instance_scenes(scene_dir, instances)
@@ -119,6 +120,8 @@ def read_scene_inputs(job: FolderJob, log: RunLog) -> SceneInputs:
         models.mesh(inst.obj_id)  # every model present and readable before the slow part
     seeds = read_init_poses(job.init, found) if job.init is not None else {}
     guess = None
+    if job.depth == "auto" and not (job.solve_scale or cameras_up_to_scale(scene_dir)):
+        found = found.with_depth()  # metric depth and cameras of an unknown unit would disagree
     if job.solve_scale or cameras_up_to_scale(scene_dir):
         if not job.solve_scale:
             log.warning(f"{scene_dir / 'recon.json'} says the cameras have no metric scale: solving it from the "

@@ -269,7 +269,7 @@ class InstanceReport:
             "weights": res.weights, "median_iou_after": float(np.median(res.iou_after)),
             "empty_masks": self.empty,
             "ambiguous": bool(res.ambiguous), "symmetric": self.symmetric, "turn_gap": res.turn_gap,
-            "iterations": res.iterations, "renders": res.renders,
+            "depth": depth_record(res.depth), "iterations": res.iterations, "renders": res.renders,
             "timings": {**res.timings, "instance": self.seconds},
         }
 

@@ -79,7 +79,8 @@ def judged_jointly(joint: JointRefinement, k: int, scene: Scene, models: ModelSe
     """The verdict on the ``k``-th object (``obj_id``, in ``scene``) of a joint refinement, and its uncertainty."""
     unc = joint.uncertainties[k]
     verdict = judge(joint.evaluation.hard_iou(k), joint.evaluation.weights[k], scene.image_ids, scene.empty, False,
-                    models.symmetric(obj_id), unc, models.continuous_axes(obj_id), None)
+                    models.symmetric(obj_id), unc, models.continuous_axes(obj_id), None,
+                    None if joint.evaluation.depth is None else joint.evaluation.depth[k])
     return Judgement(verdict, unc)
 
 

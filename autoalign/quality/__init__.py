@@ -5,5 +5,6 @@ outline-to-edge distance (``edge_distance``) and SIFT feature distance: the chec
 (``photos``), the labels' rendering (``label_rendering``), SIFT matching (``sift``), bootstrap
 intervals (``stats``) and figure (``figures``); two label sets compared (``label_compare``).
 
-May import: ``geometry``, ``io``, ``runtime``, ``errors``, ``rasterizers``, ``engine.uncertainty``.
+May import: ``geometry``, ``io``, ``runtime``, ``errors``, ``rasterizers``, ``engine.uncertainty``,
+``losses.depth`` (the depth term's record, for the verdict).
 """

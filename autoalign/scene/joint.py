@@ -28,6 +28,7 @@ from autoalign.engine.uncertainty import Uncertainty, sandwich, uncertainty_of
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import apply_twist, transform_points
 from autoalign.io.instances import InstanceScenes
+from autoalign.losses.depth import DepthNoise
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.scene.cameras import CameraPrior, camera_block
 from autoalign.scene.occlusion import JointEvaluation, OcclusionObjective
@@ -223,14 +224,16 @@ class JointProblem:
 def refine_jointly(found: InstanceScenes, pyramids: list[MeshPyramid], poses: list[NDArray[np.float64]],
                    with_cameras: bool = False, level: Level = LEVEL, prior: CameraPrior | None = None,
                    detail: MeshDetail = MeshDetail(), robust: bool = True, with_scale: bool = False,
+                   depth: DepthNoise | None = None,
                    scale_from: list[bool] | None = None, progress: Progress | None = None) -> JointRefinement:
     """Refine the poses of all instances of ``found`` (their meshes: ``pyramids``, drawn at
-    ``detail.fine``) together from ``poses`` (world from model, mm), occlusion-aware, with ``with_cameras`` a correction of every camera and with ``with_scale``
-    the scene's scale (``robust``: views weighted by their fit, as in
-    :class:`~autoalign.engine.refine.RefineOptions`). ``scale_from`` (per instance, default all): the
+    ``detail.fine``) together from ``poses`` (world from model, mm), occlusion-aware, with
+    ``with_cameras`` a correction of every camera and with ``with_scale`` the scene's scale
+    (``robust``: views weighted by their fit, as in :class:`~autoalign.engine.refine.RefineOptions`;
+    ``depth``: the sensor's noise, for the instances whose scenes have measured depth). ``scale_from`` (per instance, default all): the
     instances whose fit decides the scale; the others move with it but do not pull it.
     Levenberg-Marquardt (:func:`~autoalign.engine.solver.minimise`) with IRLS view weights."""
-    objective = OcclusionObjective(found, pyramids, robust, detail)
+    objective = OcclusionObjective(found, pyramids, robust, detail, depth)
     centres_m = objective.centres_m
     p = np.mean([transform_points(T, c[None])[0] for T, c in zip(poses, centres_m)], axis=0)
     problem = JointProblem(objective, level, centres_m, p, prior or CameraPrior(), with_cameras, with_scale, scale_from)

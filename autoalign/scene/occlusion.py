@@ -21,16 +21,22 @@ in front of it: there the models say the pixel is hidden and its comparison with
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.engine.objective import Level, LevelViews, SilhouetteObjective
+from autoalign.engine.objective import (
+    DEPTH_SAMPLES_MIN,
+    Level,
+    LevelViews,
+    SilhouetteObjective,
+)
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import transform_points
 from autoalign.io.instances import InstanceScenes
 from autoalign.losses import robust_view_weights
+from autoalign.losses.depth import MAX_SAMPLES, DepthNoise, DepthTerms, depth_terms
 from autoalign.quality.overlap import iou_from_counts
 from autoalign.rasterizers.camera_batch import CameraBatch
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
@@ -72,6 +78,7 @@ class JointEvaluation:
     weights: list[NDArray[np.float64]]
     value: float
     robust: bool = True
+    depth: list[DepthTerms | None] | None = None
 
     def iou(self, i: int) -> NDArray[np.float64]:
         return np.array([f.iou for f in self.fits[i]])
@@ -84,7 +91,7 @@ class JointEvaluation:
         if not self.robust:
             return self
         w = [robust_view_weights(self.iou(i)) for i in range(len(self.fits))]
-        return JointEvaluation(self.fits, w, _weighted_value(self.fits, w), self.robust)
+        return JointEvaluation(self.fits, w, _weighted_value(self.fits, w), self.robust, self.depth)
 
 
 def _weighted_value(fits: list[list[ViewFit]], weights: list[NDArray[np.float64]]) -> float:
@@ -113,12 +120,16 @@ class OcclusionObjective:
         pyramids: each instance's mesh pyramid, in ``found.instances`` order (drawn at ``detail.fine``).
         robust: weigh views by their fit (:func:`~autoalign.losses.robust_view_weights`); else all 1.
         detail: the meshes' detail (:class:`~autoalign.rasterizers.pyramid.MeshDetail`).
+        depth: the depth sensor's noise; with it, an instance whose scene has measured depth adds
+            the depth term (:mod:`autoalign.losses.depth`) to its own twist in each of its views.
     """
 
     def __init__(self, found: InstanceScenes, pyramids: list[MeshPyramid], robust: bool = True,
-                 detail: MeshDetail = MeshDetail()) -> None:
+                 detail: MeshDetail = MeshDetail(), depth: DepthNoise | None = None) -> None:
         self.rasterizers = [p.fine(detail) for p in pyramids]
         self.robust = robust
+        self.depth = depth
+        self.scenes = found.scenes
         self.objectives = [SilhouetteObjective(p, s, detail=detail) for p, s in zip(pyramids, found.scenes)]
         used = sorted({im for s in found.scenes for im in s.image_ids})
         by_id = dict(zip(found.image_ids, found.cameras))
@@ -153,10 +164,34 @@ class OcclusionObjective:
         for i, (sil, lv) in enumerate(zip(sils, views)):
             fits.append([self._fit(i, k, int(g), sil, lv, sils, band_rows, by_view.get((i, int(g)), []), level)
                          for k, g in enumerate(self.views_of[i])])
+        depth = self._depth(poses, fits, level)
         if weights is None:
             weights = [robust_view_weights(np.array([f.iou for f in fs])) if self.robust else np.ones(len(fs))
                        for fs in fits]
-        return JointEvaluation(fits, weights, _weighted_value(fits, weights), self.robust)
+        return JointEvaluation(fits, weights, _weighted_value(fits, weights), self.robust, depth)
+
+    def _depth(self, poses: list[NDArray[np.float64]], fits: list[list[ViewFit]],
+               level: Level) -> list[DepthTerms | None] | None:
+        """Each instance's depth terms (``None`` without depth), added in place to its views' fits
+        (its own twist comes first in each fit)."""
+        if self.depth is None or all(sc.depths is None for sc in self.scenes):
+            return None
+        out: list[DepthTerms | None] = []
+        for i, (sc, rast) in enumerate(zip(self.scenes, self.rasterizers)):
+            if sc.depths is None:
+                out.append(None)
+                continue
+            cams = [self.cameras[g] for g in self.views_of[i]]
+            d = depth_terms(rast.caster, rast.mesh, poses[i], cams, sc.depths,
+                            transform_points(poses[i], self.centres_m[i][None])[0], self.depth,
+                            max(DEPTH_SAMPLES_MIN, int(MAX_SAMPLES * level.scale)), sc.masks)
+            for k, f in enumerate(fits[i]):
+                grad, gn = f.grad.copy(), f.gn.copy()
+                grad[:6] += d.grad[k]
+                gn[:6, :6] += d.gn[k]
+                fits[i][k] = replace(f, loss=f.loss + float(d.loss[k]), grad=grad, gn=gn)
+            out.append(d)
+        return out
 
     # -------------------------------------------------------------------------------- steps
     def _overlaps(self, sils: list[Silhouettes]) -> list[_Pair]:

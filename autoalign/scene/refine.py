@@ -68,7 +68,7 @@ class InstanceResult:
 def verdict_of(result: RefineResult, empty: tuple[int, ...], models: ModelSet, obj_id: int) -> Verdict:
     """The verdict on an instance's result, with its model's symmetries (:func:`~autoalign.quality.verdict.judge`)."""
     return judge(result.iou_after, result.weights, result.image_ids, empty, result.ambiguous, models.symmetric(obj_id),
-                 result.uncertainty, models.continuous_axes(obj_id), result.turn_gap)
+                 result.uncertainty, models.continuous_axes(obj_id), result.turn_gap, result.depth)
 
 
 def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArray[np.float64]],
@@ -147,13 +147,13 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
         start = [r.result.T_wm for r in alone]
         t0 = time.perf_counter()
         attempt = (refine_jointly(found, pyramids, start, with_cameras=True, detail=opts.detail, robust=opts.robust,
-                                  with_scale=solve_scale, scale_from=scale_from, progress=progress)
+                                  with_scale=solve_scale, depth=opts.depth, scale_from=scale_from, progress=progress)
                    if refine_cameras else None)
         if attempt is not None and corrections_accepted(attempt.view_misfit_before, attempt.view_misfit_after):
             joint = attempt
         else:
             joint = refine_jointly(found, pyramids, start, detail=opts.detail, robust=opts.robust, with_scale=solve_scale,
-                                   scale_from=scale_from, progress=progress)
+                                   depth=opts.depth, scale_from=scale_from, progress=progress)
         if solve_scale:
             found = found.through({**scaled_cameras(found.camera_by_id, joint.scale), **joint.cameras})
             scale, scale_sigma = scale * joint.scale, joint.scale_sigma
@@ -172,8 +172,9 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
                                               joint.poses[k], unc.weak_turn_axes, pyramids[k].mesh.centre,
                                               opts.disambiguation.weak_turns)
             gap = own - float(scores.max())
+        depth = None if joint.evaluation.depth is None else joint.evaluation.depth[k]
         after.append(replace(r.result, T_wm=joint.poses[k], iou_after=joint.evaluation.hard_iou(k),
-                             weights=joint.evaluation.weights[k], uncertainty=unc, turn_gap=gap))
+                             weights=joint.evaluation.weights[k], uncertainty=unc, turn_gap=gap, depth=depth))
     seconds = (time.perf_counter() - t0) / max(len(alone), 1)
     results = [InstanceResult(r.instance, replace(res, timings={**res.timings, "joint": seconds}),
                               verdict_of(res, found.scenes[k].empty, models, r.instance.obj_id), r.seconds + seconds)
