@@ -18,6 +18,7 @@ from autoalign.geometry.camera import Camera
 from autoalign.io.bop import Scene
 from autoalign.io.instances import InstanceScenes, read_instance_scenes, read_instances
 from autoalign.io.models import ModelSet
+from autoalign.scene.scale import cameras_up_to_scale
 
 
 class SessionScene:
@@ -33,6 +34,8 @@ class SessionScene:
                  instances_file: str | os.PathLike[str] | None = None) -> None:
         self.scene_dir, self.models = Path(scene_dir), models
         self.found: InstanceScenes = read_instance_scenes(self.scene_dir, None)
+        if not cameras_up_to_scale(self.scene_dir):  # measured depth joins the masks (as in refine)
+            self.found = self.found.with_depth()
         self.indices = [i.index for i in self.found.instances]
         if not self.indices:
             raise AutoalignError(f"{self.scene_dir / 'mask_visib'}: no non-empty instance mask; label a scene with "
