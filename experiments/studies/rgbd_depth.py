@@ -1,0 +1,116 @@
+"""Real sensor depth as evidence: the YCB-Video RGB-D frames of ``shared/real/ycbv_rgbd/0000``.
+
+Every object starts 20 mm along its viewing ray and 10 degrees off (about a random axis, three
+starts each) and is refined by ``autoalign.refine`` from its own masks, degraded as the issue asks
+(the frames' masks are renderings of the labels): eroded by 4 px, and eroded with 1 view in 3 cut to
+the object's left half. Each run with the depth term (``RefineOptions()``) and without
+(``RefineOptions(depth=None)``); errors against the dataset's labels (which agree with the sensor
+depth to about 2 mm), symmetry-aware, and the verdict.
+
+    python -m autoalign.experiments.studies.rgbd_depth
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from autoalign.engine.refine import RefineOptions, refine
+from autoalign.experiments import RESULTS
+from autoalign.experiments.result_files import write_results
+from autoalign.experiments.studies.metrics import Symmetries, pose_errors
+from autoalign.experiments.studies.shared_data import YCBV_RGBD
+from autoalign.geometry.mesh import load_mesh
+from autoalign.geometry.se3 import apply_twist, make_pose, transform_points
+from autoalign.io.bop import Scene, read_scene, with_depth
+from autoalign.io.models import ModelSet
+from autoalign.quality.verdict import judge
+
+ERODE_PX = 4
+STARTS = 3
+MASKS = ("eroded", "eroded + 1 in 3 cut")
+
+
+def degraded(scene: Scene, cut: bool) -> Scene:
+    """The scene's masks eroded by :data:`ERODE_PX`; with ``cut``, every third one also loses the
+    object's right half (from the median column of its pixels)."""
+    kernel = np.ones((2 * ERODE_PX + 1, 2 * ERODE_PX + 1), np.uint8)
+    masks = []
+    for v, m in enumerate(scene.masks):
+        m = cv2.erode((m > 0.5).astype(np.uint8), kernel)
+        if cut and v % 3 == 0 and m.any():
+            m[:, int(np.median(np.nonzero(m)[1])):] = 0
+        masks.append(m.astype(np.float32))
+    return replace(scene, masks=masks)
+
+
+def run(data: Path) -> list[dict]:
+    """One row per object, mask condition, start and depth setting."""
+    gt = json.loads((data / "scene_gt.json").read_text())["1"]  # world = camera of image 1
+    models = ModelSet.read(data / "models")
+    rng = np.random.default_rng(0)
+    rows = []
+    for k, entry in enumerate(gt):
+        obj = int(entry["obj_id"])
+        mesh = load_mesh(models.path(obj))
+        sym = Symmetries.from_info(models.info.get(obj))
+        T = make_pose(np.reshape(entry["cam_R_m2c"], (3, 3)), np.asarray(entry["cam_t_m2c"], dtype=np.float64))
+        c = transform_points(T, mesh.centre[None])[0]
+        scene = with_depth(read_scene(data, k))
+        for start in range(STARTS):
+            axis = rng.normal(size=3)
+            T0 = apply_twist(T, np.array([*(20.0 * c / np.linalg.norm(c)), *(np.radians(10.0) * axis / np.linalg.norm(axis))]), c)
+            for masks in MASKS:
+                sc = degraded(scene, cut=masks != MASKS[0])
+                for depth in (True, False):
+                    t0 = time.perf_counter()
+                    res = refine(sc, mesh, T0, RefineOptions() if depth else RefineOptions(depth=None))
+                    wall = time.perf_counter() - t0
+                    e = pose_errors(res.T_wm, T, mesh.centre, None, sym)
+                    along = float((transform_points(res.T_wm, mesh.centre[None])[0] - c) @ c / np.linalg.norm(c))
+                    verdict = judge(res.iou_after, res.weights, res.image_ids, sc.empty, res.ambiguous,
+                                    bool(sym.discrete or sym.continuous), res.uncertainty, (), res.turn_gap, res.depth)
+                    rows.append({"obj_id": obj, "start": start, "masks": masks, "depth": depth,
+                                 "err_mm": float(e.pos_err_mm), "err_deg": float(e.rot_err_deg), "along_ray_mm": along,
+                                 "verdict": verdict.status, "wall_s": wall})
+    return rows
+
+
+def table(rows: list[dict]) -> list[str]:
+    lines = ["# Real sensor depth as evidence (YCB-Video frames)", "",
+             "`python -m autoalign.experiments.studies.rgbd_depth`: each object from "
+             f"{STARTS} starts 20 mm along its viewing ray and 10 deg off; masks eroded by {ERODE_PX} px (and 1 in 3 "
+             "cut to half the object); errors symmetry-aware against the dataset's labels.", "",
+             "| object | masks | depth | within 3 mm / 2 deg | median err mm | max err mm | median err deg | "
+             "median along ray mm | verdicts ok/check/failed |", "|---|---|---|---|---|---|---|---|---|"]
+    for obj in sorted({r["obj_id"] for r in rows}):
+        for masks in MASKS:
+            for depth in (True, False):
+                rs = [r for r in rows if r["obj_id"] == obj and r["masks"] == masks and r["depth"] == depth]
+                mm, deg = np.array([r["err_mm"] for r in rs]), np.array([r["err_deg"] for r in rs])
+                ok = int(np.sum((mm < 3.0) & (deg < 2.0)))
+                counts = "/".join(str(sum(r["verdict"] == v for r in rs)) for v in ("ok", "check", "failed"))
+                lines.append(f"| {obj} | {masks} | {'yes' if depth else 'no'} | {ok} of {len(rs)} | "
+                             f"{np.median(mm):.2f} | {mm.max():.2f} | {np.median(deg):.2f} | "
+                             f"{np.median([r['along_ray_mm'] for r in rs]):+.1f} | {counts} |")
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", type=Path, default=YCBV_RGBD)
+    p.add_argument("--out", type=Path, default=RESULTS)
+    a = p.parse_args(argv)
+    rows = run(a.data)
+    write_results("rgbd_depth", rows, table(rows), a.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
