@@ -180,8 +180,11 @@ def test_the_command_uses_the_scenes_depth_unless_told_off(tmp_path) -> None:
             depth = report["depth"]
             assert len(depth["rms_mm"]) == len(report["image_ids"]) == 10
             assert min(depth["used_px"]) > 500 and max(depth["rms_mm"]) < 5.0
+            terms = report["terms"]  # each term per view: the depth carries part of every view's loss
+            assert len(terms["depth_share"]) == len(terms["mask_loss"]) == len(terms["weight"]) == 10
+            assert all(0.0 < s < 1.0 for s in terms["depth_share"]) and min(terms["mask_loss"]) >= 0.0
         else:
-            assert report["depth"] is None
+            assert report["depth"] is None and report["terms"]["depth_loss"] is None
     assert errors["auto"] < 3.0 and errors["off"] > 10.0, errors
 
 
@@ -218,6 +221,7 @@ def test_every_instance_of_a_scene_and_the_joint_stage_use_the_depth(tmp_path) -
     for inst in report["instances"]:
         k, obj = inst["instance"], inst["obj_id"]
         assert inst["depth"] is not None and min(inst["depth"]["used_px"]) > 300, inst["depth"]
+        assert len(inst["terms"]["depth_share"]) == len(inst["image_ids"])
         if obj in (8, 21):
             mesh = load_mesh(YCBV_RGBD / "models" / f"obj_{obj:06d}.ply")
             found = transform_points(np.asarray(inst["pose"]["T_wm"]), mesh.centre[None])[0]

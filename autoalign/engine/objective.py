@@ -57,6 +57,24 @@ class LevelViews:
 
 
 @dataclass
+class ViewTermsRecord:
+    """Each evidence term per view at one pose: the mask term's loss (area-normalised L2), the depth
+    term's (mean robust loss in noise units; ``None`` without depth), the view's robust weight, and
+    the depth's share of the view's loss (0-1; ``None`` without depth)."""
+
+    mask_loss: NDArray[np.float64]
+    depth_loss: NDArray[np.float64] | None
+    weights: NDArray[np.float64]
+
+    @property
+    def depth_share(self) -> NDArray[np.float64] | None:
+        if self.depth_loss is None:
+            return None
+        total = self.mask_loss + self.depth_loss
+        return np.where(total > 0, self.depth_loss / np.maximum(total, 1e-300), 0.0)
+
+
+@dataclass
 class Evaluation:
     """Objective value and derivatives at one pose. ``value = sum_i w_i loss_i``; ``grad``/``gn``
     alike. ``terms`` are the views' whole terms (mask plus depth), ``depth`` the depth's own part
@@ -69,6 +87,11 @@ class Evaluation:
     weights: NDArray[np.float64]
     silhouettes: Silhouettes
     depth: DepthTerms | None = None
+
+    def record(self) -> ViewTermsRecord:
+        """Each term per view (:class:`ViewTermsRecord`)."""
+        depth = None if self.depth is None else self.depth.loss
+        return ViewTermsRecord(self.terms.loss - (0.0 if depth is None else depth), depth, self.weights)
 
 
 class SilhouetteObjective:

@@ -21,7 +21,12 @@ from autoalign.engine.hypotheses import (
     poses_at,
     weak_turn_scores,
 )
-from autoalign.engine.objective import Evaluation, Level, SilhouetteObjective
+from autoalign.engine.objective import (
+    Evaluation,
+    Level,
+    SilhouetteObjective,
+    ViewTermsRecord,
+)
 from autoalign.engine.seeding import Click, click_centre, hull_centre, rotation_grid
 from autoalign.engine.solver import FTOL, OPTIMIZERS, Trace
 from autoalign.engine.uncertainty import Uncertainty, pose_uncertainty
@@ -236,6 +241,8 @@ class RefineResult:
             degrees; negative: a turn fit better and was refined); ``None`` when none were tried.
             Near 0 the object is nearly symmetric about such an axis.
         depth: the depth term at the result, per view (``None``: masks only; :mod:`autoalign.losses.depth`).
+        terms: each evidence term's loss per view at the result, with the view weights
+            (:class:`~autoalign.engine.objective.ViewTermsRecord`).
     """
 
     T_wm: NDArray[np.float64]
@@ -254,6 +261,7 @@ class RefineResult:
     uncertainty: Uncertainty | None = None
     turn_gap: float | None = None
     depth: DepthTerms | None = None
+    terms: ViewTermsRecord | None = None
 
 
 def _run_schedule(obj: SilhouetteObjective, T: NDArray[np.float64], levels: tuple[Level, ...], optimizer: str,
@@ -574,4 +582,4 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
         iterations=sum(tr.iterations for _, tr in best.path), renders=obj.renders, timings=timings,
         hypotheses=standing.ranked, ambiguous=standing.ambiguous, runner_up=standing.runner_up,
         weights=final[0].weights, history=history, image_ids=list(scene.image_ids), uncertainty=uncertainty,
-        turn_gap=turn_gap, depth=final_ev.depth)
+        turn_gap=turn_gap, depth=final_ev.depth, terms=final_ev.record())

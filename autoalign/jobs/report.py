@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign import __version__
+from autoalign.engine.objective import ViewTermsRecord
 from autoalign.engine.refine import RefineOptions, RefineResult
 from autoalign.engine.uncertainty import Uncertainty
 from autoalign.geometry.camera import PIXEL_CONVENTION
@@ -41,6 +42,15 @@ def floats(a: Any) -> Any:
         v = float(arr)
         return v if np.isfinite(v) else None
     return [floats(x) for x in arr]
+
+
+def terms_record(terms: ViewTermsRecord | None) -> dict[str, Any] | None:
+    """Each evidence term per view of ``image_ids``: the mask term's and the depth term's loss, the
+    view's robust weight and the depth's share of the view's loss (``None`` entries: no depth)."""
+    if terms is None:
+        return None
+    return {"mask_loss": terms.mask_loss, "depth_loss": terms.depth_loss, "weight": terms.weights,
+            "depth_share": terms.depth_share}
 
 
 def depth_record(depth: DepthTerms | None) -> dict[str, Any] | None:
@@ -221,6 +231,7 @@ class RefineReport:
                             "pose_init": pose_record(h.T_init), "pose": pose_record(h.T_final)}
                            for k, h in enumerate(r.hypotheses)],
             "ambiguous": bool(r.ambiguous), "turn_gap": r.turn_gap, "depth": depth_record(r.depth),
+            "terms": terms_record(r.terms),
             "runner_up": None if self.runner_up is None else self.runner_up.to_json(),
             "options": self.options, "history": r.history, "outputs": dict(OUTPUTS),
             "warnings": self.warnings + self.notes(),
@@ -269,7 +280,8 @@ class InstanceReport:
             "weights": res.weights, "median_iou_after": float(np.median(res.iou_after)),
             "empty_masks": self.empty,
             "ambiguous": bool(res.ambiguous), "symmetric": self.symmetric, "turn_gap": res.turn_gap,
-            "depth": depth_record(res.depth), "iterations": res.iterations, "renders": res.renders,
+            "depth": depth_record(res.depth), "terms": terms_record(res.terms),
+            "iterations": res.iterations, "renders": res.renders,
             "timings": {**res.timings, "instance": self.seconds},
         }
 

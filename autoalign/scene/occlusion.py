@@ -31,6 +31,7 @@ from autoalign.engine.objective import (
     Level,
     LevelViews,
     SilhouetteObjective,
+    ViewTermsRecord,
 )
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import transform_points
@@ -85,6 +86,12 @@ class JointEvaluation:
 
     def hard_iou(self, i: int) -> NDArray[np.float64]:
         return np.array([f.hard_iou for f in self.fits[i]])
+
+    def record(self, i: int) -> ViewTermsRecord:
+        """Instance ``i``'s terms per view (:class:`~autoalign.engine.objective.ViewTermsRecord`)."""
+        d = None if self.depth is None or self.depth[i] is None else self.depth[i].loss
+        loss = np.array([f.loss for f in self.fits[i]])
+        return ViewTermsRecord(loss - (0.0 if d is None else d), d, self.weights[i])
 
     def reweighted(self) -> "JointEvaluation":
         """The same fits with the weights computed from their own IoU (an IRLS step; none if not robust)."""

@@ -174,7 +174,8 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
             gap = own - float(scores.max())
         depth = None if joint.evaluation.depth is None else joint.evaluation.depth[k]
         after.append(replace(r.result, T_wm=joint.poses[k], iou_after=joint.evaluation.hard_iou(k),
-                             weights=joint.evaluation.weights[k], uncertainty=unc, turn_gap=gap, depth=depth))
+                             weights=joint.evaluation.weights[k], uncertainty=unc, turn_gap=gap, depth=depth,
+                             terms=joint.evaluation.record(k)))
     seconds = (time.perf_counter() - t0) / max(len(alone), 1)
     results = [InstanceResult(r.instance, replace(res, timings={**res.timings, "joint": seconds}),
                               verdict_of(res, found.scenes[k].empty, models, r.instance.obj_id), r.seconds + seconds)
