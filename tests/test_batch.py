@@ -113,7 +113,7 @@ def test_bad_batch_lists_are_one_line_errors(batch, tmp_path):
 # Interrupts and faults (issue 26)
 # ----------------------------------------------------------------------------------------------
 
-N_SHORT = 12  # long enough that "2 s into the batch" is inside it with 2 workers (6 took 2-3 s)
+N_SHORT = 12
 SCENE_OUTPUTS = ("scene_gt.json", "refine.json", "overlay.png")
 
 
@@ -152,7 +152,7 @@ def _complete_outputs(folder: Path) -> bool:
 
 
 @pytest.mark.parametrize("workers", [1, 2])
-@pytest.mark.parametrize("moment", ["0.3 s into the batch", "2 s into the batch", "first scene done"])
+@pytest.mark.parametrize("moment", ["0.3 s into the batch", "first scene done", "half the scenes done"])
 def test_ctrl_c_in_a_batch_exits_130_records_only_finished_scenes_and_leaves_no_process(batch, tmp_path, workers,
                                                                                        moment):
     """Ctrl-C (SIGINT to the command's process group, as a terminal sends it) while a batch runs, in
@@ -184,8 +184,9 @@ def test_ctrl_c_in_a_batch_exits_130_records_only_finished_scenes_and_leaves_no_
     reader.start()
     assert started.wait(120)
     t0 = time.monotonic()
-    if moment == "first scene done":
-        while not read_records(out / BATCH_RECORDS) and p.poll() is None and time.monotonic() - t0 < 120:
+    if moment.endswith("done"):  # counted from the records, however fast the machine runs the scenes
+        wanted = 1 if moment == "first scene done" else N_SHORT // 2
+        while len(read_records(out / BATCH_RECORDS)) < wanted and p.poll() is None and time.monotonic() - t0 < 120:
             time.sleep(0.02)
     else:
         time.sleep(float(moment.split()[0]))
