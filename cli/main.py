@@ -48,8 +48,10 @@ from autoalign.io.out_folder import write_outputs  # noqa: F401 - where the test
 from autoalign.jobs.job import (
     DEPTH_MODES,
     LOSSES,
+    MASK_MODES,
     OPTIMIZERS,
     OUTPUT_FILES,  # noqa: F401 - the tests read it here
+    PHOTO_MODES,
     FolderJob,
     FolderOutcome,
 )
@@ -188,6 +190,13 @@ def _add_algorithm_arguments(p: argparse.ArgumentParser) -> None:
                      help="auto (default): when the scene has depth/ (times scene_camera.json's depth_scale = mm) and "
                           "metric cameras, the measured depth joins the masks as evidence (a sensor noise model, "
                           "nearer measurements taken as occluders); off: masks only")
+    alg.add_argument("--masks", choices=MASK_MODES, default="auto",
+                     help="auto (default): the instance masks of mask_visib/; none: withhold every mask, the photos "
+                          "(rgb/) place the objects from --init")
+    alg.add_argument("--photos", choices=PHOTO_MODES, default="auto",
+                     help="on: the photos join the masks as evidence (colour models of each object and its "
+                          "surroundings around its outline: a mask that misses parts is completed); auto "
+                          "(default): only with --masks none; off: never")
     alg.add_argument("--no-robust", action="store_true",
                      help="weigh all views equally; by default views whose mask disagrees with the others "
                           "(occlusion, bad segmentation) are down-weighted (Cauchy weights on 1 - IoU)")
@@ -302,7 +311,8 @@ def _main(argv: list[str] | None) -> int:
 # autoalign refine
 # ------------------------------------------------------------------------------------------
 
-BATCH_SHARED = ("models", "model", "units", "obj_id", "instance", "instances", "loss", "optimizer", "depth")
+BATCH_SHARED = ("models", "model", "units", "obj_id", "instance", "instances", "loss", "optimizer", "depth", "masks",
+                "photos")
 """Options of ``refine`` passed on to every scene of a batch (with the flags below)."""
 BATCH_FLAGS = ("refine_cameras", "solve_scale", "no_robust")
 
@@ -367,7 +377,8 @@ def run_refine(args: argparse.Namespace) -> int:
     job = FolderJob(scene=args.scene, out=args.out, model=args.model, models=args.models, units=args.units,
                     obj_id=args.obj_id, instance=args.instance, instances=args.instances, init=args.init,
                     click=args.click, loss=args.loss, optimizer=args.optimizer, refine_cameras=args.refine_cameras,
-                    solve_scale=args.solve_scale, robust=not args.no_robust, depth=args.depth)
+                    solve_scale=args.solve_scale, robust=not args.no_robust, depth=args.depth, masks=args.masks,
+                    photos=args.photos)
     outcome = refine_folder(job, LOG, ProgressBar(enabled=not args.quiet), t_start)
     elapsed = time.perf_counter() - t_start
     if args.models is not None:

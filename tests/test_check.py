@@ -60,6 +60,7 @@ from autoalign.io.bop import (
     read_photo,
 )
 from autoalign.io.models import ColouredMesh, ModelSet, load_coloured_mesh
+from autoalign.io.photos import read_photo_scaled
 from autoalign.quality.check import check_image, summarize
 from autoalign.quality.check_report import MIN_MATCHES, CheckReport, ViewInstanceCheck
 from autoalign.quality.edge_distance import (
@@ -77,7 +78,6 @@ from autoalign.quality.label_compare import (
     comparison_figure,
 )
 from autoalign.quality.label_rendering import PlacedMesh, render_labels
-from autoalign.quality.photos import read_photo_scaled
 from autoalign.quality.scene_check import check_scene, select_images
 from autoalign.quality.sift import photo_sift
 

@@ -27,6 +27,7 @@ from autoalign.engine.objective import (
     SilhouetteObjective,
     ViewTermsRecord,
 )
+from autoalign.engine.photo_evidence import PhotoEvidence, refine_with_photos
 from autoalign.engine.seeding import Click, click_centre, hull_centre, rotation_grid
 from autoalign.engine.solver import FTOL, OPTIMIZERS, Trace
 from autoalign.engine.uncertainty import Uncertainty, pose_uncertainty
@@ -36,6 +37,7 @@ from autoalign.geometry.se3 import rotation_angle_deg, transform_points
 from autoalign.io.bop import Scene
 from autoalign.losses import targets_in_crops
 from autoalign.losses.depth import DepthNoise, DepthTerms
+from autoalign.losses.region import RegionOptions
 from autoalign.quality.overlap import iou_from_counts, view_ious
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
@@ -140,6 +142,8 @@ class RefineOptions:
         depth: the depth sensor's noise model; the depth term (:mod:`autoalign.losses.depth`) joins
             the mask term in every view when the scene has measured depth
             (:func:`~autoalign.io.bop.with_depth`); ``None``: masks only.
+        region: the region (colour) term (:mod:`autoalign.losses.region`), used when the scene
+            carries its photos (:func:`~autoalign.io.photos.with_photos`); ``None``: photos ignored.
     """
 
     loss: str = "l2"
@@ -151,6 +155,7 @@ class RefineOptions:
     disambiguation: DisambiguationOptions = DisambiguationOptions()
     detail: MeshDetail = MeshDetail()
     depth: DepthNoise | None = DepthNoise()
+    region: RegionOptions | None = RegionOptions()
 
 
 class Stage(enum.Enum):
@@ -243,6 +248,9 @@ class RefineResult:
         depth: the depth term at the result, per view (``None``: masks only; :mod:`autoalign.losses.depth`).
         terms: each evidence term's loss per view at the result, with the view weights
             (:class:`~autoalign.engine.objective.ViewTermsRecord`).
+        photo: the region term's evidence at the result (``None``: photos not used;
+            :class:`~autoalign.engine.photo_evidence.PhotoEvidence`). With photos the masks the
+            IoUs and terms compare with are the region targets (the photo's posterior fused with the mask).
     """
 
     T_wm: NDArray[np.float64]
@@ -262,6 +270,7 @@ class RefineResult:
     turn_gap: float | None = None
     depth: DepthTerms | None = None
     terms: ViewTermsRecord | None = None
+    photo: PhotoEvidence | None = None
 
 
 def _run_schedule(obj: SilhouetteObjective, T: NDArray[np.float64], levels: tuple[Level, ...], optimizer: str,
@@ -530,6 +539,8 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
     Args:
         scene: calibrated views with target masks (mm, BOP world frame). Views whose mask is
             empty are left out (:meth:`Scene.without_empty_masks`; ``RefineResult.image_ids`` lists the used ones).
+            With its photos (:attr:`Scene.photos`) they are evidence too, and the masks may be empty
+            (:mod:`autoalign.engine.photo_evidence`; a seed pose is needed then).
         mesh: the object model (mm), or its :class:`~autoalign.rasterizers.pyramid.MeshPyramid` (e.g.
             :meth:`ModelSet.pyramid <autoalign.io.models.ModelSet.pyramid>`) to share its rasterizers with other calls.
         seed: a coarse world-from-model pose (4x4), a :class:`Click`, or ``None`` (visual hull).
@@ -538,6 +549,9 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
         progress: called as ``progress(stage, done, total)`` while it works.
     """
     opts = options or RefineOptions()
+    if scene.photos is not None and opts.region is not None:
+        pyramid = mesh if isinstance(mesh, MeshPyramid) else MeshPyramid(mesh)
+        return refine_with_photos(scene, pyramid, seed, opts, refine, progress)
     scene = scene.without_empty_masks()
     if len(scene) == 0:
         raise AutoalignError("every mask of the scene is empty; there is nothing to align the object with")

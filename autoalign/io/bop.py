@@ -52,6 +52,8 @@ class Scene:
             behind that one, or that mask may have strayed onto this object.
         depths: per view, the measured depth (H, W) float32 in mm along the optical axis at the
             masks' resolution, 0 where there is no measurement (``None``: no depth; see :func:`with_depth`).
+        photos: per view, the photo (H, W, 3) uint8 BGR at the masks' resolution (``None``: the photos
+            are not used as evidence; see :func:`autoalign.io.photos.with_photos`).
     """
 
     cameras: list[Camera]
@@ -63,6 +65,7 @@ class Scene:
     image_scale: float = 1.0
     ignore: list[NDArray[np.bool_]] | None = None
     depths: list[NDArray[np.float32]] | None = None
+    photos: list[NDArray[np.uint8]] | None = None
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -89,7 +92,8 @@ class Scene:
         return replace(self, cameras=[self.cameras[i] for i in idx], masks=[self.masks[i] for i in idx],
                        image_ids=[self.image_ids[i] for i in idx],
                        ignore=None if self.ignore is None else [self.ignore[i] for i in idx],
-                       depths=None if self.depths is None else [self.depths[i] for i in idx])
+                       depths=None if self.depths is None else [self.depths[i] for i in idx],
+                       photos=None if self.photos is None else [self.photos[i] for i in idx])
 
     def compared(self, k: int) -> NDArray[np.bool_] | None:
         """View ``k``'s pixels where the silhouette is compared with the mask (``None``: all)."""

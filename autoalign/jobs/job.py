@@ -24,6 +24,8 @@ OUTPUT_FILES = ("scene_gt.json", "refine.json", "overlay.png", "scene_camera.jso
 """Every file a refinement may write (``scene_camera.json`` only with ``refine_cameras`` or a solved scale)."""
 LOSSES = ("l2", "bce", "iou", "dice")
 DEPTH_MODES = ("auto", "off")
+MASK_MODES = ("auto", "none")
+PHOTO_MODES = ("auto", "on", "off")
 OPTIMIZERS = ("lm", "gn", "adam")
 MESH_UNITS = ("mm", "m")
 EXIT_OK = 0
@@ -93,7 +95,10 @@ class FolderJob:
     Exactly one of ``model`` (one object: its mesh, mm) and ``models`` (every instance: a BOP models
     folder); ``init`` (a coarse ``scene_gt.json``) or ``click`` (``IM_ID:U,V``, one object only)
     seeds it; ``units`` of the meshes (``mm``/``m``, default: refuse tiny meshes); ``depth``: ``auto``
-    uses the scene's ``depth/`` when it has one (and metric cameras), ``off`` never."""
+    uses the scene's ``depth/`` when it has one (and metric cameras), ``off`` never; ``masks``:
+    ``auto`` reads the instance masks, ``none`` withholds them all (the photos place the objects,
+    from ``init``); ``photos``: ``on`` uses the photos as evidence with the masks, ``auto`` only
+    where the masks are withheld, ``off`` never (:meth:`uses_photos`)."""
 
     scene: str
     out: str
@@ -111,6 +116,13 @@ class FolderJob:
     solve_scale: bool = False
     robust: bool = True
     depth: str = "auto"
+    masks: str = "auto"
+    photos: str = "auto"
+
+    @property
+    def uses_photos(self) -> bool:
+        """Whether the photos are evidence (``photos`` ``on``, or ``auto`` with ``masks`` ``none``)."""
+        return self.photos == "on" or (self.photos == "auto" and self.masks == "none")
 
     @classmethod
     def from_argv(cls, scene: str, argv: Sequence[str], out: str) -> FolderJob:
@@ -146,9 +158,14 @@ class FolderJob:
             raise AutoalignError("give at most one of --init and --click")
         for name, value, allowed in (("--loss", self.loss, LOSSES), ("--optimizer", self.optimizer, OPTIMIZERS),
                                      ("--depth", self.depth, DEPTH_MODES),
+                                     ("--masks", self.masks, MASK_MODES), ("--photos", self.photos, PHOTO_MODES),
                                      ("--units", self.units, (None, *MESH_UNITS))):
             if value not in allowed:
                 raise AutoalignError(f"{name} {value}: choose one of {', '.join(a for a in allowed if a)}")
+        if self.masks == "none" and self.photos == "off":
+            raise AutoalignError("--masks none leaves the photos as the only evidence: drop --photos off")
+        if self.masks == "none" and self.init is None:
+            raise AutoalignError("--masks none refines a coarse pose from the photos: give --init (a coarse scene_gt.json)")
         if self.models is not None and self.click is not None:
             raise AutoalignError("--click seeds one object; with --models give a coarse --init for the scene, or no seed")
         if self.instances is not None and self.models is None:

@@ -80,7 +80,16 @@ def _refine_object(job: FolderJob, click: Any, log: RunLog, progress: Stages) ->
     from autoalign.quality.overlay import render_overlay
     from autoalign.rasterizers.pyramid import MeshPyramid
 
-    scene = read_scene(job.scene, job.instance)
+    if job.masks == "none":
+        from autoalign.io.photos import read_scene_without_masks
+
+        scene = read_scene_without_masks(job.scene)
+    else:
+        scene = read_scene(job.scene, job.instance)
+        if job.uses_photos:
+            from autoalign.io.photos import with_photos
+
+            scene = with_photos(scene)
     if job.depth == "auto":
         scene = with_depth(scene)
     mesh = load_mesh(job.model, units=job.units)

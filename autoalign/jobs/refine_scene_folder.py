@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from autoalign.engine.refine import RefineOptions
+from autoalign.errors import AutoalignError
 from autoalign.io.instances import (
     InstanceScenes,
     read_init_poses,
@@ -114,11 +115,31 @@ def read_scene_inputs(job: FolderJob, log: RunLog) -> SceneInputs:
     else, with ``job.depth`` ``auto``, every instance's scene with the folder's measured depth."""
     scene_dir = Path(job.scene)
     instances = read_instances(scene_dir, Path(job.instances) if job.instances else None)
-    found = read_instance_scenes(scene_dir, instances)
+    if job.masks == "none":
+        from autoalign.io.photos import read_instance_scenes_without_masks
+
+        found = read_instance_scenes_without_masks(scene_dir, instances)
+    else:
+        found = read_instance_scenes(scene_dir, instances)
+        if job.uses_photos:
+            from autoalign.io.photos import instance_scenes_with_photos
+
+            found = instance_scenes_with_photos(found)
     models = ModelSet.read(job.models, job.units)
     for inst in found.instances:
         models.mesh(inst.obj_id)  # every model present and readable before the slow part
     seeds = read_init_poses(job.init, found) if job.init is not None else {}
+    if job.masks == "none":
+        missing = [i.index for i in found.instances if i.index not in seeds]
+        if missing:
+            raise AutoalignError(f"{job.init}: no pose for instance(s) {', '.join(map(str, missing))}; without masks "
+                                 "every instance needs a coarse pose to start from")
+        if job.solve_scale or cameras_up_to_scale(scene_dir):
+            raise AutoalignError("--masks none needs metric cameras: the scale is solved from the masks; "
+                                 "give the masks or a metric scene_camera.json")
+        from autoalign.scene.photos import others_left_out
+
+        found = others_left_out(found, models, seeds)  # each instance's colour models leave the others out
     guess = None
     if job.depth == "auto" and not (job.solve_scale or cameras_up_to_scale(scene_dir)):
         found = found.with_depth()  # metric depth and cameras of an unknown unit would disagree

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from autoalign import __version__
 from autoalign.engine.objective import ViewTermsRecord
+from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult
 from autoalign.engine.uncertainty import Uncertainty
 from autoalign.geometry.camera import PIXEL_CONVENTION
@@ -51,6 +52,15 @@ def terms_record(terms: ViewTermsRecord | None) -> dict[str, Any] | None:
         return None
     return {"mask_loss": terms.mask_loss, "depth_loss": terms.depth_loss, "weight": terms.weights,
             "depth_share": terms.depth_share}
+
+
+def photo_record(photo: PhotoEvidence | None) -> dict[str, Any] | None:
+    """The region (colour) term at the result, per view of ``image_ids``: the band's half-width
+    (px), the share of the band's pixels whose colour posterior agrees with the silhouette, and the
+    rounds the colour models were learned in (``None``: photos not used)."""
+    if photo is None:
+        return None
+    return {"band_px": photo.band_px, "agreement": photo.agreement, "rounds": photo.rounds}
 
 
 def depth_record(depth: DepthTerms | None) -> dict[str, Any] | None:
@@ -231,7 +241,7 @@ class RefineReport:
                             "pose_init": pose_record(h.T_init), "pose": pose_record(h.T_final)}
                            for k, h in enumerate(r.hypotheses)],
             "ambiguous": bool(r.ambiguous), "turn_gap": r.turn_gap, "depth": depth_record(r.depth),
-            "terms": terms_record(r.terms),
+            "photo": photo_record(r.photo), "terms": terms_record(r.terms),
             "runner_up": None if self.runner_up is None else self.runner_up.to_json(),
             "options": self.options, "history": r.history, "outputs": dict(OUTPUTS),
             "warnings": self.warnings + self.notes(),
@@ -280,7 +290,7 @@ class InstanceReport:
             "weights": res.weights, "median_iou_after": float(np.median(res.iou_after)),
             "empty_masks": self.empty,
             "ambiguous": bool(res.ambiguous), "symmetric": self.symmetric, "turn_gap": res.turn_gap,
-            "depth": depth_record(res.depth), "terms": terms_record(res.terms),
+            "depth": depth_record(res.depth), "photo": photo_record(res.photo), "terms": terms_record(res.terms),
             "iterations": res.iterations, "renders": res.renders,
             "timings": {**res.timings, "instance": self.seconds},
         }

@@ -30,7 +30,7 @@ Conventions (as the BOP files):
   continuous coordinate ``(u, v) = (j, i)``; the ray of pixel (i, j) goes through ``K^-1 [j, i, 1]``.
   Keypoint positions (OpenCV) use the same convention.
 
-The check is split by job: the photos read at a scale (:mod:`~autoalign.quality.photos`), the labels'
+The check is split by job: the photos read at a scale (:mod:`~autoalign.io.photos`), the labels'
 rendering (:mod:`~autoalign.quality.label_rendering`), SIFT (:mod:`~autoalign.quality.sift`), the
 bootstrap intervals (:mod:`~autoalign.quality.stats`), the records (:mod:`~autoalign.quality.check_report`),
 the scene's inputs and loop (:mod:`~autoalign.quality.scene_check`) and the figure

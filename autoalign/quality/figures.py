@@ -7,8 +7,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.io.bop import photo_path
+from autoalign.io.photos import read_photo_scaled
 from autoalign.quality.check_report import CheckReport
-from autoalign.quality.photos import read_photo_scaled
 
 
 def _colour(instance: int) -> tuple[int, int, int]:

@@ -26,9 +26,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.io.bop import mask_path, photo_path, read_masks
+from autoalign.io.photos import read_photo_scaled
 from autoalign.quality.check_report import CheckReport, ViewInstanceCheck
 from autoalign.quality.edge_distance import outline_pixels
-from autoalign.quality.photos import read_photo_scaled
 from autoalign.quality.stats import bootstrap_mean_ci
 
 FIGURE_VIEWS = 5

@@ -25,9 +25,9 @@ from autoalign.io.bop import (
     read_masks,
 )
 from autoalign.io.models import ColouredMesh, ModelSet
+from autoalign.io.photos import read_photo_scaled, scaled_K
 from autoalign.quality.check import check_image, summarize
 from autoalign.quality.check_report import CheckReport, ViewInstanceCheck
-from autoalign.quality.photos import read_photo_scaled, scaled_K
 from autoalign.quality.stats import pooled_mean_ci
 
 

@@ -41,6 +41,7 @@ from autoalign.io.models import ModelSet
 from autoalign.quality.verdict import Verdict, judge
 from autoalign.scene.cameras import corrections_accepted
 from autoalign.scene.joint import JointRefinement, refine_jointly
+from autoalign.scene.photos import region_targets
 from autoalign.scene.scale import grown_pose, rescaled, scale_from_masks, scaled_cameras
 
 Progress = Callable[[str, int, int], None]
@@ -146,6 +147,8 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
         pyramids = [models.pyramid(r.instance.obj_id) for r in alone]
         start = [r.result.T_wm for r in alone]
         t0 = time.perf_counter()
+        if opts.region is not None:  # the photos' evidence as targets learned at the alone poses, others left out
+            found = region_targets(found, models, start, opts.region, opts.detail)
         attempt = (refine_jointly(found, pyramids, start, with_cameras=True, detail=opts.detail, robust=opts.robust,
                                   with_scale=solve_scale, depth=opts.depth, scale_from=scale_from, progress=progress)
                    if refine_cameras else None)

@@ -10,9 +10,12 @@ the model's diameter. The dataset's labels are a few pixels off the photos, so a
 few millimetres is all a correct label can show. Results: ``experiments/results/real_scenes.md``.
 
 Seeds: ``init`` (the coarse start), ``none`` (no seed), ``init-cameras`` (the coarse start and
-``--refine-cameras``; the table then also gives the median per-view misfit before and after).
+``--refine-cameras``; the table then also gives the median per-view misfit before and after);
+with ``-photos`` appended (``init-photos``, ``none-photos``) the photos join the SAM masks as
+evidence (``--photos on``), with ``-nomasks`` (``init-nomasks``) every mask is withheld and the
+photos alone refine the coarse start (``--masks none``).
 
-``python -m autoalign.experiments.studies.real_scenes [--data ../shared/real/lmo_dev] [--seeds init,none,init-cameras]``
+``python -m autoalign.experiments.studies.real_scenes [--data ../shared/real/lmo_dev] [--seeds init,none,init-cameras] [--name real_scenes]``
 """
 
 from __future__ import annotations
@@ -162,6 +165,7 @@ def run_scene(scene: Path, seed_kind: str, tmp: Path, figure: Path | None = None
     args = ["refine", str(scene), "--models", str(scene / "models"), "--instances", str(instances), "--out", str(out),
             "--quiet"]
     args += (["--init", str(init)] if seed_kind.startswith("init") else []) + (["--refine-cameras"] if seed_kind.endswith("cameras") else [])
+    args += ["--photos", "on"] if seed_kind.endswith("-photos") else ["--masks", "none"] if seed_kind.endswith("-nomasks") else []
     wall = run_autoalign(*args).check().wall_s
     rec = json.loads((out / "refine.json").read_text())
     fdist = feature_distances(scene, out, tmp, figure)
@@ -208,18 +212,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data", type=Path, default=DEFAULT_DATA)
     p.add_argument("--seeds", default="init,none,init-cameras")
     p.add_argument("--out", type=Path, default=RESULTS)
+    p.add_argument("--name", default="real_scenes", help="the results' file name (without .md / .json)")
     a = p.parse_args(argv)
     scenes = sorted(d for d in a.data.iterdir() if (d / "gt_world.json").is_file())
     rows: list[dict] = []
     with tempfile.TemporaryDirectory() as tmp:
         for kind in a.seeds.split(","):
             for scene in scenes:
-                figure = a.out / "real_scenes" / f"{scene.name}_{kind}.png" if kind == "init" else None
+                figure = a.out / a.name / f"{scene.name}_{kind}.png" if kind.startswith("init") else None
                 for r in run_scene(scene, kind, Path(tmp), figure):
                     rows.append(r)
                     print(json.dumps(r), flush=True)
     lines = ["# Real LM-O scenes: rigid-group labels against gt_world.json", "",
-             f"`python -m autoalign.experiments.studies.real_scenes --seeds {a.seeds}`; errors symmetry-aware, "
+             f"`python -m autoalign.experiments.studies.real_scenes --seeds {a.seeds} --name {a.name}`; errors symmetry-aware, "
              "ADD(-S) relative to the diameter; `wall s` is the whole command for the scene.", "",
              "| seed | kind | instances | ADD < 10% | median err mm | median err deg | vs the dataset's labels: "
              "along ray mm, across mm, MSPD px | verdict ok/check/failed |",
@@ -270,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
                      f"{r['vs_dataset_labels']['mspd_px']:.1f} ({r['vs_dataset_labels']['max_mspd_px']:.1f}) | "
                      f"{r['dataset_mask_offset_px']:.1f} | "
                      f"{r['views']} | {r['verdict']} | {'; '.join(r['reasons'])} |")
-    write_results("real_scenes", rows, lines, a.out)
+    write_results(a.name, rows, lines, a.out)
     return 0
 
 

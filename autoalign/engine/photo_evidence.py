@@ -1,0 +1,110 @@
+"""The photo as evidence: refinement on region targets learned again from the pose reached.
+
+Each round renders the object's hard silhouettes at the current pose, learns each view's colour
+models in a band around them and makes the view's target from the pixel-wise posteriors, fused
+with the instance's mask where it has one (:func:`~autoalign.losses.region.region_target`); the
+pose is then refined on those targets by the mask engine (:func:`~autoalign.engine.refine.refine`,
+depth included). Early rounds run the schedule's first level only; once a round moves the pose
+less than the options' tolerance (or after ``rounds``), a last round runs the whole schedule with
+the disambiguation. The histograms stay fixed within a round, so the solver compares its steps on
+one objective; learning them again between rounds is the alternation PWP3D and RBOT use per frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.engine.seeding import Click
+from autoalign.errors import AutoalignError
+from autoalign.geometry.se3 import rotation_angle_deg, transform_points
+from autoalign.io.bop import Scene
+from autoalign.losses.region import RegionOptions, region_target
+from autoalign.rasterizers.pyramid import MeshPyramid
+
+if TYPE_CHECKING:
+    from autoalign.engine.refine import RefineOptions, RefineResult
+
+
+@dataclass
+class PhotoEvidence:
+    """The region term at the result: per view the band's half-width (px) and the share of the
+    band's pixels whose colour posterior agrees with the silhouette (NaN: nothing to compare), and
+    the rounds the colour models were learned in."""
+
+    band_px: NDArray[np.float64]
+    agreement: NDArray[np.float64]
+    rounds: int
+
+
+def photo_targets(scene: Scene, silhouettes: list[NDArray[np.bool_]],
+                  options: RegionOptions) -> tuple[Scene, PhotoEvidence]:
+    """``scene`` with each view's region target as its mask (see :mod:`autoalign.losses.region`),
+    the views' photos dropped (they are used), and the per-view evidence."""
+    if scene.photos is None:
+        raise ValueError("the scene has no photos")
+    has_mask = any(np.any(np.asarray(m) > 0.5) for m in scene.masks)
+    targets, bands, agree = [], [], []
+    for k, (photo, sil) in enumerate(zip(scene.photos, silhouettes)):
+        exclude = None if scene.ignore is None else scene.ignore[k]
+        rt = region_target(photo, sil, scene.masks[k] if has_mask else None, exclude, options)
+        targets.append(rt.target)
+        bands.append(rt.band_px)
+        agree.append(rt.agreement)
+    return (replace(scene, masks=targets, photos=None),
+            PhotoEvidence(np.array(bands), np.array(agree), 0))
+
+
+def _moved(A: NDArray[np.float64], B: NDArray[np.float64], centre_m: NDArray[np.float64]) -> tuple[float, float]:
+    d = float(np.linalg.norm(transform_points(A, centre_m[None]) - transform_points(B, centre_m[None])))
+    return d, float(rotation_angle_deg(A[:3, :3], B[:3, :3]))
+
+
+def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.float64] | Click | None,
+                       options: "RefineOptions", refine: Callable[..., "RefineResult"],
+                       progress: Callable[[str, int, int], None] | None = None) -> "RefineResult":
+    """Refine with the photos of ``scene`` as evidence (module doc); ``refine`` is the mask engine.
+
+    A seed without a pose (a click, or none) is first placed from the masks alone; with no mask
+    either, there is nothing to place it from and an error says what to give."""
+    from autoalign.engine.refine import DisambiguationOptions, hard_ious
+
+    region = options.region
+    assert region is not None
+    masks_only = replace(options, region=None)
+    has_mask = any(np.any(np.asarray(m) > 0.5) for m in scene.masks)
+    if seed is None or isinstance(seed, Click):
+        if not has_mask:
+            raise AutoalignError("without masks the photos refine a coarse pose: give --init (a coarse scene_gt.json)")
+        T_seed = refine(replace(scene, photos=None), pyramid, seed, masks_only, progress).T_wm
+    else:
+        T_seed = np.asarray(seed, dtype=np.float64)
+    rast = pyramid.fine(options.detail)
+    centre = pyramid.mesh.centre
+    first_level = replace(masks_only, schedule=(replace(options.schedule[0], ftol=region.round_ftol),),
+                          disambiguation=DisambiguationOptions(orbits=False, weak_turns=()))
+    T, iterations, renders = T_seed, 0, 0
+    rounds = 0
+    for r in range(region.rounds):
+        if progress is not None:
+            progress(f"photo round {r + 1}", 0, 1)
+        targets, _ = photo_targets(scene, rast.hard_masks(T, scene.cameras), region)
+        if not any(np.any(t > 0.5) for t in targets.masks):
+            break
+        res = refine(targets, pyramid, T, first_level, progress)
+        iterations, renders, rounds = iterations + res.iterations, renders + res.renders, rounds + 1
+        mm, deg = _moved(T, res.T_wm, centre)
+        T = res.T_wm
+        if mm < region.tol_mm and deg < region.tol_deg:
+            break
+    targets, evidence = photo_targets(scene, rast.hard_masks(T, scene.cameras), region)
+    if not any(np.any(t > 0.5) for t in targets.masks):
+        raise AutoalignError("the object is in no view at the given pose: check the --init pose and its obj_id")
+    result = refine(targets, pyramid, T, masks_only, progress)
+    keep = [k for k, t in enumerate(targets.masks) if np.any(t > 0.5)]  # the views refine used
+    evidence = PhotoEvidence(evidence.band_px[keep], evidence.agreement[keep], rounds + 1)
+    return replace(result, T_init=T_seed, iou_before=hard_ious(rast, targets.subset(keep), T_seed),
+                   iterations=result.iterations + iterations, renders=result.renders + renders, photo=evidence)

@@ -1,0 +1,141 @@
+"""Synthetic BOP scenes with photos: textured objects on a textured table, rendered with mitsuba.
+
+Every pixel's ray (through the pixel centre) is cast with mitsuba (:class:`~autoalign.rasterizers.ray_casting.RayCaster`)
+at the table and at each object; the nearest hit colours the pixel with that surface's own solid
+texture (:class:`~autoalign.experiments.scenes.stream.SolidTexture`; each object carries its own
+base colour, the table a wood-like one), shaded by the angle to the ray, plus sensor noise. The
+masks are cast independently with open3d (:func:`~autoalign.experiments.scenes.synthetic.raycast_visible_masks`),
+and optionally the depth (mm) of the nearest hit.
+
+The world frame has z up and the table top at z = 0; objects rest on their lowest point on a ring.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.experiments.scenes.stream import DEPTH_SCALE, SolidTexture
+from autoalign.experiments.scenes.synthetic import (
+    pixel_rays,
+    random_rotation,
+    ring_cameras,
+    write_multi_scene,
+)
+from autoalign.geometry.camera import Camera
+from autoalign.geometry.mesh import Mesh, mesh_from_trimesh
+from autoalign.geometry.se3 import make_pose
+from autoalign.rasterizers.ray_casting import RayCaster
+
+
+@dataclass
+class PhotoScene:
+    """A written scene: its folder, cameras, meshes and true world-from-model poses (mm)."""
+
+    folder: Path
+    cameras: list[Camera]
+    meshes: list[Mesh]
+    poses: list[NDArray[np.float64]]
+    masks: list[list[NDArray[np.bool_]]]
+
+
+class TintedTexture:
+    """A solid texture (:class:`SolidTexture`) around a base colour (RGB in [0, 1])."""
+
+    def __init__(self, rng: np.random.Generator, base: NDArray[np.float64], contrast: float = 0.35) -> None:
+        self.tex = SolidTexture(rng)
+        self.base = np.asarray(base, dtype=np.float64)
+        self.contrast = contrast
+
+    def __call__(self, X: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.clip(self.base * (1.0 - self.contrast) + self.contrast * self.tex(X), 0.0, 1.0)
+
+
+def table_mesh(size_mm: float = 700.0, thickness_mm: float = 20.0) -> Mesh:
+    import trimesh
+
+    box = trimesh.creation.box((size_mm, size_mm, thickness_mm))
+    box.apply_translation((0.0, 0.0, -thickness_mm / 2.0))
+    return mesh_from_trimesh(box, "table")
+
+
+def place_on_table(meshes: Sequence[Mesh], rng: np.random.Generator, radius_mm: float = 90.0) -> list[NDArray[np.float64]]:
+    """World-from-model poses: each mesh turned at random, resting on its lowest point, on a ring."""
+    poses = []
+    for j, m in enumerate(meshes):
+        a = 2 * np.pi * j / len(meshes) + rng.uniform(-0.2, 0.2)
+        R = random_rotation(rng)
+        low = float((m.vertices @ R.T)[:, 2].min())
+        r = 0.0 if len(meshes) == 1 else radius_mm
+        poses.append(make_pose(R, np.array([r * np.cos(a), r * np.sin(a), -low])))
+    return poses
+
+
+def render_photos(meshes: Sequence[Mesh], poses: Sequence[NDArray[np.float64]], cameras: Sequence[Camera],
+                  rng: np.random.Generator, noise: float = 2.0,
+                  ) -> tuple[list[NDArray[np.uint8]], list[NDArray[np.float64]]]:
+    """Photos (BGR uint8) and depth (mm along the optical axis, 0 = nothing) of the meshes at
+    ``poses`` on a table, each object with its own texture (module doc)."""
+    table = table_mesh()
+    shapes = [(table, np.eye(4), TintedTexture(rng, np.array([0.55, 0.42, 0.3]), 0.5))]
+    hues = rng.permutation(np.linspace(0, 179, len(meshes), endpoint=False) + rng.uniform(0, 180 / len(meshes)))
+    for m, T, h in zip(meshes, poses, hues):
+        hsv = np.uint8([[[int(h) % 180, int(rng.uniform(120, 230)), int(rng.uniform(120, 230))]]])
+        base = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0] / 255.0
+        shapes.append((m, np.asarray(T, dtype=np.float64), TintedTexture(rng, base)))
+    casters = [RayCaster(m) for m, _, _ in shapes]
+    photos, depths = [], []
+    for cam in cameras:
+        o, d = pixel_rays(cam)
+        dn = d / np.linalg.norm(d, axis=1, keepdims=True)
+        hits = [c.first_hits(T, o, dn.astype(np.float32)) for c, (_, T, _) in zip(casters, shapes)]
+        t_all = np.stack([h.t for h in hits]).astype(np.float64)
+        near = np.argmin(t_all, 0)
+        t = t_all[near, np.arange(len(dn))]
+        rgb = np.full((len(dn), 3), 0.15)
+        for j, ((mesh, T, tex), h) in enumerate(zip(shapes, hits)):
+            sel = (near == j) & np.isfinite(t)
+            if not sel.any():
+                continue
+            P = o + dn[sel] * t[sel, None]
+            n = mesh.face_normals[h.prim[sel]] @ T[:3, :3].T
+            shade = 0.35 + 0.65 * np.abs(np.einsum("ij,ij->i", n, dn[sel]))
+            rgb[sel] = tex(P) * shade[:, None]
+        img = np.clip(rgb * 255.0 + rng.normal(0.0, noise, rgb.shape), 0, 255).round().astype(np.uint8)
+        photos.append(img.reshape(cam.height, cam.width, 3)[:, :, ::-1].copy())
+        z = np.where(np.isfinite(t), t * (dn @ cam.R_w2c[2]), 0.0)
+        depths.append(z.reshape(cam.height, cam.width))
+    return photos, depths
+
+
+def write_photo_scene(folder: str | Path, meshes: Sequence[Mesh], n_views: int, seed: int = 0,
+                      width: int = 640, height: int = 480, depth: bool = False,
+                      dist_range: tuple[float, float] = (350.0, 600.0)) -> PhotoScene:
+    """A BOP scene folder (``scene_camera.json``, ``scene_gt.json``, ``mask_visib/``, ``rgb/``,
+    optionally ``depth/`` with ``depth_scale``) of ``meshes`` (obj_id = position + 1) on a table,
+    seen by ``n_views`` cameras on a ring at 25-60 degrees elevation."""
+    import json
+
+    folder = Path(folder)
+    rng = np.random.default_rng(seed)
+    poses = place_on_table(meshes, rng)
+    cams = ring_cameras(n_views, rng, (25.0, 60.0), dist_range, None, width, height, (0.0, 0.0, 30.0), jitter_mm=30.0)
+    masks = write_multi_scene(folder, meshes, list(range(1, len(meshes) + 1)), poses, cams)
+    photos, depths = render_photos(meshes, poses, cams, rng)
+    (folder / "rgb").mkdir(exist_ok=True)
+    for i, img in enumerate(photos):
+        cv2.imwrite(str(folder / "rgb" / f"{i:06d}.png"), img)
+    if depth:
+        (folder / "depth").mkdir(exist_ok=True)
+        for i, z in enumerate(depths):
+            cv2.imwrite(str(folder / "depth" / f"{i:06d}.png"), np.round(z / DEPTH_SCALE).astype(np.uint16))
+        cams_json = json.loads((folder / "scene_camera.json").read_text())
+        for entry in cams_json.values():
+            entry["depth_scale"] = DEPTH_SCALE
+        (folder / "scene_camera.json").write_text(json.dumps(cams_json))
+    return PhotoScene(folder, cams, list(meshes), poses, masks)

@@ -1,0 +1,172 @@
+"""The region term's evidence: per view, colour models of the object and of its surroundings, and
+the pixel-wise posterior that a pixel shows the object (PWP3D, RBOT, SRT3D).
+
+At a pose, the object's hard silhouette in a view splits a band around its outline into an inside
+and an outside. A colour histogram of each (:class:`ColourModel`, RGB, ``bins`` per channel) gives
+per pixel the likelihoods ``P(y | object)`` and ``P(y | surroundings)``, and with equal priors (the
+two halves of the band are about the same size, as in RBOT) the posterior
+``p(x) = P(y | object) / (P(y | object) + P(y | surroundings))``. That posterior image is the
+region term's target (:func:`region_target`): the soft silhouette ``s(x)`` and its Jacobian meet it
+in the same per-pixel residual ``s(x) - p(x)`` as a mask (:func:`~autoalign.losses.silhouette.l2`),
+so the photo joins the Levenberg-Marquardt system like the mask term. A colour both models share
+gives ``p = 1/2``, whose residual is the same for ``s = 0`` and ``s = 1``: it pulls nowhere.
+
+With the histograms held fixed the target is a fixed image and the objective a function of the pose
+alone, so the solver's steps are compared on one objective; the histograms are learned again from
+the pose reached, as RBOT and PWP3D learn them again per frame (:mod:`autoalign.engine.photo_evidence`).
+
+Where the instance has a mask, its pixels are the object's (they train the object's model, never
+the surroundings', and their target is 1): the photo completes a mask that misses parts, and the
+mask keeps the object's colour model off a look-alike background. Pixels that other modelled
+objects claim (``exclude``) train neither model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+
+@dataclass(frozen=True)
+class RegionOptions:
+    """The region (colour) term.
+
+    Attributes:
+        bins: histogram bins per colour channel (a power of two; RBOT uses 32 for whole frames,
+            a band of a few thousand pixels fills 16^3 better).
+        band: half-width of the band the models are learned in, as a fraction of the
+            silhouette's equivalent diameter (``sqrt(4 area / pi)``), clipped to
+            ``[min_band_px, max_band_px]`` pixels; also how far beyond the silhouette the
+            posterior is the target (farther out the target is 0: background).
+        rounds: at most this many times the models are learned again at the pose reached at the
+            schedule's first level, before the last round goes through the whole schedule.
+        tol_mm, tol_deg: rounds stop once one moves the pose less than this.
+        gap: the models learn from the band less its first ``gap`` (fraction of the band's
+            half-width) on either side of the outline, where a pose still off puts pixels on the
+            wrong side; the models' colours then come from pixels the pose has right.
+        round_ftol: the rounds' Levenberg-Marquardt ``ftol`` (:class:`~autoalign.engine.objective.Level`):
+            pixels whose colour both models share keep the loss high, so a step's relative decrease
+            is small, and with the masks' tolerance a round stopped after one or two steps.
+        sectors: the band is split into this many angular sectors about the silhouette's centre,
+            each with its own pair of models (RBOT's local models: a cluttered background differs
+            around the object).
+    """
+
+    bins: int = 16
+    band: float = 0.25
+    min_band_px: float = 6.0
+    max_band_px: float = 40.0
+    rounds: int = 6
+    tol_mm: float = 0.3
+    tol_deg: float = 0.3
+    gap: float = 0.5
+    round_ftol: float = 1e-6
+    sectors: int = 8
+
+    def band_px(self, silhouette: NDArray[np.bool_]) -> float:
+        """The band's half-width (px) for a silhouette."""
+        diameter = float(np.sqrt(4.0 * np.count_nonzero(silhouette) / np.pi))
+        return float(np.clip(self.band * diameter, self.min_band_px, self.max_band_px))
+
+
+@dataclass
+class ColourModel:
+    """Normalised colour histograms (``bins^3``) of the object and of its surroundings."""
+
+    fg: NDArray[np.float64]
+    bg: NDArray[np.float64]
+    bins: int
+
+    @staticmethod
+    def learn(codes: NDArray[np.int64], inside: NDArray[np.bool_], outside: NDArray[np.bool_],
+              bins: int) -> "ColourModel":
+        """Histograms of the colour ``codes`` (:func:`colour_codes`) of the ``inside`` and ``outside`` pixels."""
+        n = bins ** 3
+        fg = np.bincount(codes[inside], minlength=n).astype(np.float64)
+        bg = np.bincount(codes[outside], minlength=n).astype(np.float64)
+        return ColourModel(fg / max(fg.sum(), 1.0), bg / max(bg.sum(), 1.0), bins)
+
+    def posterior(self, codes: NDArray[np.int64]) -> NDArray[np.float64]:
+        """``P(object | colour)`` with equal priors; a colour neither model has seen gives 1/2
+        (each histogram gets half a count's worth spread over its bins)."""
+        eps = 0.5 / self.bins ** 3
+        pf, pb = self.fg[codes] + eps, self.bg[codes] + eps
+        return pf / (pf + pb)
+
+
+def colour_codes(photo: NDArray[np.uint8], bins: int) -> NDArray[np.int64]:
+    """The histogram bin of every pixel of an (H, W, 3) uint8 photo, (H, W)."""
+    shift = 8 - int(round(np.log2(bins)))
+    if 2 ** (8 - shift) != bins:
+        raise ValueError(f"bins must be a power of two up to 256, not {bins}")
+    q = (photo >> shift).astype(np.int64)
+    return (q[..., 0] * bins + q[..., 1]) * bins + q[..., 2]
+
+
+@dataclass
+class RegionTarget:
+    """One view's region evidence: the ``target`` (H, W) float32 in [0, 1] (the posterior near the
+    silhouette, 1 on the mask, 0 beyond the band), the band's half-width (px), and the share of the
+    band's pixels whose posterior agrees with the pose's silhouette (> 1/2 inside, < 1/2 outside)."""
+
+    target: NDArray[np.float32]
+    band_px: float
+    agreement: float
+
+
+def _sector_of(shape: tuple[int, int], silhouette: NDArray[np.bool_], sectors: int) -> NDArray[np.int64]:
+    """Each pixel's angular sector (0..sectors-1) about the silhouette's centroid."""
+    ys, xs = np.nonzero(silhouette)
+    cy, cx = float(ys.mean()), float(xs.mean())
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+    angle = np.arctan2(yy - cy, xx - cx)
+    return np.minimum(((angle + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
+
+
+def region_target(photo: NDArray[np.uint8], silhouette: NDArray[np.bool_], mask: NDArray[np.float32] | None = None,
+                  exclude: NDArray[np.bool_] | None = None, options: RegionOptions = RegionOptions()) -> RegionTarget:
+    """The region target of one view (see the module doc).
+
+    Args:
+        photo: (H, W, 3) uint8, the view's photo at the masks' resolution.
+        silhouette: (H, W) the object's hard silhouette at the current pose.
+        mask: the instance's mask there (> 0.5 = the object), or ``None``.
+        exclude: pixels other modelled objects claim, or ``None``.
+    """
+    H, W = silhouette.shape
+    sil = silhouette.astype(bool)
+    known = np.zeros((H, W), bool) if mask is None else np.asarray(mask) > 0.5
+    target = known.astype(np.float32)
+    if not sil.any():
+        return RegionTarget(target, 0.0, float("nan"))
+    band = options.band_px(sil)
+    sil8 = sil.astype(np.uint8)
+    d_out = cv2.distanceTransform(1 - sil8, cv2.DIST_L2, 3)
+    d_in = cv2.distanceTransform(sil8, cv2.DIST_L2, 3)
+    gap = options.gap * band
+    near = d_out <= band + gap  # the silhouette and the band outside it
+    inside = (sil & (d_in > gap) & (d_in <= band + gap)) | (known & near)
+    outside = ~sil & (d_out > gap) & near & ~known
+    if exclude is not None:
+        inside &= ~exclude
+        outside &= ~exclude
+    codes = colour_codes(photo, options.bins)
+    sector = _sector_of((H, W), sil, options.sectors)
+    post = np.full((H, W), 0.5)
+    for s in range(options.sectors):
+        here = sector == s
+        model = ColourModel.learn(codes, inside & here, outside & here, options.bins)
+        if (inside & here).any() and (outside & here).any():
+            sel = near & here
+            post[sel] = model.posterior(codes[sel])
+    if exclude is not None:
+        post[exclude] = 0.5
+    target = np.where(near, np.maximum(target, post), target).astype(np.float32)
+    band_pixels = near & ((d_in <= band + gap) | ~sil)
+    if exclude is not None:
+        band_pixels &= ~exclude
+    agree = np.where(sil, post > 0.5, post < 0.5)[band_pixels & (post != 0.5)]
+    return RegionTarget(target, band, float(agree.mean()) if agree.size else float("nan"))
