@@ -52,7 +52,8 @@ class RegionOptions:
             is small, and with the masks' tolerance a round stopped after one or two steps.
         sectors: the band is split into this many angular sectors about the silhouette's centre,
             each with its own pair of models (RBOT's local models: a cluttered background differs
-            around the object).
+            around the object); one with fewer than ``min_sector_px`` pixels inside or outside
+            uses the models of the whole band.
     """
 
     bins: int = 16
@@ -63,6 +64,7 @@ class RegionOptions:
     tol_mm: float = 0.3
     tol_deg: float = 0.3
     gap: float = 0.5
+    min_sector_px: int = 100
     round_ftol: float = 1e-6
     sectors: int = 8
 
@@ -117,18 +119,17 @@ class RegionTarget:
     agreement: float
 
 
-def _sector_of(shape: tuple[int, int], silhouette: NDArray[np.bool_], sectors: int) -> NDArray[np.int64]:
-    """Each pixel's angular sector (0..sectors-1) about the silhouette's centroid."""
-    ys, xs = np.nonzero(silhouette)
-    cy, cx = float(ys.mean()), float(xs.mean())
+def _sector_of(shape: tuple[int, int], centre: tuple[float, float], sectors: int) -> NDArray[np.int64]:
+    """Each pixel's angular sector (0..sectors-1) about ``centre`` (row, column)."""
     yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
-    angle = np.arctan2(yy - cy, xx - cx)
+    angle = np.arctan2(yy - centre[0], xx - centre[1])
     return np.minimum(((angle + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
 
 
 def region_target(photo: NDArray[np.uint8], silhouette: NDArray[np.bool_], mask: NDArray[np.float32] | None = None,
                   exclude: NDArray[np.bool_] | None = None, options: RegionOptions = RegionOptions()) -> RegionTarget:
-    """The region target of one view (see the module doc).
+    """The region target of one view (see the module doc). Only the box of the silhouette and its
+    band is worked on: beyond it the target is the mask (or 0).
 
     Args:
         photo: (H, W, 3) uint8, the view's photo at the masks' resolution.
@@ -137,36 +138,47 @@ def region_target(photo: NDArray[np.uint8], silhouette: NDArray[np.bool_], mask:
         exclude: pixels other modelled objects claim, or ``None``.
     """
     H, W = silhouette.shape
-    sil = silhouette.astype(bool)
-    known = np.zeros((H, W), bool) if mask is None else np.asarray(mask) > 0.5
-    target = known.astype(np.float32)
-    if not sil.any():
+    sil_full = silhouette.astype(bool)
+    known_full = np.zeros((H, W), bool) if mask is None else np.asarray(mask) > 0.5
+    target = known_full.astype(np.float32)
+    ys, xs = np.nonzero(sil_full)
+    if len(ys) == 0:
         return RegionTarget(target, 0.0, float("nan"))
-    band = options.band_px(sil)
-    sil8 = sil.astype(np.uint8)
-    d_out = cv2.distanceTransform(1 - sil8, cv2.DIST_L2, 3)
-    d_in = cv2.distanceTransform(sil8, cv2.DIST_L2, 3)
+    band = options.band_px(sil_full)
     gap = options.gap * band
+    r = int(np.ceil(band + gap)) + 1
+    y0, y1, x0, x1 = max(ys.min() - r, 0), min(ys.max() + r + 1, H), max(xs.min() - r, 0), min(xs.max() + r + 1, W)
+    box = (slice(y0, y1), slice(x0, x1))
+    sil, known = sil_full[box], known_full[box]
+    # distances within the box: the band never reaches past it, and a silhouette cut by the box's
+    # edge is the image's edge, where the distance inside is measured to the image's border too
+    sil8 = np.pad(sil.astype(np.uint8), 1, constant_values=0)
+    d_out = cv2.distanceTransform(1 - sil8, cv2.DIST_L2, 3)[1:-1, 1:-1]
+    d_in = cv2.distanceTransform(sil8, cv2.DIST_L2, 3)[1:-1, 1:-1]
     near = d_out <= band + gap  # the silhouette and the band outside it
     inside = (sil & (d_in > gap) & (d_in <= band + gap)) | (known & near)
     outside = ~sil & (d_out > gap) & near & ~known
-    if exclude is not None:
-        inside &= ~exclude
-        outside &= ~exclude
-    codes = colour_codes(photo, options.bins)
-    sector = _sector_of((H, W), sil, options.sectors)
-    post = np.full((H, W), 0.5)
+    excl = None if exclude is None else exclude[box]
+    if excl is not None:
+        inside &= ~excl
+        outside &= ~excl
+    codes = colour_codes(photo[box], options.bins)
+    sector = _sector_of(sil.shape, (float(ys.mean()) - y0, float(xs.mean()) - x0), options.sectors)
+    whole = ColourModel.learn(codes, inside, outside, options.bins)
+    post = np.full(sil.shape, 0.5)
     for s in range(options.sectors):
         here = sector == s
-        model = ColourModel.learn(codes, inside & here, outside & here, options.bins)
-        if (inside & here).any() and (outside & here).any():
-            sel = near & here
-            post[sel] = model.posterior(codes[sel])
-    if exclude is not None:
-        post[exclude] = 0.5
-    target = np.where(near, np.maximum(target, post), target).astype(np.float32)
+        sel = near & here
+        n_in, n_out = np.count_nonzero(inside & here), np.count_nonzero(outside & here)
+        # a sector with too few pixels on either side (a concave outline, the image's edge) uses the whole band's models
+        model = (ColourModel.learn(codes, inside & here, outside & here, options.bins)
+                 if min(n_in, n_out) >= options.min_sector_px else whole)
+        post[sel] = model.posterior(codes[sel])
+    if excl is not None:
+        post[excl] = 0.5
+    target[box] = np.where(near, np.maximum(target[box], post), target[box])
     band_pixels = near & ((d_in <= band + gap) | ~sil)
-    if exclude is not None:
-        band_pixels &= ~exclude
+    if excl is not None:
+        band_pixels &= ~excl
     agree = np.where(sil, post > 0.5, post < 0.5)[band_pixels & (post != 0.5)]
     return RegionTarget(target, band, float(agree.mean()) if agree.size else float("nan"))

@@ -20,8 +20,13 @@ from autoalign.geometry.camera import Camera
 from autoalign.geometry.mesh import mesh_from_trimesh
 from autoalign.geometry.se3 import rotation_angle_deg, transform_points
 from autoalign.io.bop import read_cameras, read_scene, scene_gt_of
-from autoalign.io.photos import read_scene_without_masks, with_photos
-from autoalign.losses.region import ColourModel, RegionOptions, colour_codes, region_target
+from autoalign.io.photos import with_photos
+from autoalign.losses.region import (
+    ColourModel,
+    RegionOptions,
+    colour_codes,
+    region_target,
+)
 from autoalign.rasterizers.pyramid import MeshPyramid
 
 NAMES = ("box_knob", "mug", "l_bracket")
@@ -91,7 +96,7 @@ def test_region_target_completes_a_partial_mask():
 def test_photos_alone_refine_every_object(photo_scene, starts):
     """No masks at all: from 10 mm / 15 deg off, each object ends within 1 mm / 1 deg, and more of
     the band's colours agree with its silhouette there than at the start."""
-    scene = read_scene_without_masks(photo_scene.folder)
+    scene = read_scene(photo_scene.folder, modalities=("photos",))  # the Python API's way to withhold the masks
     assert scene.photos is not None and not any(m.any() for m in scene.masks)
     for T0, T_true, mesh in zip(starts, photo_scene.poses, photo_scene.meshes):
         res = refine(scene, mesh, T0)

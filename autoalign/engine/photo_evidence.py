@@ -3,10 +3,10 @@
 Each round renders the object's hard silhouettes at the current pose, learns each view's colour
 models in a band around them and makes the view's target from the pixel-wise posteriors, fused
 with the instance's mask where it has one (:func:`~autoalign.losses.region.region_target`); the
-pose is then refined on those targets by the mask engine (:func:`~autoalign.engine.refine.refine`,
-depth included). Early rounds run the schedule's first level only; once a round moves the pose
-less than the options' tolerance (or after ``rounds``), a last round runs the whole schedule with
-the disambiguation. The histograms stay fixed within a round, so the solver compares its steps on
+pose is then descended on those targets by the mask engine (:func:`~autoalign.engine.refine.polish`,
+depth included) at the schedule's first level; once a round moves the pose less than the options'
+tolerance (or after ``rounds``), a last round on targets learned at the pose reached runs the rest
+of the schedule with the disambiguation and the report (:func:`~autoalign.engine.refine.refine`). The histograms stay fixed within a round, so the solver compares its steps on
 one objective; learning them again between rounds is the alternation PWP3D and RBOT use per frame.
 """
 
@@ -70,7 +70,7 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
 
     A seed without a pose (a click, or none) is first placed from the masks alone; with no mask
     either, there is nothing to place it from and an error says what to give."""
-    from autoalign.engine.refine import DisambiguationOptions, hard_ious
+    from autoalign.engine.refine import hard_ious, polish
 
     region = options.region
     assert region is not None
@@ -84,26 +84,25 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
         T_seed = np.asarray(seed, dtype=np.float64)
     rast = pyramid.fine(options.detail)
     centre = pyramid.mesh.centre
-    first_level = replace(masks_only, schedule=(replace(options.schedule[0], ftol=region.round_ftol),),
-                          disambiguation=DisambiguationOptions(orbits=False, weak_turns=()))
+    first_level = (replace(options.schedule[0], ftol=region.round_ftol),)
     T, iterations, renders = T_seed, 0, 0
     rounds = 0
     for r in range(region.rounds):
-        if progress is not None:
-            progress(f"photo round {r + 1}", 0, 1)
         targets, _ = photo_targets(scene, rast.hard_masks(T, scene.cameras), region)
         if not any(np.any(t > 0.5) for t in targets.masks):
             break
-        res = refine(targets, pyramid, T, first_level, progress)
-        iterations, renders, rounds = iterations + res.iterations, renders + res.renders, rounds + 1
-        mm, deg = _moved(T, res.T_wm, centre)
-        T = res.T_wm
+        T_new, its, n = polish(targets, pyramid, T, first_level, masks_only, progress, f"photo round {r + 1}")
+        iterations, renders, rounds = iterations + its, renders + n, rounds + 1
+        mm, deg = _moved(T, T_new, centre)
+        T = T_new
         if mm < region.tol_mm and deg < region.tol_deg:
             break
     targets, evidence = photo_targets(scene, rast.hard_masks(T, scene.cameras), region)
     if not any(np.any(t > 0.5) for t in targets.masks):
         raise AutoalignError("the object is in no view at the given pose: check the --init pose and its obj_id")
-    result = refine(targets, pyramid, T, masks_only, progress)
+    # the rounds converged at the first level: the last one goes on from the second (if the schedule has one)
+    last = replace(masks_only, schedule=options.schedule[1:]) if rounds and len(options.schedule) > 1 else masks_only
+    result = refine(targets, pyramid, T, last, progress)
     keep = [k for k, t in enumerate(targets.masks) if np.any(t > 0.5)]  # the views refine used
     evidence = PhotoEvidence(evidence.band_px[keep], evidence.agreement[keep], rounds + 1)
     return replace(result, T_init=T_seed, iou_before=hard_ious(rast, targets.subset(keep), T_seed),

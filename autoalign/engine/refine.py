@@ -297,6 +297,17 @@ def _run_schedule(obj: SilhouetteObjective, T: NDArray[np.float64], levels: tupl
     return T, traces
 
 
+def polish(scene: Scene, pyramid: MeshPyramid, T: NDArray[np.float64], levels: tuple[Level, ...],
+           options: RefineOptions, progress: Progress | None = None,
+           label: str = "refine") -> tuple[NDArray[np.float64], int, int]:
+    """``T`` descended through ``levels`` on the masks of ``scene`` (its depth too), and nothing
+    else: no search, no disambiguation, no report. Returns the pose, the iterations and the renders."""
+    obj = SilhouetteObjective(pyramid, scene.without_empty_masks(), options.loss, options.robust, options.detail,
+                              options.depth)
+    T, traces = _run_schedule(obj, T, levels, options.optimizer, progress, label)
+    return T, sum(tr.iterations for tr in traces), obj.renders
+
+
 def _final_loss(obj: SilhouetteObjective, T: NDArray[np.float64], level: Level,
                 trace: Trace | None = None) -> tuple[float, float, NDArray[np.float64]]:
     """Mean weighted loss, mean soft IoU and view weights at ``T`` (reusing the optimiser's last evaluation)."""

@@ -124,6 +124,12 @@ class FolderJob:
         """Whether the photos are evidence (``photos`` ``on``, or ``auto`` with ``masks`` ``none``)."""
         return self.photos == "on" or (self.photos == "auto" and self.masks == "none")
 
+    @property
+    def modalities(self) -> tuple[str, ...]:
+        """The evidence read for one object (:func:`~autoalign.io.bop.read_scene`'s ``modalities``)."""
+        return tuple(m for m, used in (("masks", self.masks != "none"), ("photos", self.uses_photos),
+                                        ("depth", self.depth == "auto")) if used)
+
     @classmethod
     def from_argv(cls, scene: str, argv: Sequence[str], out: str) -> FolderJob:
         """The job of ``autoalign refine SCENE ARGV --out OUT`` (the options a batch list gives per

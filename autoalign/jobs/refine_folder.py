@@ -76,22 +76,11 @@ def _refine_object(job: FolderJob, click: Any, log: RunLog, progress: Stages) ->
     """:func:`refine_folder` with one object (``job.model``)."""
     from autoalign.engine.refine import RefineOptions, refine
     from autoalign.geometry.mesh import load_mesh
-    from autoalign.io.bop import read_scene, with_depth
+    from autoalign.io.bop import read_scene
     from autoalign.quality.overlay import render_overlay
     from autoalign.rasterizers.pyramid import MeshPyramid
 
-    if job.masks == "none":
-        from autoalign.io.photos import read_scene_without_masks
-
-        scene = read_scene_without_masks(job.scene)
-    else:
-        scene = read_scene(job.scene, job.instance)
-        if job.uses_photos:
-            from autoalign.io.photos import with_photos
-
-            scene = with_photos(scene)
-    if job.depth == "auto":
-        scene = with_depth(scene)
+    scene = read_scene(job.scene, job.instance, modalities=job.modalities)
     mesh = load_mesh(job.model, units=job.units)
     pyramid = MeshPyramid(mesh)
     seed, seed_record = _seed(job, scene, click)

@@ -3,7 +3,7 @@
 Every pixel's ray (through the pixel centre) is cast with mitsuba (:class:`~autoalign.rasterizers.ray_casting.RayCaster`)
 at the table and at each object; the nearest hit colours the pixel with that surface's own solid
 texture (:class:`~autoalign.experiments.scenes.stream.SolidTexture`; each object carries its own
-base colour, the table a wood-like one), shaded by the angle to the ray, plus sensor noise. The
+base colour with colour texture, the table a wood-like brown varying in brightness), shaded by the angle to the ray, plus sensor noise. The
 masks are cast independently with open3d (:func:`~autoalign.experiments.scenes.synthetic.raycast_visible_masks`),
 and optionally the depth (mm) of the nearest hit.
 
@@ -45,15 +45,21 @@ class PhotoScene:
 
 
 class TintedTexture:
-    """A solid texture (:class:`SolidTexture`) around a base colour (RGB in [0, 1])."""
+    """A solid texture (:class:`SolidTexture`) around a base colour (RGB in [0, 1]); ``grey``: its
+    variation is in brightness only (wood, fabric), else in colour too (print)."""
 
-    def __init__(self, rng: np.random.Generator, base: NDArray[np.float64], contrast: float = 0.35) -> None:
+    def __init__(self, rng: np.random.Generator, base: NDArray[np.float64], contrast: float = 0.35,
+                 grey: bool = False) -> None:
         self.tex = SolidTexture(rng)
         self.base = np.asarray(base, dtype=np.float64)
         self.contrast = contrast
+        self.grey = grey
 
     def __call__(self, X: NDArray[np.float64]) -> NDArray[np.float64]:
-        return np.clip(self.base * (1.0 - self.contrast) + self.contrast * self.tex(X), 0.0, 1.0)
+        t = self.tex(X)
+        if self.grey:
+            return np.clip(self.base * (1.0 - self.contrast + 2.0 * self.contrast * t.mean(1, keepdims=True)), 0.0, 1.0)
+        return np.clip(self.base * (1.0 - self.contrast) + self.contrast * t, 0.0, 1.0)
 
 
 def table_mesh(size_mm: float = 700.0, thickness_mm: float = 20.0) -> Mesh:
@@ -82,7 +88,7 @@ def render_photos(meshes: Sequence[Mesh], poses: Sequence[NDArray[np.float64]], 
     """Photos (BGR uint8) and depth (mm along the optical axis, 0 = nothing) of the meshes at
     ``poses`` on a table, each object with its own texture (module doc)."""
     table = table_mesh()
-    shapes = [(table, np.eye(4), TintedTexture(rng, np.array([0.55, 0.42, 0.3]), 0.5))]
+    shapes = [(table, np.eye(4), TintedTexture(rng, np.array([0.55, 0.42, 0.3]), 0.5, grey=True))]
     hues = rng.permutation(np.linspace(0, 179, len(meshes), endpoint=False) + rng.uniform(0, 180 / len(meshes)))
     for m, T, h in zip(meshes, poses, hues):
         hsv = np.uint8([[[int(h) % 180, int(rng.uniform(120, 230)), int(rng.uniform(120, 230))]]])
@@ -113,18 +119,50 @@ def render_photos(meshes: Sequence[Mesh], poses: Sequence[NDArray[np.float64]], 
     return photos, depths
 
 
+def near_one_viewpoint(n_views: int, rng: np.random.Generator, distance_mm: float = 700.0, elevation_deg: float = 40.0,
+                       spread_deg: float = 8.0, width: int = 640, height: int = 480) -> list[Camera]:
+    """``n_views`` cameras from nearly one viewpoint, as an RGB-D frame sequence held still (the
+    YCB-Video kind): direction jittered by up to ``spread_deg``, distance by 5%."""
+    from autoalign.experiments.scenes.synthetic import default_K
+    from autoalign.geometry.camera import look_at
+
+    cams = []
+    for _ in range(n_views):
+        az = np.radians(rng.uniform(-spread_deg, spread_deg))
+        el = np.radians(elevation_deg + rng.uniform(-spread_deg, spread_deg) / 2)
+        d = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        target = np.array([0.0, 0.0, 30.0]) + rng.uniform(-20, 20, 3)
+        cams.append(look_at(target + distance_mm * rng.uniform(0.95, 1.05) * d, target,
+                            default_K(width, height, 0.9 * width), width, height, up=np.array([0.0, 0.0, 1.0])))
+    return cams
+
+
+def sensor_depth(z: NDArray[np.float64], rng: np.random.Generator, holes: float = 0.03) -> NDArray[np.float64]:
+    """Depth as a Kinect-class sensor measures it: noise growing with z squared
+    (:class:`~autoalign.losses.depth.DepthNoise`), a share ``holes`` of pixels without a
+    measurement, and the image registered one pixel off the colour camera."""
+    from autoalign.losses.depth import DepthNoise
+
+    noisy = np.where(z > 0, z + rng.normal(0.0, 1.0, z.shape) * DepthNoise().sigma(z), 0.0)
+    noisy[rng.random(z.shape) < holes] = 0.0
+    return np.roll(noisy, 1, axis=1)
+
+
 def write_photo_scene(folder: str | Path, meshes: Sequence[Mesh], n_views: int, seed: int = 0,
                       width: int = 640, height: int = 480, depth: bool = False,
-                      dist_range: tuple[float, float] = (350.0, 600.0)) -> PhotoScene:
+                      dist_range: tuple[float, float] = (350.0, 600.0),
+                      cameras: Sequence[Camera] | None = None) -> PhotoScene:
     """A BOP scene folder (``scene_camera.json``, ``scene_gt.json``, ``mask_visib/``, ``rgb/``,
-    optionally ``depth/`` with ``depth_scale``) of ``meshes`` (obj_id = position + 1) on a table,
-    seen by ``n_views`` cameras on a ring at 25-60 degrees elevation."""
+    optionally ``depth/`` with ``depth_scale``, measured as :func:`sensor_depth`) of ``meshes``
+    (obj_id = position + 1) on a table, seen by ``cameras``, or by ``n_views`` cameras on a ring
+    at 25-60 degrees elevation."""
     import json
 
     folder = Path(folder)
     rng = np.random.default_rng(seed)
     poses = place_on_table(meshes, rng)
-    cams = ring_cameras(n_views, rng, (25.0, 60.0), dist_range, None, width, height, (0.0, 0.0, 30.0), jitter_mm=30.0)
+    cams = list(cameras) if cameras is not None else ring_cameras(n_views, rng, (25.0, 60.0), dist_range, None, width,
+                                                                  height, (0.0, 0.0, 30.0), jitter_mm=30.0)
     masks = write_multi_scene(folder, meshes, list(range(1, len(meshes) + 1)), poses, cams)
     photos, depths = render_photos(meshes, poses, cams, rng)
     (folder / "rgb").mkdir(exist_ok=True)
@@ -132,7 +170,7 @@ def write_photo_scene(folder: str | Path, meshes: Sequence[Mesh], n_views: int, 
         cv2.imwrite(str(folder / "rgb" / f"{i:06d}.png"), img)
     if depth:
         (folder / "depth").mkdir(exist_ok=True)
-        for i, z in enumerate(depths):
+        for i, z in enumerate(sensor_depth(z, rng) for z in depths):
             cv2.imwrite(str(folder / "depth" / f"{i:06d}.png"), np.round(z / DEPTH_SCALE).astype(np.uint16))
         cams_json = json.loads((folder / "scene_camera.json").read_text())
         for entry in cams_json.values():
