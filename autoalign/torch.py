@@ -31,6 +31,12 @@ The loss follows kornia's style: a functional op (:func:`silhouette_loss`) and a
         loss.backward()
         opt.step()
 
+The photos are evidence too (:class:`RegionLoss`): colour models of the object and its surroundings
+learned around its outline at the current pose give each pixel's posterior of being the object
+(:mod:`autoalign.losses.region`), the target the same L2 loss compares the silhouettes with. The
+targets are held fixed between :meth:`RegionLoss.learn` calls (learn again every few steps, as
+autoalign's own rounds do), so the loss is a function of the pose between them.
+
 Importing :mod:`autoalign` does not import this module (nor torch).
 """
 
@@ -43,6 +49,7 @@ import numpy as np
 import torch
 
 from autoalign.geometry.camera import Camera
+from autoalign.losses.region import RegionOptions, region_target
 from autoalign.rasterizers.pose_jacobian import (
     Renderers,
     image_size,
@@ -139,3 +146,47 @@ class SilhouetteLoss(torch.nn.Module):
 
     def forward(self, poses: Any) -> torch.Tensor:
         return silhouette_loss(silhouettes(self.meshes, poses, self.cameras, self.sigma), self.targets, self.weights)
+
+
+def region_targets(mesh: Any, pose: Any, cameras: Sequence[Camera], photos: Sequence[np.ndarray],
+                   masks: Sequence[np.ndarray] | None = None, options: RegionOptions = RegionOptions()) -> torch.Tensor:
+    """``(V, H, W)`` region targets of one object at ``pose`` (world from model, mm; a tensor or a
+    kornia ``Se3``; not differentiated): per view the posterior of its colour models learned around
+    the hard silhouette there, fused with its mask if given (:func:`~autoalign.losses.region.region_target`).
+    ``photos``: ``(H, W, 3)`` uint8 BGR per view, at the cameras' size."""
+    T, single = as_matrices(pose)
+    if not single:
+        raise ValueError("region targets are learned for one pose (4, 4) at a time")
+    image_size(cameras)
+    if len(photos) != len(cameras) or (masks is not None and len(masks) != len(cameras)):
+        raise ValueError(f"{len(cameras)} cameras need as many photos (and masks), not {len(photos)}")
+    rast = renderers_for(mesh, 1)[0]
+    sils = rast.hard_masks(T[0].detach().cpu().double().numpy(), list(cameras))
+    out = [region_target(np.asarray(ph, dtype=np.uint8), s, None if masks is None else np.asarray(masks[k], np.float32),
+                         None, options).target for k, (ph, s) in enumerate(zip(photos, sils))]
+    return torch.as_tensor(np.stack(out), dtype=T.dtype)
+
+
+class RegionLoss(torch.nn.Module):
+    """:func:`silhouette_loss` of one object's :func:`silhouettes` against its region targets
+    (:func:`region_targets`): the photos as evidence, with or without masks. The targets are
+    learned at the first pose seen and again at each :meth:`learn`."""
+
+    def __init__(self, mesh: Any, cameras: Sequence[Camera], photos: Sequence[np.ndarray],
+                 masks: Sequence[np.ndarray] | None = None, sigma: float = 1.0,
+                 options: RegionOptions = RegionOptions()) -> None:
+        super().__init__()
+        self.cameras, self.sigma, self.options = list(cameras), float(sigma), options
+        self.photos = [np.asarray(p, dtype=np.uint8) for p in photos]
+        self.masks = None if masks is None else [np.asarray(m, dtype=np.float32) for m in masks]
+        self.mesh = renderers_for(mesh, 1)[0]
+        self.register_buffer("targets", None)
+
+    def learn(self, pose: Any) -> None:
+        """Learn the colour models and targets again at ``pose``."""
+        self.targets = region_targets(self.mesh, pose, self.cameras, self.photos, self.masks, self.options)
+
+    def forward(self, pose: Any) -> torch.Tensor:
+        if self.targets is None:
+            self.learn(pose)
+        return silhouette_loss(silhouettes(self.mesh, pose, self.cameras, self.sigma), self.targets)

@@ -70,8 +70,10 @@ def table_mesh(size_mm: float = 700.0, thickness_mm: float = 20.0) -> Mesh:
     return mesh_from_trimesh(box, "table")
 
 
-def place_on_table(meshes: Sequence[Mesh], rng: np.random.Generator, radius_mm: float = 90.0) -> list[NDArray[np.float64]]:
-    """World-from-model poses: each mesh turned at random, resting on its lowest point, on a ring."""
+def place_on_table(meshes: Sequence[Mesh], rng: np.random.Generator, radius_mm: float | None = None) -> list[NDArray[np.float64]]:
+    """World-from-model poses: each mesh turned at random, resting on its lowest point, on a ring
+    (radius 90 mm for up to 4 objects, growing with their number beyond: neighbours ~140 mm apart)."""
+    radius_mm = radius_mm if radius_mm is not None else 90.0 * max(1.0, len(meshes) / 4.0)
     poses = []
     for j, m in enumerate(meshes):
         a = 2 * np.pi * j / len(meshes) + rng.uniform(-0.2, 0.2)

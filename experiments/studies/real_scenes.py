@@ -86,9 +86,9 @@ def feature_distances(scene: Path, refine_dir: Path, tmp: Path,
 
     Both label sets are the scene's ``scene_gt.json`` (every object, entry k = mask k); in ours the
     group members' entries are replaced by the refined poses, so the two differ only there."""
-    from autoalign.quality.scene_check import check_scene
     from autoalign.quality.label_compare import compare_reports, comparison_figure
     from autoalign.quality.overlay import encode_png
+    from autoalign.quality.scene_check import check_scene
 
     dataset = json.loads((scene / "scene_gt.json").read_text())
     ours_gt = json.loads((refine_dir / "scene_gt.json").read_text())

@@ -3,7 +3,8 @@
 Every object starts 20 mm along its viewing ray and 10 degrees off (about a random axis, three
 starts each) and is refined by ``autoalign.refine`` from its own masks, degraded as the issue asks
 (the frames' masks are renderings of the labels): eroded by 4 px, and eroded with 1 view in 3 cut to
-the object's left half. Each run with the depth term (``RefineOptions()``) and without
+the object's left half, both also with the photos as evidence (the region term), and no masks at
+all, the photos alone (``read_scene(..., modalities=("photos",))``). Each run with the depth term (``RefineOptions()``) and without
 (``RefineOptions(depth=None)``); errors against the dataset's labels (which agree with the sensor
 depth to about 2 mm), symmetry-aware, and the verdict.
 
@@ -34,7 +35,9 @@ from autoalign.quality.verdict import judge
 
 ERODE_PX = 4
 STARTS = 3
-MASKS = ("eroded", "eroded + 1 in 3 cut")
+MASKS = ("eroded", "eroded + 1 in 3 cut", "eroded + 1 in 3 cut, photos", "none, photos")
+"""The evidence of each run: the masks degraded (eroded, eroded with 1 in 3 cut) with or without the
+photos as evidence (the region term), or no masks at all and the photos."""
 
 
 def degraded(scene: Scene, cut: bool) -> Scene:
@@ -63,11 +66,15 @@ def run(data: Path) -> list[dict]:
         T = make_pose(np.reshape(entry["cam_R_m2c"], (3, 3)), np.asarray(entry["cam_t_m2c"], dtype=np.float64))
         c = transform_points(T, mesh.centre[None])[0]
         scene = with_depth(read_scene(data, k))
+        photos = read_scene(data, k, modalities=("masks", "photos")).photos
+        no_masks = with_depth(read_scene(data, modalities=("photos",)))
         for start in range(STARTS):
             axis = rng.normal(size=3)
             T0 = apply_twist(T, np.array([*(20.0 * c / np.linalg.norm(c)), *(np.radians(10.0) * axis / np.linalg.norm(axis))]), c)
             for masks in MASKS:
-                sc = degraded(scene, cut=masks != MASKS[0])
+                sc = no_masks if masks.startswith("none") else degraded(scene, cut=masks != MASKS[0])
+                if masks.endswith("photos") and sc.photos is None:
+                    sc = replace(sc, photos=photos)
                 for depth in (True, False):
                     t0 = time.perf_counter()
                     res = refine(sc, mesh, T0, RefineOptions() if depth else RefineOptions(depth=None))
