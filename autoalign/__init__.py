@@ -35,30 +35,31 @@ if os.path.isfile(os.path.join(_checkout, "pyproject.toml")) and os.path.isdir(o
     __path__.append(_checkout)  # noqa: F821 - the package's own __path__
 
 _LAZY = {
-    "refine": "autoalign.engine.refine", "RefineOptions": "autoalign.engine.refine", "RefineResult": "autoalign.engine.refine",
+    "refine": "autoalign.engine.refine", "RefineOptions": "autoalign.engine.options", "RefineResult": "autoalign.engine.refine",
     "read_scene": "autoalign.io.bop", "Scene": "autoalign.io.bop", "read_init_pose": "autoalign.io.bop",
+    "read_evidence": "autoalign.io.evidence",
     "load_mesh": "autoalign.geometry.mesh", "Mesh": "autoalign.geometry.mesh", "mesh_from_trimesh": "autoalign.geometry.mesh",
     "Camera": "autoalign.geometry.camera", "Click": "autoalign.engine.seeding", "AutoalignError": "autoalign.errors",
-    "Level": "autoalign.engine.objective", "SearchOptions": "autoalign.engine.refine",
-    "RankingOptions": "autoalign.engine.refine", "DisambiguationOptions": "autoalign.engine.refine",
+    "Level": "autoalign.engine.objective", "SearchOptions": "autoalign.engine.options",
+    "RankingOptions": "autoalign.engine.options", "DisambiguationOptions": "autoalign.engine.options",
     "MeshDetail": "autoalign.rasterizers.pyramid", "MeshPyramid": "autoalign.rasterizers.pyramid",
 }
 
 if TYPE_CHECKING:  # pragma: no cover
     from autoalign.engine.objective import Level  # noqa: F401
-    from autoalign.engine.refine import (  # noqa: F401
+    from autoalign.engine.options import (  # noqa: F401
         DisambiguationOptions,
         RankingOptions,
         RefineOptions,
-        RefineResult,
         SearchOptions,
-        refine,
     )
+    from autoalign.engine.refine import RefineResult, refine  # noqa: F401
     from autoalign.engine.seeding import Click  # noqa: F401
     from autoalign.errors import AutoalignError  # noqa: F401
     from autoalign.geometry.camera import Camera  # noqa: F401
     from autoalign.geometry.mesh import Mesh, load_mesh, mesh_from_trimesh  # noqa: F401
     from autoalign.io.bop import Scene, read_init_pose, read_scene  # noqa: F401
+    from autoalign.io.evidence import read_evidence  # noqa: F401
     from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid  # noqa: F401
 
 

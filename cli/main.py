@@ -194,9 +194,10 @@ def _add_algorithm_arguments(p: argparse.ArgumentParser) -> None:
                      help="auto (default): the instance masks of mask_visib/; none: withhold every mask, the photos "
                           "(rgb/) place the objects from --init")
     alg.add_argument("--photos", choices=PHOTO_MODES, default="auto",
-                     help="on: the photos join the masks as evidence (colour models of each object and its "
-                          "surroundings around its outline: a mask that misses parts is completed); auto "
-                          "(default): only with --masks none; off: never")
+                     help="auto (default): when the scene has rgb/, the photos join the masks as evidence (colour "
+                          "models of each object and its surroundings around its outline: a mask that misses parts "
+                          "is completed, a pose the photo contradicts is flagged); on: the same, and a missing photo "
+                          "is an error; off: never")
     alg.add_argument("--no-robust", action="store_true",
                      help="weigh all views equally; by default views whose mask disagrees with the others "
                           "(occlusion, bad segmentation) are down-weighted (Cauchy weights on 1 - IoU)")

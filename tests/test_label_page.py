@@ -425,3 +425,45 @@ def test_refine_together_puts_moved_instances_back_and_keeps_decisions(labelled,
     assert session.instances[1].decision == "accepted" and session.instances[0].decision == "open"
     saved = json.loads((tmp_path / "session" / "session.json").read_text())
     assert [i["source"] for i in saved["instances"]] == ["together", "together"]
+
+
+def test_click_where_the_mask_misses_the_object_places_it_from_the_photo(labelled, tmp_path):
+    """In-process: instance 0's mask in a view loses the half of the object clicked; with the
+    photos in rgb/ the click still means instance 0, and the placement ends within 1 mm / 1 deg.
+    Without photos the same click is refused with a one-line reason."""
+    import shutil
+
+    from autoalign.errors import AutoalignError
+    from autoalign.label.session import LabelSession
+
+    scene = tmp_path / "scene"
+    shutil.copytree(labelled.scene, scene)
+    def cut_off(im: int) -> tuple[np.ndarray, int, int] | None:
+        """Instance 0's mask in image ``im`` less the half away from instance 1, and a pixel of that
+        half 8-15 px from what is left and clearly nearer it than instance 1's mask (if any)."""
+        mask = mask_of(scene, im, 0)
+        other_path = scene / "mask_visib" / f"{im:06d}_000001.png"
+        other = mask_of(scene, im, 1) if other_path.is_file() else np.zeros_like(mask)
+        d_other = cv2.distanceTransform((~other).astype(np.uint8), cv2.DIST_L2, 3)
+        xs = np.nonzero(mask)[1]
+        for side in (slice(int(np.median(xs)), None), slice(None, int(np.median(xs)))):
+            cut = mask.copy()
+            cut[:, side] = False
+            d_cut = cv2.distanceTransform((~cut).astype(np.uint8), cv2.DIST_L2, 3)
+            gy, gx = np.nonzero(mask & ~cut & (d_cut >= 8) & (d_cut <= 15) & (d_other > d_cut + 10))
+            if len(gy):
+                return cut, int(gx[len(gx) // 2]), int(gy[len(gy) // 2])
+        return None
+
+    im, (cut, col, row) = next((im, c) for im in range(N_VIEWS) if (c := cut_off(im)) is not None)
+    cv2.imwrite(str(scene / "mask_visib" / f"{im:06d}_000000.png"), cut.astype(np.uint8) * 255)
+    models = ModelSet.read(labelled.models)
+    session = LabelSession(scene, models, tmp_path / "session")
+    assert session.place(1, im, col, row) == 0
+    mm, deg = pose_error(session.instances[0].T_wm, labelled.truth[0], models.mesh(1).centre)
+    assert mm < 1.0 and deg < 1.0, (mm, deg)
+
+    shutil.rmtree(scene / "rgb")
+    blind = LabelSession(scene, models, tmp_path / "session_blind")
+    with pytest.raises(AutoalignError, match=f"no instance mask under pixel {col},{row} of image {im}"):
+        blind.place(1, im, col, row)

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+import autoalign
 from autoalign.engine.photo_evidence import photo_targets
 from autoalign.engine.refine import RefineOptions, refine
 from autoalign.experiments.scenes.photo_scene import PhotoScene, write_photo_scene
@@ -80,23 +81,26 @@ def test_posterior_matches_the_colour_counts():
 
 def test_region_target_completes_a_partial_mask():
     """Where the mask misses half the object the photo's posterior says object; beyond the band
-    the target is background; on the mask it is 1."""
+    the target is background; on the mask, with the object's colours, object; a mask pixel on the
+    surroundings' colours is undecided (the mask's and the colour's odds multiply)."""
     photo = np.full((120, 120, 3), (40, 160, 40), np.uint8)  # green surroundings
     sil = np.zeros((120, 120), bool)
     sil[30:90, 30:90] = True
     photo[sil] = (180, 40, 160)
     mask = np.zeros((120, 120), np.float32)
-    mask[30:90, 30:60] = 1.0  # the left half only
+    mask[30:90, 30:60] = 1.0  # the left half only ...
+    mask[40:50, 22:30] = 1.0  # ... and a strip beyond the object
     t = region_target(photo, sil, mask, None, RegionOptions()).target
     assert t[60, 75] > 0.95  # missed by the mask, object by colour
-    assert t[60, 45] == 1.0
+    assert t[60, 45] > 0.99
+    assert 0.3 < t[45, 25] < 0.7  # claimed by the mask, surroundings by colour
     assert t[60, 95] < 0.05 and t[5, 5] == 0.0  # surroundings in the band, and beyond it
 
 
 def test_photos_alone_refine_every_object(photo_scene, starts):
     """No masks at all: from 10 mm / 15 deg off, each object ends within 1 mm / 1 deg, and more of
     the band's colours agree with its silhouette there than at the start."""
-    scene = read_scene(photo_scene.folder, modalities=("photos",))  # the Python API's way to withhold the masks
+    scene = autoalign.read_evidence(photo_scene.folder, modalities=("photos",))  # the Python API's way to withhold the masks
     assert scene.photos is not None and not any(m.any() for m in scene.masks)
     for T0, T_true, mesh in zip(starts, photo_scene.poses, photo_scene.meshes):
         res = refine(scene, mesh, T0)
@@ -182,3 +186,20 @@ def test_photo_of_another_size_is_refused(photo_scene, tmp_path):
     cv2.imwrite(str(folder / "rgb" / "000003.png"), np.zeros((100, 100, 3), np.uint8))
     with pytest.raises(AutoalignError, match="000003.png: the photo is 100x100"):
         with_photos(read_scene(folder, 0))
+
+
+@pytest.mark.parametrize("iou, contrast, status, words", [
+    (0.4, 0.5, "ok", "the photo's colours change across the outline"),  # a partial mask, the photo supports
+    (0.9, 0.05, "check", "the photo disagrees"),
+    (0.3, 0.2, "check", "neither confirms nor contradicts"),
+    (0.3, 0.05, "failed", "silhouettes do not match the masks"),  # masks and photo both against it
+    (0.3, None, "failed", "silhouettes do not match the masks"),  # no photo: the masks decide
+])
+def test_verdict_reads_the_photo(iou, contrast, status, words):
+    from autoalign.engine.photo_evidence import PhotoEvidence
+    from autoalign.quality.verdict import judge
+
+    n = 10
+    photo = None if contrast is None else PhotoEvidence(np.full(n, 20.0), np.full(n, 0.9), np.full(n, contrast), 3)
+    v = judge(np.full(n, iou), np.ones(n), list(range(n)), photo=photo)
+    assert v.status == status and any(words in r for r in v.reasons), v

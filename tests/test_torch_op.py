@@ -151,13 +151,13 @@ def test_region_loss_fits_a_pose_from_photos_alone(tmp_path):
     from autoalign.experiments.scenes.photo_scene import write_photo_scene
     from autoalign.experiments.scenes.synthetic import perturb_pose
     from autoalign.geometry.se3 import rotation_angle_deg
-    from autoalign.io.bop import read_scene
+    from autoalign.io.evidence import read_evidence
     from autoalign.losses.region import RegionOptions
     from autoalign.torch import RegionLoss
 
     m = mesh("box_knob")
     ps = write_photo_scene(tmp_path / "scene", [m], 8, seed=2, width=320, height=240, dist_range=(300.0, 400.0))
-    scene = read_scene(ps.folder, 0, modalities=("photos",))
+    scene = read_evidence(ps.folder, 0, ("photos",))
     T_true = ps.poses[0]
     T0 = perturb_pose(T_true, 6.0, 8.0, np.random.default_rng(1), m.centre)
     rast = SoftSilhouetteRasterizer(m)

@@ -13,30 +13,35 @@ one objective; learning them again between rounds is the alternation PWP3D and R
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Callable
+from typing import Callable, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
+from autoalign.engine.options import RefineOptions
+from autoalign.engine.schedule import polish
 from autoalign.engine.seeding import Click
 from autoalign.errors import AutoalignError
 from autoalign.geometry.se3 import rotation_angle_deg, transform_points
 from autoalign.io.bop import Scene
 from autoalign.losses.region import RegionOptions, region_target
+from autoalign.quality.overlap import view_ious
 from autoalign.rasterizers.pyramid import MeshPyramid
 
-if TYPE_CHECKING:
-    from autoalign.engine.refine import RefineOptions, RefineResult
+R = TypeVar("R")
+"""The engine's result (:class:`~autoalign.engine.refine.RefineResult`): the engine calls this module."""
 
 
 @dataclass
 class PhotoEvidence:
-    """The region term at the result: per view the band's half-width (px) and the share of the
-    band's pixels whose colour posterior agrees with the silhouette (NaN: nothing to compare), and
-    the rounds the colour models were learned in."""
+    """The region term at the result: per view the band's half-width (px), the share of the band's
+    pixels whose colour posterior agrees with the silhouette and the edge contrast across the
+    outline (:class:`~autoalign.losses.region.RegionTarget`; NaN: nothing to compare), and the
+    rounds the colour models were learned in."""
 
     band_px: NDArray[np.float64]
     agreement: NDArray[np.float64]
+    edge_contrast: NDArray[np.float64]
     rounds: int
 
 
@@ -47,15 +52,12 @@ def photo_targets(scene: Scene, silhouettes: list[NDArray[np.bool_]],
     if scene.photos is None:
         raise ValueError("the scene has no photos")
     has_mask = any(np.any(np.asarray(m) > 0.5) for m in scene.masks)
-    targets, bands, agree = [], [], []
-    for k, (photo, sil) in enumerate(zip(scene.photos, silhouettes)):
-        exclude = None if scene.ignore is None else scene.ignore[k]
-        rt = region_target(photo, sil, scene.masks[k] if has_mask else None, exclude, options)
-        targets.append(rt.target)
-        bands.append(rt.band_px)
-        agree.append(rt.agreement)
-    return (replace(scene, masks=targets, photos=None),
-            PhotoEvidence(np.array(bands), np.array(agree), 0))
+    per_view = [region_target(photo, sil, scene.masks[k] if has_mask else None,
+                              None if scene.ignore is None else scene.ignore[k], options)
+                for k, (photo, sil) in enumerate(zip(scene.photos, silhouettes))]
+    return (replace(scene, masks=[rt.target for rt in per_view], photos=None),
+            PhotoEvidence(np.array([rt.band_px for rt in per_view]), np.array([rt.agreement for rt in per_view]),
+                          np.array([rt.edge_contrast for rt in per_view]), 0))
 
 
 def _moved(A: NDArray[np.float64], B: NDArray[np.float64], centre_m: NDArray[np.float64]) -> tuple[float, float]:
@@ -64,13 +66,12 @@ def _moved(A: NDArray[np.float64], B: NDArray[np.float64], centre_m: NDArray[np.
 
 
 def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.float64] | Click | None,
-                       options: "RefineOptions", refine: Callable[..., "RefineResult"],
-                       progress: Callable[[str, int, int], None] | None = None) -> "RefineResult":
+                       options: RefineOptions, refine: Callable[..., R],
+                       progress: Callable[[str, int, int], None] | None = None) -> R:
     """Refine with the photos of ``scene`` as evidence (module doc); ``refine`` is the mask engine.
 
     A seed without a pose (a click, or none) is first placed from the masks alone; with no mask
     either, there is nothing to place it from and an error says what to give."""
-    from autoalign.engine.refine import hard_ious, polish
 
     region = options.region
     assert region is not None
@@ -104,6 +105,10 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
     last = replace(masks_only, schedule=options.schedule[1:]) if rounds and len(options.schedule) > 1 else masks_only
     result = refine(targets, pyramid, T, last, progress)
     keep = [k for k, t in enumerate(targets.masks) if np.any(t > 0.5)]  # the views refine used
-    evidence = PhotoEvidence(evidence.band_px[keep], evidence.agreement[keep], rounds + 1)
-    return replace(result, T_init=T_seed, iou_before=hard_ious(rast, targets.subset(keep), T_seed),
+    evidence = PhotoEvidence(evidence.band_px[keep], evidence.agreement[keep], evidence.edge_contrast[keep], rounds + 1)
+    # the IoUs the report and the verdict read are with the instance's own masks where it has them
+    compared = scene.subset(keep) if has_mask else targets.subset(keep)
+    iou_after = view_ious(rast.hard_masks(result.T_wm, compared.cameras), compared) if has_mask else result.iou_after
+    return replace(result, T_init=T_seed, iou_before=view_ious(rast.hard_masks(T_seed, compared.cameras), compared),
+                   iou_after=iou_after,
                    iterations=result.iterations + iterations, renders=result.renders + renders, photo=evidence)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import enum
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,135 +27,29 @@ from autoalign.engine.objective import (
     SilhouetteObjective,
     ViewTermsRecord,
 )
+from autoalign.engine.options import (  # noqa: F401 - the engine's settings, importable from here too
+    DEFAULT_SCHEDULE,
+    DisambiguationOptions,
+    RankingOptions,
+    RefineOptions,
+    SearchOptions,
+)
 from autoalign.engine.photo_evidence import PhotoEvidence, refine_with_photos
+from autoalign.engine.schedule import Progress, polish, run_schedule  # noqa: F401 - polish: one pose, no search
 from autoalign.engine.seeding import Click, click_centre, hull_centre, rotation_grid
-from autoalign.engine.solver import FTOL, OPTIMIZERS, Trace
+from autoalign.engine.solver import Trace
 from autoalign.engine.uncertainty import Uncertainty, pose_uncertainty
 from autoalign.errors import AutoalignError
 from autoalign.geometry.mesh import Mesh
 from autoalign.geometry.se3 import rotation_angle_deg, transform_points
 from autoalign.io.bop import Scene
 from autoalign.losses import targets_in_crops
-from autoalign.losses.depth import DepthNoise, DepthTerms
-from autoalign.losses.region import RegionOptions
+from autoalign.losses.depth import DepthTerms
 from autoalign.quality.overlap import iou_from_counts, view_ious
-from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
+from autoalign.rasterizers.pyramid import MeshPyramid
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
-DEFAULT_SCHEDULE: tuple[Level, ...] = (Level(0.25, 1.0, 40), Level(1.0, 0.5, 30))
-
 Seed = NDArray[np.float64] | Click | None
-Progress = Callable[[str, int, int], None]
-
-
-@dataclass(frozen=True)
-class SearchOptions:
-    """The orientation search, when the seed gives no orientation (a click or the visual hull).
-
-    Attributes:
-        n_rotations: orientations of the rotation grid scored at the seed's centre.
-        n_starts: best-scoring ones that start the search (16: on masks that miss parts or cover
-            another object the 1/8-resolution score ranks orientations coarsely; with 8, the real
-            LM-O driller's right basin was reached from none of them, and on synthetic SAM-like
-            masks 4 of 30 objects ended wrong, 2 'ok'; with 16, 2, both flagged).
-        climb_deg: before that, each climbs to the best of itself and its turns by +- these angles
-            (degrees) about the model axes, by hard IoU (:func:`~autoalign.engine.hypotheses.climb_poses`).
-        level: the cheap level every start is refined at (its ``ftol`` the full-resolution one: a
-            hypothesis still far off descends slowly, 1-2% per step, and with ``ftol / scale`` the
-            search lost the true orientation in 5 of 264 simulated trials with eroded or shifted masks).
-        n_mid: best distinct ones of those refined at the schedule's first level.
-        n_final: best distinct ones of those polished through the rest of the schedule (3: on the
-            real LM-O watering can the right basin came third at the first level, behind two half turns).
-        abandon: a hypothesis is given up when after two iterations its loss is above this multiple
-            of the best loss found in the same stage (replayed on logged searches of the 44
-            simulated models, giving up at 3x would not have lost the answer in any; 4x leaves a margin).
-        flips: after ``level``, also refine the best hypothesis turned half a turn about each
-            principal axis of the mesh (with 8 starts the search settled on such a flip of thin or
-            flat objects in 2 of 44 simulated trials; with 16, in none of 88: a safety net).
-    """
-
-    n_rotations: int = 384
-    n_starts: int = 16
-    climb_deg: tuple[float, ...] = (10.0, 5.0)
-    level: Level = Level(0.125, 1.0, 10, max_views=20, ftol=FTOL)
-    n_mid: int = 3
-    n_final: int = 3
-    abandon: float = 4.0
-    flips: bool = True
-
-
-@dataclass(frozen=True)
-class RankingOptions:
-    """Which hypotheses go on to the next level, which are polished, and when two are ambiguous.
-
-    Attributes:
-        competitive: a distinct hypothesis goes on to the next level only if its loss there is
-            within this factor of the best one's.
-        polish_margin: at the last level a finalist other than the best is polished only when its
-            estimated loss is below the best's by more than this fraction (see :func:`_polish`);
-            ``-inf`` polishes every one.
-        ambiguity_tol: a runner-up within this relative loss of the winner (and at another pose)
-            means ambiguous; so does one within ``competitive`` whose mean IoU is higher.
-    """
-
-    competitive: float = 1.5
-    polish_margin: float = 0.0
-    ambiguity_tol: float = 0.05
-
-
-@dataclass(frozen=True)
-class DisambiguationOptions:
-    """Poses the polish cannot tell apart from the best by descent (:func:`_disambiguate`).
-
-    Attributes:
-        orbits: when the runner-up reached the last level within ``competitive`` of the best (a
-            loss estimated from one render there can be off by 10%) and is a 1/n turn (n = 3..12)
-            away, try the other poses of that turn's orbit (see :func:`~autoalign.engine.hypotheses.orbit`)
-            and polish the one whose full-resolution hard IoU beats the winner's by ``margin``.
-        weak_turns: from a given pose, the result turned by these angles (degrees) about each weakly
-            observed axis (:mod:`autoalign.engine.uncertainty`) is scored by hard IoU at 1/4
-            resolution, and the best turn, if it beats the result by ``margin``, is polished too: a
-            nearly symmetric object can settle where its distinguishing detail is out of sight. ``()``: off.
-        margin: mean hard IoU by which an orbit pose or a turn must beat the best to be polished.
-    """
-
-    orbits: bool = True
-    weak_turns: tuple[float, ...] = (30.0, 60.0, 90.0, 120.0, 150.0, 180.0, -150.0, -120.0, -90.0, -60.0, -30.0)
-    margin: float = 0.001
-
-
-@dataclass(frozen=True)
-class RefineOptions:
-    """Settings of :func:`refine`, grouped by concern.
-
-    Attributes:
-        loss: ``l2`` (default: per-pixel residuals give Gauss-Newton a full-rank model and it
-            converged in 3-4x fewer iterations than ``iou``/``dice``; see the results), ``bce``, ``iou``, ``dice``.
-        optimizer: ``lm`` (Levenberg-Marquardt, default), ``gn`` (Gauss-Newton) or ``adam``.
-        robust: Cauchy re-weighting of views by their misfit.
-        schedule: coarse-to-fine levels (scale, sigma in px, iterations) a pose is polished through.
-        search: the orientation search (:class:`SearchOptions`).
-        ranking: which hypotheses go on (:class:`RankingOptions`).
-        disambiguation: orbits and weak turns (:class:`DisambiguationOptions`).
-        detail: how many triangles the mesh is drawn with at each resolution
-            (:class:`~autoalign.rasterizers.pyramid.MeshDetail`).
-        depth: the depth sensor's noise model; the depth term (:mod:`autoalign.losses.depth`) joins
-            the mask term in every view when the scene has measured depth
-            (:func:`~autoalign.io.bop.with_depth`); ``None``: masks only.
-        region: the region (colour) term (:mod:`autoalign.losses.region`), used when the scene
-            carries its photos (:func:`~autoalign.io.photos.with_photos`); ``None``: photos ignored.
-    """
-
-    loss: str = "l2"
-    optimizer: str = "lm"
-    robust: bool = True
-    schedule: tuple[Level, ...] = DEFAULT_SCHEDULE
-    search: SearchOptions = SearchOptions()
-    ranking: RankingOptions = RankingOptions()
-    disambiguation: DisambiguationOptions = DisambiguationOptions()
-    detail: MeshDetail = MeshDetail()
-    depth: DepthNoise | None = DepthNoise()
-    region: RegionOptions | None = RegionOptions()
 
 
 class Stage(enum.Enum):
@@ -249,8 +143,9 @@ class RefineResult:
         terms: each evidence term's loss per view at the result, with the view weights
             (:class:`~autoalign.engine.objective.ViewTermsRecord`).
         photo: the region term's evidence at the result (``None``: photos not used;
-            :class:`~autoalign.engine.photo_evidence.PhotoEvidence`). With photos the masks the
-            IoUs and terms compare with are the region targets (the photo's posterior fused with the mask).
+            :class:`~autoalign.engine.photo_evidence.PhotoEvidence`). With photos the terms compare
+            the silhouettes with the region targets (the photo's posteriors fused with the mask);
+            the IoUs are with the instance's masks, or with the targets where it has none.
     """
 
     T_wm: NDArray[np.float64]
@@ -271,41 +166,6 @@ class RefineResult:
     depth: DepthTerms | None = None
     terms: ViewTermsRecord | None = None
     photo: PhotoEvidence | None = None
-
-
-def _run_schedule(obj: SilhouetteObjective, T: NDArray[np.float64], levels: tuple[Level, ...], optimizer: str,
-                  progress: Progress | None = None, label: str = "refine",
-                  give_up: Callable[[int, Evaluation], bool] | None = None) -> tuple[NDArray[np.float64], list[Trace]]:
-    """Run ``levels`` in turn from ``T``; ``give_up(iteration, evaluation)`` returning True ends a level early."""
-    opt = OPTIMIZERS[optimizer]
-    traces = []
-    total = sum(lv.max_iters for lv in levels)
-    done = 0
-    for lv in levels:
-        base = done
-
-        def cb(it: int, ev: Evaluation, base: int = base) -> bool:
-            if progress is not None:
-                progress(label, base + it + 1, total)
-            return give_up is not None and give_up(it, ev)
-
-        T, tr = opt(obj, T, lv, callback=cb)
-        traces.append(tr)
-        done += lv.max_iters
-        if progress is not None:
-            progress(label, done, total)
-    return T, traces
-
-
-def polish(scene: Scene, pyramid: MeshPyramid, T: NDArray[np.float64], levels: tuple[Level, ...],
-           options: RefineOptions, progress: Progress | None = None,
-           label: str = "refine") -> tuple[NDArray[np.float64], int, int]:
-    """``T`` descended through ``levels`` on the masks of ``scene`` (its depth too), and nothing
-    else: no search, no disambiguation, no report. Returns the pose, the iterations and the renders."""
-    obj = SilhouetteObjective(pyramid, scene.without_empty_masks(), options.loss, options.robust, options.detail,
-                              options.depth)
-    T, traces = _run_schedule(obj, T, levels, options.optimizer, progress, label)
-    return T, sum(tr.iterations for tr in traces), obj.renders
 
 
 def _final_loss(obj: SilhouetteObjective, T: NDArray[np.float64], level: Level,
@@ -366,7 +226,7 @@ def _search(obj: SilhouetteObjective, starts: list[NDArray[np.float64]], mesh: M
         def run(todo: list[Hypothesis]) -> None:
             for j, h in enumerate(todo):
                 bar = opts.search.abandon * min((d.loss for d in done), default=np.inf)
-                Tc, tr = _run_schedule(obj, h.T_final, (level,), opts.optimizer,
+                Tc, tr = run_schedule(obj, h.T_final, (level,), opts.optimizer,
                                        give_up=lambda it, ev, bar=bar: it >= 1 and ev.value / len(ev.weights) > bar)
                 loss, miou, _ = _final_loss(obj, Tc, level, tr[-1])
                 done.append(Hypothesis(h.T_init, Tc, loss, miou, Stage.SEARCH, h.path + ((level, tr[-1]),), step=stage))
@@ -427,7 +287,7 @@ def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple
                                                       Stage.FINAL, h.path, estimated=True), ev.weights))
                     continue
             name = label if len(alive) == 1 else f"{label} {k + 1}/{len(alive)}"
-            T, tr = _run_schedule(obj, h.T_final, (lv,), opts.optimizer, progress, f"{name} (level {li + 1}/{len(levels)})")
+            T, tr = run_schedule(obj, h.T_final, (lv,), opts.optimizer, progress, f"{name} (level {li + 1}/{len(levels)})")
             loss, miou, weights = _final_loss(obj, T, lv, tr[-1])
             scored.append(Finalist(Hypothesis(h.T_init, T, loss, miou, Stage.FINAL, h.path + ((lv, tr[-1]),)), weights))
             start = tr[-1].start

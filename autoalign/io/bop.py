@@ -340,16 +340,9 @@ def read_masks(paths: dict[tuple[int, int], Path], max_pixels: int | None = MAX_
     return out
 
 
-MODALITIES = ("masks", "photos", "depth")
-"""The evidence a scene can carry (:func:`read_scene`'s ``modalities``)."""
-
-
-def read_scene(scene_dir: str | Path, instance: int = 0, max_pixels: int | None = MAX_IMAGE_PIXELS,
-               modalities: tuple[str, ...] = ("masks",)) -> Scene:
-    """Read cameras and the evidence named in ``modalities`` (:data:`MODALITIES`) of instance
-    ``instance`` from a BOP scene folder: its masks; its photos (``rgb/``, :func:`autoalign.io.photos.with_photos`);
-    the measured depth (``depth/``, :func:`with_depth`; none when the folder has none). Without
-    ``"masks"`` every view with a photo is used with empty masks (the photos must be named then).
+def read_scene(scene_dir: str | Path, instance: int = 0, max_pixels: int | None = MAX_IMAGE_PIXELS) -> Scene:
+    """Read cameras and the masks of instance ``instance`` from a BOP scene folder (the photos and
+    the depth too: :func:`autoalign.io.evidence.read_evidence`).
 
     Images without a mask file are skipped (listed in ``Scene.skipped``), empty masks are treated
     as missing (``Scene.empty``); all masks must share one size and one kind (:func:`read_mask`), and
@@ -357,20 +350,6 @@ def read_scene(scene_dir: str | Path, instance: int = 0, max_pixels: int | None 
     ``max_pixels`` are read downscaled (area-averaged, then thresholded at half), with their cameras
     (``Scene.image_scale``); ``None`` keeps them as they are.
     """
-    unknown = [m for m in modalities if m not in MODALITIES]
-    if unknown or not modalities:
-        raise AutoalignError(f"modalities {tuple(modalities)!r}: choose from {MODALITIES}")
-    if modalities != ("masks",):
-        from autoalign.io.photos import read_scene_without_masks, with_photos
-
-        if "masks" not in modalities:
-            if "photos" not in modalities:
-                raise AutoalignError("without masks the photos are the evidence: add 'photos' to the modalities")
-            scene = read_scene_without_masks(scene_dir, max_pixels)
-        else:
-            scene = read_scene(scene_dir, instance, max_pixels)
-            scene = with_photos(scene) if "photos" in modalities else scene
-        return with_depth(scene) if "depth" in modalities else scene
     scene_dir = check_scene_dir(scene_dir)
     cams = read_cameras(scene_dir)
     check_masks_have_cameras(scene_dir, set(cams))

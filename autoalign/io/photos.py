@@ -26,7 +26,6 @@ from autoalign.io.bop import (
     read_cameras,
     read_photo,
 )
-from autoalign.io.instances import Instance, InstanceScenes
 
 
 @dataclass
@@ -107,18 +106,3 @@ def read_scene_without_masks(scene_dir: str | Path, max_pixels: int | None = MAX
     masks = [np.zeros((c.height, c.width), np.float32) for c in cameras]
     scene = Scene(cameras, masks, ids, scene_dir, image_scale=1.0 / f)
     return with_photos(scene)
-
-
-def instance_scenes_with_photos(found: InstanceScenes) -> InstanceScenes:
-    """Every instance's scene with its photos as evidence (each photo read once)."""
-    read: dict[int, NDArray[np.uint8]] = {}
-    return replace(found, scenes=[with_photos(sc, read) for sc in found.scenes])
-
-
-def read_instance_scenes_without_masks(scene_dir: str | Path, instances: list[Instance],
-                                       max_pixels: int | None = MAX_IMAGE_PIXELS) -> InstanceScenes:
-    """Every instance seen in every view that has a photo, with empty masks and the photos as
-    evidence (``--models ... --masks none``)."""
-    base = read_scene_without_masks(scene_dir, max_pixels)
-    scenes = [replace(base) for _ in instances]
-    return InstanceScenes(list(instances), scenes, list(base.cameras), list(base.image_ids), [])

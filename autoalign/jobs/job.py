@@ -97,8 +97,8 @@ class FolderJob:
     seeds it; ``units`` of the meshes (``mm``/``m``, default: refuse tiny meshes); ``depth``: ``auto``
     uses the scene's ``depth/`` when it has one (and metric cameras), ``off`` never; ``masks``:
     ``auto`` reads the instance masks, ``none`` withholds them all (the photos place the objects,
-    from ``init``); ``photos``: ``on`` uses the photos as evidence with the masks, ``auto`` only
-    where the masks are withheld, ``off`` never (:meth:`uses_photos`)."""
+    from ``init``); ``photos``: ``auto`` uses the photos as evidence when the folder has ``rgb/``,
+    ``on`` always (a photo missing is an error), ``off`` never (:meth:`uses_photos`)."""
 
     scene: str
     out: str
@@ -121,8 +121,9 @@ class FolderJob:
 
     @property
     def uses_photos(self) -> bool:
-        """Whether the photos are evidence (``photos`` ``on``, or ``auto`` with ``masks`` ``none``)."""
-        return self.photos == "on" or (self.photos == "auto" and self.masks == "none")
+        """Whether the photos are evidence: ``photos`` ``on``, or ``auto`` when the scene folder has
+        ``rgb/`` (or the masks are withheld)."""
+        return self.photos == "on" or (self.photos == "auto" and (self.masks == "none" or (Path(self.scene) / "rgb").is_dir()))
 
     @property
     def modalities(self) -> tuple[str, ...]:

@@ -76,11 +76,11 @@ def _refine_object(job: FolderJob, click: Any, log: RunLog, progress: Stages) ->
     """:func:`refine_folder` with one object (``job.model``)."""
     from autoalign.engine.refine import RefineOptions, refine
     from autoalign.geometry.mesh import load_mesh
-    from autoalign.io.bop import read_scene
+    from autoalign.io.evidence import read_evidence
     from autoalign.quality.overlay import render_overlay
     from autoalign.rasterizers.pyramid import MeshPyramid
 
-    scene = read_scene(job.scene, job.instance, modalities=job.modalities)
+    scene = read_evidence(job.scene, job.instance, job.modalities)
     mesh = load_mesh(job.model, units=job.units)
     pyramid = MeshPyramid(mesh)
     seed, seed_record = _seed(job, scene, click)
@@ -144,7 +144,7 @@ def _object_report(job: FolderJob, scene: Any, mesh: Any, result: Any, seed: Any
 
     ids = [int(i) for i in result.image_ids or scene.image_ids]
     verdict = judge(result.iou_after, result.weights, ids, scene.empty, bool(result.ambiguous),
-                    uncertainty=result.uncertainty, turn_gap=result.turn_gap, depth=result.depth)
+                    uncertainty=result.uncertainty, turn_gap=result.turn_gap, depth=result.depth, photo=result.photo)
     return RefineReport(
         scene_dir=Path(job.scene).absolute(), model=Path(job.model).absolute(), obj_id=job.obj_id,
         instance=job.instance, result=result, verdict=verdict, seed=seed, image_ids=ids,

@@ -116,13 +116,13 @@ def read_scene_inputs(job: FolderJob, log: RunLog) -> SceneInputs:
     scene_dir = Path(job.scene)
     instances = read_instances(scene_dir, Path(job.instances) if job.instances else None)
     if job.masks == "none":
-        from autoalign.io.photos import read_instance_scenes_without_masks
+        from autoalign.io.evidence import read_instance_scenes_without_masks
 
         found = read_instance_scenes_without_masks(scene_dir, instances)
     else:
         found = read_instance_scenes(scene_dir, instances)
         if job.uses_photos:
-            from autoalign.io.photos import instance_scenes_with_photos
+            from autoalign.io.evidence import instance_scenes_with_photos
 
             found = instance_scenes_with_photos(found)
     models = ModelSet.read(job.models, job.units)

@@ -56,11 +56,13 @@ def terms_record(terms: ViewTermsRecord | None) -> dict[str, Any] | None:
 
 def photo_record(photo: PhotoEvidence | None) -> dict[str, Any] | None:
     """The region (colour) term at the result, per view of ``image_ids``: the band's half-width
-    (px), the share of the band's pixels whose colour posterior agrees with the silhouette, and the
-    rounds the colour models were learned in (``None``: photos not used)."""
+    (px), the share of the band's pixels whose colour posterior agrees with the silhouette, the
+    edge contrast across the outline, and the rounds the colour models were learned in (``None``:
+    photos not used)."""
     if photo is None:
         return None
-    return {"band_px": photo.band_px, "agreement": photo.agreement, "rounds": photo.rounds}
+    return {"band_px": photo.band_px, "agreement": photo.agreement, "edge_contrast": photo.edge_contrast,
+            "rounds": photo.rounds}
 
 
 def depth_record(depth: DepthTerms | None) -> dict[str, Any] | None:

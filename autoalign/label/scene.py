@@ -20,6 +20,11 @@ from autoalign.io.instances import InstanceScenes, read_instance_scenes, read_in
 from autoalign.io.models import ModelSet
 from autoalign.scene.scale import cameras_up_to_scale
 
+NEAR_MASK_PX = 40
+"""With the photos as evidence, a click off every mask this close (px) to an instance's mask means
+that instance: the part a segmenter mask misses (a dark handle) adjoins what it found. A click
+farther from every mask is refused rather than guessed."""
+
 
 class SessionScene:
     """A BOP scene folder's views and instance masks, with the models to choose from.
@@ -36,6 +41,10 @@ class SessionScene:
         self.found: InstanceScenes = read_instance_scenes(self.scene_dir, None)
         if not cameras_up_to_scale(self.scene_dir):  # measured depth joins the masks (as in refine)
             self.found = self.found.with_depth()
+        if (self.scene_dir / "rgb").is_dir():  # and the photos (as refine's --photos auto)
+            from autoalign.io.evidence import instance_scenes_with_photos
+
+            self.found = instance_scenes_with_photos(self.found)
         self.indices = [i.index for i in self.found.instances]
         if not self.indices:
             raise AutoalignError(f"{self.scene_dir / 'mask_visib'}: no non-empty instance mask; label a scene with "
@@ -77,18 +86,43 @@ class SessionScene:
                 out[inst.index] = np.asarray(sc.masks[sc.image_ids.index(image_id)]) > 0.5
         return out
 
+    @property
+    def has_photos(self) -> bool:
+        """Whether the photos are evidence (the scene has ``rgb/``)."""
+        return any(sc.photos is not None for sc in self.found.scenes)
+
     def instance_at(self, image_id: int, u: float, v: float) -> int:
-        """The instance whose mask covers OpenCV pixel ``(u, v)`` of image ``image_id`` (the smallest,
-        where masks overlap). Raises :class:`AutoalignError` if none does."""
+        """The instance a click at OpenCV pixel ``(u, v)`` of image ``image_id`` means (:meth:`click_target`)."""
+        return self.click_target(image_id, u, v)[0]
+
+    def click_target(self, image_id: int, u: float, v: float) -> tuple[int, float, float]:
+        """The instance a click means and the OpenCV pixel to seed it from: the instance whose mask
+        covers the pixel (the smallest, where masks overlap), seeded there; with the photos as
+        evidence, a click off every mask within :data:`NEAR_MASK_PX` of one means that instance
+        (its mask missed the part clicked, the photo completes it), seeded from its mask's nearest
+        pixel. Raises :class:`AutoalignError` if neither."""
         cam = self.view(image_id)
         col, row = int(round(u)), int(round(v))
         if not (0 <= col < cam.width and 0 <= row < cam.height):
             raise AutoalignError(f"pixel {u:.0f},{v:.0f} is outside the {cam.width}x{cam.height} image {image_id}")
-        under = [(int(m.sum()), k) for k, m in self.masks_in_view(image_id).items() if m[row, col]]
-        if not under:
-            raise AutoalignError(f"no instance mask under pixel {col},{row} of image {image_id}; click inside a tinted "
-                                 "region (autoalign aligns a model with a mask)")
-        return min(under)[1]
+        masks = self.masks_in_view(image_id)
+        under = [(int(m.sum()), k) for k, m in masks.items() if m[row, col]]
+        if under:
+            return min(under)[1], float(u), float(v)
+        if self.has_photos:
+            near = []
+            for k, m in masks.items():
+                ys, xs = np.nonzero(m)
+                if len(ys):
+                    j = int(np.argmin((xs - col) ** 2 + (ys - row) ** 2))
+                    near.append((float(np.hypot(xs[j] - col, ys[j] - row)), k, float(xs[j]), float(ys[j])))
+            if near and min(near)[0] <= NEAR_MASK_PX:
+                _, k, x, y = min(near)
+                return k, x, y
+            raise AutoalignError(f"no instance mask under pixel {col},{row} of image {image_id}, nor within "
+                                 f"{NEAR_MASK_PX} px of it; click on an object that has a mask in some part of it")
+        raise AutoalignError(f"no instance mask under pixel {col},{row} of image {image_id}; click inside a tinted "
+                             "region (autoalign aligns a model with a mask; with photos in rgb/, also next to one)")
 
     def check_object(self, obj_id: int) -> None:
         """Raise unless ``obj_id`` has a model."""

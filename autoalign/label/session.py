@@ -218,9 +218,11 @@ class LabelSession(SessionScene):
     def place(self, obj_id: int, image_id: int, u: float, v: float, progress: Progress | None = None) -> int:
         """Place ``obj_id`` on the instance clicked at OpenCV pixel ``(u, v)`` of ``image_id``: position
         from the click's ray and the other views' masks, orientation searched, then refined
-        (:func:`~autoalign.engine.refine.refine`); returns the instance."""
+        (:func:`~autoalign.engine.refine.refine`, the photos as evidence where the scene has them);
+        returns the instance. A click next to a mask that missed the part clicked means that mask's
+        instance (:meth:`~autoalign.label.scene.SessionScene.click_target`)."""
         self.check_object(obj_id)
-        index = self.instance_at(image_id, u, v)
+        index, u, v = self.click_target(image_id, u, v)  # off a mask but next to one: seeded from its mask
         iu, iv = uv_from_opencv(np.array([u, v], dtype=np.float64))
         with self._render:
             result = refine(self.scene_of(index), self.models.pyramid(obj_id), Click(image_id, float(iu), float(iv)),
@@ -241,6 +243,7 @@ class LabelSession(SessionScene):
         (:func:`~autoalign.scene.joint.refine_jointly`: in each view a pixel belongs to the nearest
         of their surfaces, so the contour between two objects moves with both), and judge each."""
         from autoalign.scene.joint import refine_jointly
+        from autoalign.scene.photos import region_targets
 
         with self._render:
             with self.state.lock:
@@ -250,6 +253,10 @@ class LabelSession(SessionScene):
                                      "place more, or refine the one from where it is")
             scenes = [self.scene_of(i.index) for i in chosen]
             together = replace(self.found, instances=[Instance(i.index, i.obj_id) for i in chosen], scenes=scenes)
+            if self.options.region is not None:  # the photos as targets learned at the placed poses, as refine does
+                together, _ = region_targets(together, self.models, [i.T_wm for i in chosen], self.options.region,
+                                             self.options.detail)
+                scenes = together.scenes
             joint = refine_jointly(together, [self.models.pyramid(i.obj_id) for i in chosen], [i.T_wm for i in chosen],
                                    detail=self.options.detail, robust=self.options.robust, progress=progress)
             for k, (inst, scene) in enumerate(zip(chosen, scenes)):

@@ -14,7 +14,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.engine.photo_evidence import photo_targets
+from autoalign.engine.photo_evidence import PhotoEvidence, photo_targets
 from autoalign.io.instances import InstanceScenes
 from autoalign.io.models import ModelSet
 from autoalign.losses.region import RegionOptions
@@ -57,20 +57,24 @@ def others_left_out(found: InstanceScenes, models: ModelSet, poses: dict[int, ND
 
 
 def region_targets(found: InstanceScenes, models: ModelSet, poses: list[NDArray[np.float64]],
-                   options: RegionOptions, detail: MeshDetail = MeshDetail()) -> InstanceScenes:
+                   options: RegionOptions, detail: MeshDetail = MeshDetail()
+                   ) -> tuple[InstanceScenes, list[PhotoEvidence | None]]:
     """Every instance's scene whose masks are its region targets at ``poses`` (one per instance,
     in order; :func:`~autoalign.engine.photo_evidence.photo_targets`), the other instances at
-    theirs left out; scenes without photos are returned as they are."""
+    theirs left out, and each one's photo evidence there; scenes without photos are returned as
+    they are (evidence ``None``)."""
     if all(sc.photos is None for sc in found.scenes):
-        return found
+        return found, [None] * len(found.scenes)
     by_index = {inst.index: T for inst, T in zip(found.instances, poses)}
     posed = others_left_out(found, models, by_index)
-    scenes = []
+    scenes, evidence = [], []
     for inst, sc, T in zip(found.instances, posed.scenes, poses):
         if sc.photos is None:
             scenes.append(sc)
+            evidence.append(None)
             continue
         rast = models.pyramid(inst.obj_id).fine(detail)
-        targets, _ = photo_targets(sc, rast.hard_masks(T, sc.cameras), options)
+        targets, ev = photo_targets(sc, rast.hard_masks(T, sc.cameras), options)
         scenes.append(targets)
-    return replace(found, scenes=scenes)
+        evidence.append(ev)
+    return replace(found, scenes=scenes), evidence

@@ -35,10 +35,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.engine.hypotheses import weak_turn_scores
+from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult, refine
 from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
+from autoalign.quality.overlap import view_ious
 from autoalign.quality.verdict import Verdict, judge
+from autoalign.rasterizers.pyramid import MeshPyramid
 from autoalign.scene.cameras import corrections_accepted
 from autoalign.scene.joint import JointRefinement, refine_jointly
 from autoalign.scene.photos import region_targets
@@ -69,7 +72,7 @@ class InstanceResult:
 def verdict_of(result: RefineResult, empty: tuple[int, ...], models: ModelSet, obj_id: int) -> Verdict:
     """The verdict on an instance's result, with its model's symmetries (:func:`~autoalign.quality.verdict.judge`)."""
     return judge(result.iou_after, result.weights, result.image_ids, empty, result.ambiguous, models.symmetric(obj_id),
-                 result.uncertainty, models.continuous_axes(obj_id), result.turn_gap, result.depth)
+                 result.uncertainty, models.continuous_axes(obj_id), result.turn_gap, result.depth, result.photo)
 
 
 def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArray[np.float64]],
@@ -113,6 +116,36 @@ class SceneRefinement:
         return self.with_cameras is not None and self.with_cameras is self.joint
 
 
+def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: InstanceScenes, found: InstanceScenes,
+                 pyramids: list[MeshPyramid], models: ModelSet, opts: RefineOptions) -> list[RefineResult]:
+    """Each instance's result at the joint stage's pose: its per-view fit, uncertainty, weak turns
+    and depth there; with photos, their evidence there and the IoUs with its own masks (``given``:
+    the instances as read; ``found``: as the joint stage compared them)."""
+    photo: list[PhotoEvidence | None] = [None] * len(alone)
+    if opts.region is not None:  # the photo's evidence at the joint poses
+        _, photo = region_targets(given.through(found.camera_by_id), models, joint.poses, opts.region, opts.detail)
+    after = []
+    for k, r in enumerate(alone):
+        unc = joint.uncertainties[k]
+        gap = None
+        if unc.weak_turn_axes and opts.disambiguation.weak_turns:  # the joint system's weak turns, tried at its pose
+            own, scores, _ = weak_turn_scores(pyramids[k].with_faces(opts.detail.coarse), found.scenes[k],
+                                              joint.poses[k], unc.weak_turn_axes, pyramids[k].mesh.centre,
+                                              opts.disambiguation.weak_turns)
+            gap = own - float(scores.max())
+        depth = None if joint.evaluation.depth is None else joint.evaluation.depth[k]
+        iou = joint.evaluation.hard_iou(k)
+        own_scene = given.scenes[k]
+        if photo[k] is not None and any(np.any(np.asarray(m) > 0.5) for m in own_scene.masks):  # with its own masks
+            iou = view_ious(pyramids[k].fine(opts.detail).hard_masks(joint.poses[k], found.scenes[k].cameras),
+                            replace(own_scene, cameras=found.scenes[k].cameras))
+        evidence = r.result.photo if photo[k] is None else replace(photo[k], rounds=r.result.photo.rounds)
+        after.append(replace(r.result, T_wm=joint.poses[k], iou_after=iou, weights=joint.evaluation.weights[k],
+                             uncertainty=unc, turn_gap=gap, depth=depth, terms=joint.evaluation.record(k),
+                             photo=evidence))
+    return after
+
+
 def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArray[np.float64]],
                  options: RefineOptions | None = None, refine_cameras: bool = False, solve_scale: bool = False,
                  progress: Progress | None = None) -> SceneRefinement:
@@ -147,8 +180,9 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
         pyramids = [models.pyramid(r.instance.obj_id) for r in alone]
         start = [r.result.T_wm for r in alone]
         t0 = time.perf_counter()
+        given = found  # the instances as read: their own masks and photos
         if opts.region is not None:  # the photos' evidence as targets learned at the alone poses, others left out
-            found = region_targets(found, models, start, opts.region, opts.detail)
+            found, _ = region_targets(found, models, start, opts.region, opts.detail)
         attempt = (refine_jointly(found, pyramids, start, with_cameras=True, detail=opts.detail, robust=opts.robust,
                                   with_scale=solve_scale, depth=opts.depth, scale_from=scale_from, progress=progress)
                    if refine_cameras else None)
@@ -166,19 +200,7 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
                 break
         elif joint is attempt:
             found = found.through(joint.cameras)
-    after = []
-    for k, r in enumerate(alone):
-        unc = joint.uncertainties[k]
-        gap = None
-        if unc.weak_turn_axes and opts.disambiguation.weak_turns:  # the joint system's weak turns, tried at its pose
-            own, scores, _ = weak_turn_scores(pyramids[k].with_faces(opts.detail.coarse), found.scenes[k],
-                                              joint.poses[k], unc.weak_turn_axes, pyramids[k].mesh.centre,
-                                              opts.disambiguation.weak_turns)
-            gap = own - float(scores.max())
-        depth = None if joint.evaluation.depth is None else joint.evaluation.depth[k]
-        after.append(replace(r.result, T_wm=joint.poses[k], iou_after=joint.evaluation.hard_iou(k),
-                             weights=joint.evaluation.weights[k], uncertainty=unc, turn_gap=gap, depth=depth,
-                             terms=joint.evaluation.record(k)))
+    after = _after_joint(alone, joint, given, found, pyramids, models, opts)
     seconds = (time.perf_counter() - t0) / max(len(alone), 1)
     results = [InstanceResult(r.instance, replace(res, timings={**res.timings, "joint": seconds}),
                               verdict_of(res, found.scenes[k].empty, models, r.instance.obj_id), r.seconds + seconds)

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.experiments.scenes.stream import DEPTH_SCALE, SolidTexture
+from autoalign.experiments.scenes.stream import DEPTH_SCALE, SolidTexture, table_mesh
 from autoalign.experiments.scenes.synthetic import (
     pixel_rays,
     random_rotation,
@@ -28,7 +28,7 @@ from autoalign.experiments.scenes.synthetic import (
     write_multi_scene,
 )
 from autoalign.geometry.camera import Camera
-from autoalign.geometry.mesh import Mesh, mesh_from_trimesh
+from autoalign.geometry.mesh import Mesh
 from autoalign.geometry.se3 import make_pose
 from autoalign.rasterizers.ray_casting import RayCaster
 
@@ -62,14 +62,6 @@ class TintedTexture:
         return np.clip(self.base * (1.0 - self.contrast) + self.contrast * t, 0.0, 1.0)
 
 
-def table_mesh(size_mm: float = 700.0, thickness_mm: float = 20.0) -> Mesh:
-    import trimesh
-
-    box = trimesh.creation.box((size_mm, size_mm, thickness_mm))
-    box.apply_translation((0.0, 0.0, -thickness_mm / 2.0))
-    return mesh_from_trimesh(box, "table")
-
-
 def place_on_table(meshes: Sequence[Mesh], rng: np.random.Generator, radius_mm: float | None = None) -> list[NDArray[np.float64]]:
     """World-from-model poses: each mesh turned at random, resting on its lowest point, on a ring
     (radius 90 mm for up to 4 objects, growing with their number beyond: neighbours ~140 mm apart)."""
@@ -89,7 +81,7 @@ def render_photos(meshes: Sequence[Mesh], poses: Sequence[NDArray[np.float64]], 
                   ) -> tuple[list[NDArray[np.uint8]], list[NDArray[np.float64]]]:
     """Photos (BGR uint8) and depth (mm along the optical axis, 0 = nothing) of the meshes at
     ``poses`` on a table, each object with its own texture (module doc)."""
-    table = table_mesh()
+    table = table_mesh(700.0)
     shapes = [(table, np.eye(4), TintedTexture(rng, np.array([0.55, 0.42, 0.3]), 0.5, grey=True))]
     hues = rng.permutation(np.linspace(0, 179, len(meshes), endpoint=False) + rng.uniform(0, 180 / len(meshes)))
     for m, T, h in zip(meshes, poses, hues):

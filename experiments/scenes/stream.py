@@ -53,7 +53,8 @@ class Stream:
     poses: list[NDArray[np.float64]]
 
 
-def _table(size_mm: float = 600.0, thickness_mm: float = 20.0) -> Mesh:
+def table_mesh(size_mm: float = 600.0, thickness_mm: float = 20.0) -> Mesh:
+    """A square table top (mm) whose upper face is z = 0."""
     import trimesh
 
     box = trimesh.creation.box((size_mm, size_mm, thickness_mm))
@@ -111,7 +112,7 @@ def render_stream(folder: str | Path, n_frames: int = 200, width: int = 640, hei
         poses.append(make_pose(R, np.array([110.0 * np.cos(a), 110.0 * np.sin(a), -low])))
     K = default_K(width, height, 0.9 * width)
     cams = hand_held_path(n_frames, rng, K, width, height)
-    table = _table()
+    table = table_mesh()
     tex = SolidTexture(rng)
     mi = mitsuba()
     shapes = {}

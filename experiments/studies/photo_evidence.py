@@ -11,7 +11,8 @@ Conditions:
   deg off; with the photos (``--photos on``) and, for comparison, masks alone (``cut-masks-only``).
 * ``rgbd``: 8 views from nearly one viewpoint with sensor-like depth (noise growing with z squared,
   holes, one pixel of misregistration), masks eroded by 4 px, start 20 mm along the first view's
-  ray and 10 deg off; with the depth, and without it (``rgbd-no-depth``).
+  ray and 10 deg off; with the depth (and the photos, as by default), without the depth
+  (``rgbd-no-depth``: masks and photos), and with the masks alone (``rgbd-masks-only``).
 
 ``python -m autoalign.experiments.studies.photo_evidence [--scenes 3] [--conditions photos,cut,...]``
 """
@@ -47,7 +48,7 @@ from autoalign.geometry.se3 import invert, make_pose, transform_points
 from autoalign.io.atomic_files import write_json_atomic
 from autoalign.io.bop import scene_gt_of
 
-CONDITIONS = ("photos", "cut", "cut-masks-only", "rgbd", "rgbd-no-depth")
+CONDITIONS = ("photos", "cut", "cut-masks-only", "rgbd", "rgbd-no-depth", "rgbd-masks-only")
 OBJECTS_PER_SCENE = 4
 
 
@@ -115,7 +116,8 @@ def run(ps: PhotoScene, symmetries: list[Symmetries], condition: str, seed: int,
     args = ["refine", str(scene), "--models", str(ps.folder.parent / "models"), "--init", str(init), "--out", str(out),
             "--quiet"]
     args += {"photos": ["--masks", "none"], "cut": ["--photos", "on"], "cut-masks-only": ["--photos", "off"],
-             "rgbd": [], "rgbd-no-depth": ["--depth", "off"]}[condition]
+             "rgbd": [], "rgbd-no-depth": ["--depth", "off"],
+             "rgbd-masks-only": ["--depth", "off", "--photos", "off"]}[condition]
     wall = run_autoalign(*args).check().wall_s
     labels = json.loads((out / "scene_gt.json").read_text())["0"]
     rec = json.loads((out / "refine.json").read_text())["instances"]

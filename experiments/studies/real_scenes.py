@@ -11,9 +11,10 @@ few millimetres is all a correct label can show. Results: ``experiments/results/
 
 Seeds: ``init`` (the coarse start), ``none`` (no seed), ``init-cameras`` (the coarse start and
 ``--refine-cameras``; the table then also gives the median per-view misfit before and after);
-with ``-photos`` appended (``init-photos``, ``none-photos``) the photos join the SAM masks as
-evidence (``--photos on``), with ``-nomasks`` (``init-nomasks``) every mask is withheld and the
-photos alone refine the coarse start (``--masks none``).
+the photos join the SAM masks as evidence by default (the scenes have ``rgb/``); with ``-masksonly``
+appended (``init-masksonly``, ``init-cameras-masksonly``) they do not (``--photos off``: how
+``real_scenes.md`` was made, before the photos were evidence), with ``-nomasks`` (``init-nomasks``)
+every mask is withheld and the photos alone refine the coarse start (``--masks none``).
 
 ``python -m autoalign.experiments.studies.real_scenes [--data ../shared/real/lmo_dev] [--seeds init,none,init-cameras] [--name real_scenes]``
 """
@@ -164,8 +165,9 @@ def run_scene(scene: Path, seed_kind: str, tmp: Path, figure: Path | None = None
     out = tmp / f"out_{scene.name}_{seed_kind}"
     args = ["refine", str(scene), "--models", str(scene / "models"), "--instances", str(instances), "--out", str(out),
             "--quiet"]
-    args += (["--init", str(init)] if seed_kind.startswith("init") else []) + (["--refine-cameras"] if seed_kind.endswith("cameras") else [])
-    args += ["--photos", "on"] if seed_kind.endswith("-photos") else ["--masks", "none"] if seed_kind.endswith("-nomasks") else []
+    parts = seed_kind.split("-")
+    args += (["--init", str(init)] if parts[0] == "init" else []) + (["--refine-cameras"] if "cameras" in parts else [])
+    args += ["--photos", "off"] if "masksonly" in parts else ["--masks", "none"] if "nomasks" in parts else []
     wall = run_autoalign(*args).check().wall_s
     rec = json.loads((out / "refine.json").read_text())
     fdist = feature_distances(scene, out, tmp, figure)

@@ -4,7 +4,7 @@ Every object starts 20 mm along its viewing ray and 10 degrees off (about a rand
 starts each) and is refined by ``autoalign.refine`` from its own masks, degraded as the issue asks
 (the frames' masks are renderings of the labels): eroded by 4 px, and eroded with 1 view in 3 cut to
 the object's left half, both also with the photos as evidence (the region term), and no masks at
-all, the photos alone (``read_scene(..., modalities=("photos",))``). Each run with the depth term (``RefineOptions()``) and without
+all, the photos alone (``read_evidence(..., modalities=("photos",))``). Each run with the depth term (``RefineOptions()``) and without
 (``RefineOptions(depth=None)``); errors against the dataset's labels (which agree with the sensor
 depth to about 2 mm), symmetry-aware, and the verdict.
 
@@ -30,6 +30,7 @@ from autoalign.experiments.studies.shared_data import YCBV_RGBD
 from autoalign.geometry.mesh import load_mesh
 from autoalign.geometry.se3 import apply_twist, make_pose, transform_points
 from autoalign.io.bop import Scene, read_scene, with_depth
+from autoalign.io.evidence import read_evidence
 from autoalign.io.models import ModelSet
 from autoalign.quality.verdict import judge
 
@@ -66,8 +67,8 @@ def run(data: Path) -> list[dict]:
         T = make_pose(np.reshape(entry["cam_R_m2c"], (3, 3)), np.asarray(entry["cam_t_m2c"], dtype=np.float64))
         c = transform_points(T, mesh.centre[None])[0]
         scene = with_depth(read_scene(data, k))
-        photos = read_scene(data, k, modalities=("masks", "photos")).photos
-        no_masks = with_depth(read_scene(data, modalities=("photos",)))
+        photos = read_evidence(data, k, ("masks", "photos")).photos
+        no_masks = read_evidence(data, modalities=("photos", "depth"))
         for start in range(STARTS):
             axis = rng.normal(size=3)
             T0 = apply_twist(T, np.array([*(20.0 * c / np.linalg.norm(c)), *(np.radians(10.0) * axis / np.linalg.norm(axis))]), c)
