@@ -80,26 +80,34 @@ class RegionOptions:
 
 @dataclass
 class ColourModel:
-    """Normalised colour histograms (``bins^3``) of the object and of its surroundings."""
+    """Normalised colour histograms (``bins^3``) of the object (``fg``) and of its surroundings
+    (``bg``), one pair per group of pixels (``(groups, bins^3)``: the band's angular sectors)."""
 
     fg: NDArray[np.float64]
     bg: NDArray[np.float64]
     bins: int
 
     @staticmethod
-    def learn(codes: NDArray[np.int64], inside: NDArray[np.bool_], outside: NDArray[np.bool_],
-              bins: int) -> "ColourModel":
-        """Histograms of the colour ``codes`` (:func:`colour_codes`) of the ``inside`` and ``outside`` pixels."""
+    def learn(codes: NDArray[np.int64], inside: NDArray[np.bool_], outside: NDArray[np.bool_], bins: int,
+              group: NDArray[np.int64] | None = None, groups: int = 1, min_px: int = 0) -> "ColourModel":
+        """Histograms of the colour ``codes`` (:func:`colour_codes`) of the ``inside`` and ``outside``
+        pixels, per ``group`` (same shape as ``codes``, values ``0..groups-1``; ``None``: one group).
+        A group with fewer than ``min_px`` pixels inside or outside gets the histograms of all."""
         n = bins ** 3
-        fg = np.bincount(codes[inside], minlength=n).astype(np.float64)
-        bg = np.bincount(codes[outside], minlength=n).astype(np.float64)
-        return ColourModel(fg / max(fg.sum(), 1.0), bg / max(bg.sum(), 1.0), bins)
+        key = codes if group is None else group * n + codes
+        fg = np.bincount(key[inside], minlength=groups * n).astype(np.float64).reshape(groups, n)
+        bg = np.bincount(key[outside], minlength=groups * n).astype(np.float64).reshape(groups, n)
+        weak = np.minimum(fg.sum(1), bg.sum(1)) < min_px
+        fg[weak], bg[weak] = fg.sum(0), bg.sum(0)
+        return ColourModel(fg / np.maximum(fg.sum(1, keepdims=True), 1.0), bg / np.maximum(bg.sum(1, keepdims=True), 1.0),
+                           bins)
 
-    def posterior(self, codes: NDArray[np.int64]) -> NDArray[np.float64]:
-        """``P(object | colour)`` with equal priors; a colour neither model has seen gives 1/2
-        (each histogram gets half a count's worth spread over its bins)."""
+    def posterior(self, codes: NDArray[np.int64], group: NDArray[np.int64] | None = None) -> NDArray[np.float64]:
+        """``P(object | colour)`` with equal priors, each pixel by its group's models; a colour
+        neither model has seen gives 1/2 (each histogram gets half a count's worth spread over its bins)."""
         eps = 0.5 / self.bins ** 3
-        pf, pb = self.fg[codes] + eps, self.bg[codes] + eps
+        g = 0 if group is None else group
+        pf, pb = self.fg[g, codes] + eps, self.bg[g, codes] + eps
         return pf / (pf + pb)
 
 
@@ -141,7 +149,7 @@ class RegionTarget:
 
 def _sector_of(shape: tuple[int, int], centre: tuple[float, float], sectors: int) -> NDArray[np.int64]:
     """Each pixel's angular sector (0..sectors-1) about ``centre`` (row, column)."""
-    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+    yy, xx = np.ogrid[0:shape[0], 0:shape[1]]
     angle = np.arctan2(yy - centre[0], xx - centre[1])
     return np.minimum(((angle + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
 
@@ -158,18 +166,18 @@ def region_target(photo: NDArray[np.uint8], silhouette: NDArray[np.bool_], mask:
         exclude: pixels other modelled objects claim, or ``None``.
     """
     H, W = silhouette.shape
-    sil_full = silhouette.astype(bool)
-    known_full = np.zeros((H, W), bool) if mask is None else np.asarray(mask) > 0.5
-    target = known_full.astype(np.float32)
-    ys, xs = np.nonzero(sil_full)
-    if len(ys) == 0:
+    sil_full = np.asarray(silhouette, dtype=bool)
+    target = np.zeros((H, W), np.float32) if mask is None else (np.asarray(mask) > 0.5).astype(np.float32)
+    rows, cols = np.flatnonzero(sil_full.any(1)), np.flatnonzero(sil_full.any(0))
+    if len(rows) == 0:
         return RegionTarget(target, 0.0, float("nan"), float("nan"))
     band = options.band_px(sil_full)
     gap = options.gap * band
     r = int(np.ceil(band + gap)) + 1
-    y0, y1, x0, x1 = max(ys.min() - r, 0), min(ys.max() + r + 1, H), max(xs.min() - r, 0), min(xs.max() + r + 1, W)
+    y0, y1, x0, x1 = max(rows[0] - r, 0), min(rows[-1] + r + 1, H), max(cols[0] - r, 0), min(cols[-1] + r + 1, W)
     box = (slice(y0, y1), slice(x0, x1))
-    sil, known = sil_full[box], known_full[box]
+    sil, known = sil_full[box], target[box] > 0.5
+    ys, xs = np.nonzero(sil)
     # distances within the box: the band never reaches past it, and a silhouette cut by the box's
     # edge is the image's edge, where the distance inside is measured to the image's border too
     sil8 = np.pad(sil.astype(np.uint8), 1, constant_values=0)
@@ -182,25 +190,22 @@ def region_target(photo: NDArray[np.uint8], silhouette: NDArray[np.bool_], mask:
     if excl is not None:
         inside &= ~excl
         outside &= ~excl
-    codes = colour_codes(photo[box], options.bins)
-    sector = _sector_of(sil.shape, (float(ys.mean()) - y0, float(xs.mean()) - x0), options.sectors)
-    whole = ColourModel.learn(codes, inside, outside, options.bins)
+    # every pixel the models learn from or judge is near: work on those alone, by sector
+    codes = colour_codes(photo[box][near], options.bins)
+    sector = _sector_of(sil.shape, (float(ys.mean()), float(xs.mean())), options.sectors)[near]
+    model = ColourModel.learn(codes, inside[near], outside[near], options.bins, sector, options.sectors,
+                              options.min_sector_px)
     post = np.full(sil.shape, 0.5)
-    for s in range(options.sectors):
-        here = sector == s
-        sel = near & here
-        n_in, n_out = np.count_nonzero(inside & here), np.count_nonzero(outside & here)
-        # a sector with too few pixels on either side (a concave outline, the image's edge) uses the whole band's models
-        model = (ColourModel.learn(codes, inside & here, outside & here, options.bins)
-                 if min(n_in, n_out) >= options.min_sector_px else whole)
-        post[sel] = model.posterior(codes[sel])
+    post[near] = model.posterior(codes, sector)
     if excl is not None:
         post[excl] = 0.5
+    fused = post
     if mask is not None:  # the mask and the colours as independent evidence: their odds multiply
         p_mask = np.where(known, MASK_TRUST, MASK_MISS)
         odds = p_mask / (1.0 - p_mask) * post / np.maximum(1.0 - post, 1e-6)
-        post = odds / (1.0 + odds)
-    target[box] = np.where(near, post, target[box])
+        fused = odds / (1.0 + odds)
+    target[box] = np.where(near, fused, target[box])
+    # what the photo alone says of the pose: its colours' agreement with the silhouette, and their change across it
     band_pixels = near & ((d_in <= band + gap) | ~sil)
     if excl is not None:
         band_pixels &= ~excl

@@ -57,16 +57,17 @@ def others_left_out(found: InstanceScenes, models: ModelSet, poses: dict[int, ND
 
 
 def region_targets(found: InstanceScenes, models: ModelSet, poses: list[NDArray[np.float64]],
-                   options: RegionOptions, detail: MeshDetail = MeshDetail()
+                   options: RegionOptions, detail: MeshDetail = MeshDetail(), leave_out: bool = True
                    ) -> tuple[InstanceScenes, list[PhotoEvidence | None]]:
     """Every instance's scene whose masks are its region targets at ``poses`` (one per instance,
     in order; :func:`~autoalign.engine.photo_evidence.photo_targets`), the other instances at
-    theirs left out, and each one's photo evidence there; scenes without photos are returned as
-    they are (evidence ``None``)."""
+    theirs left out (``leave_out=False``: ``found`` has them left out already, by
+    :func:`others_left_out`), and each one's photo evidence there; scenes without photos are
+    returned as they are (evidence ``None``)."""
     if all(sc.photos is None for sc in found.scenes):
         return found, [None] * len(found.scenes)
     by_index = {inst.index: T for inst, T in zip(found.instances, poses)}
-    posed = others_left_out(found, models, by_index)
+    posed = others_left_out(found, models, by_index) if leave_out else found
     scenes, evidence = [], []
     for inst, sc, T in zip(found.instances, posed.scenes, poses):
         if sc.photos is None:

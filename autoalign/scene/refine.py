@@ -44,7 +44,7 @@ from autoalign.quality.verdict import Verdict, judge
 from autoalign.rasterizers.pyramid import MeshPyramid
 from autoalign.scene.cameras import corrections_accepted
 from autoalign.scene.joint import JointRefinement, refine_jointly
-from autoalign.scene.photos import region_targets
+from autoalign.scene.photos import others_left_out, region_targets
 from autoalign.scene.scale import grown_pose, rescaled, scale_from_masks, scaled_cameras
 
 Progress = Callable[[str, int, int], None]
@@ -123,7 +123,9 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
     the instances as read; ``found``: as the joint stage compared them)."""
     photo: list[PhotoEvidence | None] = [None] * len(alone)
     if opts.region is not None:  # the photo's evidence at the joint poses
-        _, photo = region_targets(given.through(found.camera_by_id), models, joint.poses, opts.region, opts.detail)
+        # the others as left out at the alone poses: the joint stage moves them little
+        _, photo = region_targets(given.through(found.camera_by_id), models, joint.poses, opts.region, opts.detail,
+                                  leave_out=False)
     after = []
     for k, r in enumerate(alone):
         unc = joint.uncertainties[k]
@@ -181,8 +183,10 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
         start = [r.result.T_wm for r in alone]
         t0 = time.perf_counter()
         given = found  # the instances as read: their own masks and photos
-        if opts.region is not None:  # the photos' evidence as targets learned at the alone poses, others left out
-            found, _ = region_targets(found, models, start, opts.region, opts.detail)
+        if opts.region is not None and any(sc.photos is not None for sc in found.scenes):
+            # the photos' evidence as targets learned at the alone poses, the others left out
+            given = others_left_out(found, models, {r.instance.index: r.result.T_wm for r in alone})
+            found, _ = region_targets(given, models, start, opts.region, opts.detail, leave_out=False)
         attempt = (refine_jointly(found, pyramids, start, with_cameras=True, detail=opts.detail, robust=opts.robust,
                                   with_scale=solve_scale, depth=opts.depth, scale_from=scale_from, progress=progress)
                    if refine_cameras else None)

@@ -37,11 +37,11 @@ from autoalign.io.atomic_files import write_json_atomic
 from autoalign.io.bop import scene_gt_of
 
 EVIDENCE = {
-    "masks": ["--depth", "off"],
+    "masks": ["--photos", "off", "--depth", "off"],
     "photos": ["--masks", "none", "--depth", "off"],
-    "masks + photos": ["--photos", "on", "--depth", "off"],
-    "masks + depth": [],
-    "masks + photos + depth": ["--photos", "on"],
+    "masks + photos": ["--depth", "off"],
+    "masks + depth": ["--photos", "off"],
+    "masks + photos + depth": [],
 }
 """Each row's evidence and the options that choose it."""
 
