@@ -231,3 +231,21 @@ def test_transform_points_matches_homogeneous(seed):
     X = rng.uniform(-100, 100, (7, 3))
     ref = (T @ np.column_stack([X, np.ones(7)]).T).T[:, :3]
     np.testing.assert_allclose(transform_points(T, X), ref, atol=1e-12)
+
+
+def test_pose_change_against_scipy():
+    """pose_change: the model point's distance under the two poses, and scipy's rotation angle."""
+    from scipy.spatial.transform import Rotation
+
+    from autoalign.geometry.se3 import pose_change
+
+    rng = np.random.default_rng(4)
+    for _ in range(5):
+        Ra, Rb = Rotation.random(random_state=rng), Rotation.random(random_state=rng)
+        A, B = np.eye(4), np.eye(4)
+        A[:3, :3], A[:3, 3] = Ra.as_matrix(), rng.normal(size=3) * 50
+        B[:3, :3], B[:3, 3] = Rb.as_matrix(), rng.normal(size=3) * 50
+        c = rng.normal(size=3) * 20
+        mm, deg = pose_change(A, B, c)
+        assert mm == pytest.approx(np.linalg.norm(Ra.apply(c) + A[:3, 3] - Rb.apply(c) - B[:3, 3]))
+        assert deg == pytest.approx(np.degrees((Ra.inv() * Rb).magnitude()))

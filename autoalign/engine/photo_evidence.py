@@ -22,7 +22,7 @@ from autoalign.engine.options import RefineOptions
 from autoalign.engine.schedule import polish
 from autoalign.engine.seeding import Click
 from autoalign.errors import AutoalignError
-from autoalign.geometry.se3 import rotation_angle_deg, transform_points
+from autoalign.geometry.se3 import pose_change
 from autoalign.io.bop import Scene
 from autoalign.losses.region import RegionOptions, region_target
 from autoalign.quality.overlap import view_ious
@@ -60,11 +60,6 @@ def photo_targets(scene: Scene, silhouettes: list[NDArray[np.bool_]],
                           np.array([rt.edge_contrast for rt in per_view]), 0))
 
 
-def _moved(A: NDArray[np.float64], B: NDArray[np.float64], centre_m: NDArray[np.float64]) -> tuple[float, float]:
-    d = float(np.linalg.norm(transform_points(A, centre_m[None]) - transform_points(B, centre_m[None])))
-    return d, float(rotation_angle_deg(A[:3, :3], B[:3, :3]))
-
-
 def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.float64] | Click | None,
                        options: RefineOptions, refine: Callable[..., R],
                        progress: Callable[[str, int, int], None] | None = None) -> R:
@@ -94,7 +89,7 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
             break
         T_new, its, n = polish(targets, pyramid, T, first_level, masks_only, progress, f"photo round {r + 1}")
         iterations, renders, rounds = iterations + its, renders + n, rounds + 1
-        mm, deg = _moved(T, T_new, centre)
+        mm, deg = pose_change(T, T_new, centre)
         T = T_new
         if mm < region.tol_mm and deg < region.tol_deg:
             break

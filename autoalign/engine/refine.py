@@ -41,7 +41,7 @@ from autoalign.engine.solver import Trace
 from autoalign.engine.uncertainty import Uncertainty, pose_uncertainty
 from autoalign.errors import AutoalignError
 from autoalign.geometry.mesh import Mesh
-from autoalign.geometry.se3 import rotation_angle_deg, transform_points
+from autoalign.geometry.se3 import pose_change
 from autoalign.io.bop import Scene
 from autoalign.losses import targets_in_crops
 from autoalign.losses.depth import DepthTerms
@@ -205,8 +205,8 @@ first level and the right basin, 3% worse at 1/8 resolution, went no further."""
 
 def _differs(A: NDArray[np.float64], B: NDArray[np.float64], centre_m: NDArray[np.float64],
              mm: float = 2.0, deg: float = 5.0) -> bool:
-    dc = np.linalg.norm(transform_points(A, centre_m[None]) - transform_points(B, centre_m[None]))
-    return bool(dc > mm or rotation_angle_deg(A[:3, :3], B[:3, :3]) > deg)
+    d_mm, d_deg = pose_change(A, B, centre_m)
+    return d_mm > mm or d_deg > deg
 
 
 def _search(obj: SilhouetteObjective, starts: list[NDArray[np.float64]], mesh: Mesh, opts: RefineOptions,

@@ -117,3 +117,11 @@ def rotation_angle_deg(R_a: ArrayLike, R_b: ArrayLike) -> float:
     """Geodesic angle between two rotations in degrees."""
     R = np.asarray(R_a, dtype=np.float64).T @ np.asarray(R_b, dtype=np.float64)
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def pose_change(A: ArrayLike, B: ArrayLike, centre_m: ArrayLike) -> tuple[float, float]:
+    """How far pose ``B`` is from ``A`` (world from model): the distance (mm) between the model
+    point ``centre_m`` under each, and the angle (degrees) between their rotations."""
+    A, B, c = np.asarray(A, dtype=np.float64), np.asarray(B, dtype=np.float64), np.asarray(centre_m, dtype=np.float64)
+    return (float(np.linalg.norm(A[:3, :3] @ c + A[:3, 3] - B[:3, :3] @ c - B[:3, 3])),
+            rotation_angle_deg(A[:3, :3], B[:3, :3]))

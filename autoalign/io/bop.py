@@ -208,12 +208,18 @@ def read_camera_file(path: str | os.PathLike[str]) -> dict[int, tuple[NDArray[np
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 
 
-def photo_path(scene_dir: str | os.PathLike[str], image_id: int) -> Path:
-    """The photo of an image: ``rgb/{image_id:06d}`` with suffix .png, .jpg, .jpeg, .tif or .tiff."""
+def find_photo(scene_dir: str | os.PathLike[str], image_id: int) -> Path | None:
+    """The photo of an image, ``rgb/{image_id:06d}`` with suffix .png, .jpg, .jpeg, .tif or .tiff, if there is one."""
     base = Path(scene_dir) / "rgb" / f"{image_id:06d}"
-    for s in PHOTO_SUFFIXES:
-        if base.with_suffix(s).is_file():
-            return base.with_suffix(s)
+    return next((base.with_suffix(s) for s in PHOTO_SUFFIXES if base.with_suffix(s).is_file()), None)
+
+
+def photo_path(scene_dir: str | os.PathLike[str], image_id: int) -> Path:
+    """The photo of an image (:func:`find_photo`); an error if it has none."""
+    found = find_photo(scene_dir, image_id)
+    if found is not None:
+        return found
+    base = Path(scene_dir) / "rgb" / f"{image_id:06d}"
     raise AutoalignError(f"{base}.png (or .jpg): not found; the check compares renderings with the photos, "
                          f"put image {image_id}'s photo in {base.parent}")
 

@@ -19,10 +19,10 @@ from autoalign.geometry.camera import Camera, K_from_opencv, K_to_opencv
 from autoalign.io.block_mean import Pad, block_mean
 from autoalign.io.bop import (
     MAX_IMAGE_PIXELS,
-    PHOTO_SUFFIXES,
     Scene,
     check_scene_dir,
     downscale_factor,
+    find_photo,
     read_cameras,
     read_photo,
 )
@@ -70,11 +70,10 @@ def read_scene_photos(scene: Scene, read: dict[int, NDArray[np.uint8]] | None = 
     for im, cam in zip(scene.image_ids, scene.cameras):
         if im in read:
             continue
-        base = scene.path / "rgb" / f"{im:06d}"
-        path = next((base.with_suffix(s) for s in PHOTO_SUFFIXES if base.with_suffix(s).is_file()), None)
+        path = find_photo(scene.path, im)
         if path is None:
-            raise AutoalignError(f"{base}.png (or .jpg): not found; the photos are evidence here (--photos): "
-                                 f"put image {im}'s photo in {base.parent}, or pass --photos off")
+            raise AutoalignError(f"{scene.path / 'rgb' / f'{im:06d}'}.png (or .jpg): not found; the photos are evidence "
+                                 f"here (--photos): put image {im}'s photo in {scene.path / 'rgb'}, or pass --photos off")
         photo = read_photo_scaled(path, None if factor == 1 else MAX_IMAGE_PIXELS)
         if photo.bgr.shape[:2] != (cam.height, cam.width):
             raise AutoalignError(f"{path}: the photo is {photo.size[1]}x{photo.size[0]} but its masks are "
@@ -94,13 +93,12 @@ def read_scene_without_masks(scene_dir: str | Path, max_pixels: int | None = MAX
     photos as evidence (``--masks none``): the photo alone places the object."""
     scene_dir = check_scene_dir(scene_dir)
     cams = read_cameras(scene_dir)
-    ids = [im for im in cams if any((scene_dir / "rgb" / f"{im:06d}{s}").is_file() for s in PHOTO_SUFFIXES)]
-    if not ids:
+    photos = {im: p for im in cams if (p := find_photo(scene_dir, im)) is not None}
+    if not photos:
         raise AutoalignError(f"{scene_dir / 'rgb'}: no photos named {{im_id:06d}}.png for the images of "
                              "scene_camera.json; without masks the photos are the evidence")
-    first = next(scene_dir / "rgb" / f"{ids[0]:06d}{s}" for s in PHOTO_SUFFIXES
-                 if (scene_dir / "rgb" / f"{ids[0]:06d}{s}").is_file())
-    H, W = read_photo(first).shape[:2]
+    ids = list(photos)
+    H, W = read_photo(photos[ids[0]]).shape[:2]
     f = downscale_factor(W, H, max_pixels)
     cameras = [Camera.from_opencv(*cams[im], W, H).scaled(1.0 / f) for im in ids]
     masks = [np.zeros((c.height, c.width), np.float32) for c in cameras]

@@ -37,8 +37,10 @@ from numpy.typing import NDArray
 from autoalign.engine.hypotheses import weak_turn_scores
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult, refine
+from autoalign.geometry.se3 import pose_change
 from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
+from autoalign.losses.region import RegionOptions
 from autoalign.quality.overlap import view_ious
 from autoalign.quality.verdict import Verdict, judge
 from autoalign.rasterizers.pyramid import MeshPyramid
@@ -116,16 +118,27 @@ class SceneRefinement:
         return self.with_cameras is not None and self.with_cameras is self.joint
 
 
+def _within(change: tuple[float, float], region: RegionOptions) -> bool:
+    """Whether a pose change (mm, degrees) is below the photo rounds' tolerance."""
+    return change[0] < region.tol_mm and change[1] < region.tol_deg
+
+
 def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: InstanceScenes, found: InstanceScenes,
-                 pyramids: list[MeshPyramid], models: ModelSet, opts: RefineOptions) -> list[RefineResult]:
+                 pyramids: list[MeshPyramid], models: ModelSet, opts: RefineOptions,
+                 photo_alone: list[PhotoEvidence | None]) -> list[RefineResult]:
     """Each instance's result at the joint stage's pose: its per-view fit, uncertainty, weak turns
-    and depth there; with photos, their evidence there and the IoUs with its own masks (``given``:
-    the instances as read; ``found``: as the joint stage compared them)."""
-    photo: list[PhotoEvidence | None] = [None] * len(alone)
-    if opts.region is not None:  # the photo's evidence at the joint poses
-        # the others as left out at the alone poses: the joint stage moves them little
-        _, photo = region_targets(given.through(found.camera_by_id), models, joint.poses, opts.region, opts.detail,
+    and depth there; with photos, their evidence there (``photo_alone``, at the alone poses, where
+    the joint stage moved an instance less than the photo rounds' tolerance) and the IoUs with its
+    own masks (``given``: the instances as read; ``found``: as the joint stage compared them)."""
+    photo = list(photo_alone)
+    region = opts.region
+    moved = [k for k, r in enumerate(alone) if photo[k] is not None and region is not None
+             and not _within(pose_change(r.result.T_wm, joint.poses[k], pyramids[k].mesh.centre), region)]
+    if moved and region is not None:  # the photo's evidence again at those joint poses, the others as left out before
+        _, again = region_targets(given.through(found.camera_by_id), models, joint.poses, region, opts.detail,
                                   leave_out=False)
+        for k in moved:
+            photo[k] = again[k]
     after = []
     for k, r in enumerate(alone):
         unc = joint.uncertainties[k]
@@ -183,10 +196,11 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
         start = [r.result.T_wm for r in alone]
         t0 = time.perf_counter()
         given = found  # the instances as read: their own masks and photos
+        photo_alone: list[PhotoEvidence | None] = [None] * len(alone)
         if opts.region is not None and any(sc.photos is not None for sc in found.scenes):
             # the photos' evidence as targets learned at the alone poses, the others left out
             given = others_left_out(found, models, {r.instance.index: r.result.T_wm for r in alone})
-            found, _ = region_targets(given, models, start, opts.region, opts.detail, leave_out=False)
+            found, photo_alone = region_targets(given, models, start, opts.region, opts.detail, leave_out=False)
         attempt = (refine_jointly(found, pyramids, start, with_cameras=True, detail=opts.detail, robust=opts.robust,
                                   with_scale=solve_scale, depth=opts.depth, scale_from=scale_from, progress=progress)
                    if refine_cameras else None)
@@ -204,7 +218,7 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
                 break
         elif joint is attempt:
             found = found.through(joint.cameras)
-    after = _after_joint(alone, joint, given, found, pyramids, models, opts)
+    after = _after_joint(alone, joint, given, found, pyramids, models, opts, photo_alone)
     seconds = (time.perf_counter() - t0) / max(len(alone), 1)
     results = [InstanceResult(r.instance, replace(res, timings={**res.timings, "joint": seconds}),
                               verdict_of(res, found.scenes[k].empty, models, r.instance.obj_id), r.seconds + seconds)
