@@ -127,7 +127,7 @@ class FolderJob:
 
     @property
     def modalities(self) -> tuple[str, ...]:
-        """The evidence read for one object (:func:`~autoalign.io.bop.read_scene`'s ``modalities``)."""
+        """The evidence read for one object (:func:`~autoalign.io.evidence.read_evidence`'s ``modalities``)."""
         return tuple(m for m, used in (("masks", self.masks != "none"), ("photos", self.uses_photos),
                                         ("depth", self.depth == "auto")) if used)
 
