@@ -190,6 +190,9 @@ def _add_algorithm_arguments(p: argparse.ArgumentParser) -> None:
                      help="auto (default): when the scene has depth/ (times scene_camera.json's depth_scale = mm) and "
                           "metric cameras, the measured depth joins the masks as evidence (a sensor noise model, "
                           "nearer measurements taken as occluders); off: masks only")
+    alg.add_argument("--seed-radius", metavar="MM,DEG",
+                     help="how far (mm at the model's centre, degrees) the --init pose may be off: a result "
+                          "farther from it is flagged for a check (default 25,30)")
     alg.add_argument("--masks", choices=MASK_MODES, default="auto",
                      help="auto (default): the instance masks of mask_visib/; none: withhold every mask, the photos "
                           "(rgb/) place the objects from --init")
@@ -313,7 +316,7 @@ def _main(argv: list[str] | None) -> int:
 # ------------------------------------------------------------------------------------------
 
 BATCH_SHARED = ("models", "model", "units", "obj_id", "instance", "instances", "loss", "optimizer", "depth", "masks",
-                "photos")
+                "photos", "seed_radius")
 """Options of ``refine`` passed on to every scene of a batch (with the flags below)."""
 BATCH_FLAGS = ("refine_cameras", "solve_scale", "no_robust")
 
@@ -379,7 +382,7 @@ def run_refine(args: argparse.Namespace) -> int:
                     obj_id=args.obj_id, instance=args.instance, instances=args.instances, init=args.init,
                     click=args.click, loss=args.loss, optimizer=args.optimizer, refine_cameras=args.refine_cameras,
                     solve_scale=args.solve_scale, robust=not args.no_robust, depth=args.depth, masks=args.masks,
-                    photos=args.photos)
+                    photos=args.photos, seed_radius=args.seed_radius)
     outcome = refine_folder(job, LOG, ProgressBar(enabled=not args.quiet), t_start)
     elapsed = time.perf_counter() - t_start
     if args.models is not None:

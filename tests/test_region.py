@@ -164,8 +164,10 @@ def test_refine_models_without_masks(photo_scene, starts, tmp_path):
 @pytest.mark.parametrize("extra, message", [
     (["--masks", "none"], "give --init"),
     (["--masks", "none", "--photos", "off", "--init", "x.json"], "drop --photos off"),
+    (["--seed-radius", "5"], "expected MM,DEG"),
+    (["--seed-radius", "5,-1"], "must be positive"),
 ])
-def test_refine_without_masks_refuses_what_cannot_work(photo_scene, tmp_path, capsys, extra, message):
+def test_refine_refuses_what_cannot_work(photo_scene, tmp_path, capsys, extra, message):
     from autoalign.cli.main import main
 
     rc = main(["refine", str(photo_scene.folder), "--model", str(photo_scene.folder.parent / "models" / "obj_000001.ply"),
@@ -203,3 +205,27 @@ def test_verdict_reads_the_photo(iou, contrast, status, words):
     photo = None if contrast is None else PhotoEvidence(np.full(n, 20.0), np.full(n, 0.9), np.full(n, contrast), 3)
     v = judge(np.full(n, iou), np.ones(n), list(range(n)), photo=photo)
     assert v.status == status and any(words in r for r in v.reasons), v
+
+
+def test_a_result_far_from_its_seed_is_flagged_with_the_distance(photo_scene, tmp_path):
+    """``refine --init`` whose pose ends farther from the seed than ``--seed-radius``: `check`, with
+    the distance in the reason, and refine.json records the radius and the move; within the
+    default radius (25 mm / 30 deg) the same run is not flagged for it."""
+    from autoalign.cli.main import main
+
+    rng = np.random.default_rng(3)
+    T_true, mesh = photo_scene.poses[0], photo_scene.meshes[0]
+    start = perturb_pose(T_true, 10.0, 15.0, rng, mesh.centre)
+    init = _init_file(photo_scene, [start] + photo_scene.poses[1:], tmp_path / "init.json")
+    model = photo_scene.folder.parent / "models" / "obj_000001.ply"
+    for radius, flagged in (("5,5", True), (None, False)):
+        out = tmp_path / f"out_{radius}"
+        args = ["refine", str(photo_scene.folder), "--model", str(model), "--init", str(init), "--out", str(out),
+                "--quiet"] + ([] if radius is None else ["--seed-radius", radius])
+        rc = main(args)
+        rec = json.loads((out / "refine.json").read_text())
+        moved = rec["seed"]["moved_mm_deg"]
+        assert moved[0] == pytest.approx(10.0, abs=1.5) and moved[1] == pytest.approx(15.0, abs=1.5)
+        assert rec["seed"]["radius_mm_deg"] == ([5.0, 5.0] if radius else [25.0, 30.0])
+        far = [r for r in rec["reasons"] if "from the given seed" in r]
+        assert bool(far) == flagged and (rc == 3 and rec["verdict"] == "check" if flagged else True)

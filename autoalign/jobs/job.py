@@ -118,6 +118,23 @@ class FolderJob:
     depth: str = "auto"
     masks: str = "auto"
     photos: str = "auto"
+    seed_radius: str | None = None
+
+    @property
+    def seed_radius_mm_deg(self) -> tuple[float, float]:
+        """The stated uncertainty of the ``init`` seed (``MM,DEG``; default
+        :data:`~autoalign.quality.verdict.SEED_RADIUS`): a result farther from it is flagged."""
+        from autoalign.quality.verdict import SEED_RADIUS
+
+        if self.seed_radius is None:
+            return SEED_RADIUS
+        try:
+            mm, deg = (float(x) for x in self.seed_radius.split(","))
+        except ValueError:
+            raise AutoalignError(f"--seed-radius {self.seed_radius}: expected MM,DEG, e.g. 25,30") from None
+        if not (mm > 0 and deg > 0):
+            raise AutoalignError(f"--seed-radius {self.seed_radius}: both numbers must be positive")
+        return mm, deg
 
     @property
     def uses_photos(self) -> bool:
@@ -169,6 +186,7 @@ class FolderJob:
                                      ("--units", self.units, (None, *MESH_UNITS))):
             if value not in allowed:
                 raise AutoalignError(f"{name} {value}: choose one of {', '.join(a for a in allowed if a)}")
+        self.seed_radius_mm_deg  # a malformed --seed-radius fails here, before anything is read
         if self.masks == "none" and self.photos == "off":
             raise AutoalignError("--masks none leaves the photos as the only evidence: drop --photos off")
         if self.masks == "none" and self.init is None:

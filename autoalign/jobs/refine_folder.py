@@ -143,8 +143,15 @@ def _object_report(job: FolderJob, scene: Any, mesh: Any, result: Any, seed: Any
     from autoalign.quality.verdict import judge
 
     ids = [int(i) for i in result.image_ids or scene.image_ids]
+    from autoalign.geometry.se3 import pose_change
+
+    seed_move = None if seed.pose is None else pose_change(seed.pose, result.T_wm, mesh.centre)
     verdict = judge(result.iou_after, result.weights, ids, scene.empty, bool(result.ambiguous),
-                    uncertainty=result.uncertainty, turn_gap=result.turn_gap, depth=result.depth, photo=result.photo)
+                    uncertainty=result.uncertainty, turn_gap=result.turn_gap, depth=result.depth, photo=result.photo,
+                    seed_move=seed_move, seed_radius=job.seed_radius_mm_deg)
+    if seed_move is not None:
+        seed.moved = seed_move
+        seed.radius = job.seed_radius_mm_deg
     return RefineReport(
         scene_dir=Path(job.scene).absolute(), model=Path(job.model).absolute(), obj_id=job.obj_id,
         instance=job.instance, result=result, verdict=verdict, seed=seed, image_ids=ids,

@@ -77,7 +77,7 @@ def refine_scene_folder(job: FolderJob, log: RunLog, progress: Stages, t_start: 
     progress.start("loading the renderer")
     try:
         refined = refine_scene(inputs.found, inputs.models, inputs.seeds, options, job.refine_cameras,
-                               inputs.guess is not None, progress)
+                               inputs.guess is not None, progress, job.seed_radius_mm_deg)
         progress("overlay", 0, 1)
         t0 = time.perf_counter()
         overlay = scene_overlay(refined, inputs.models, Path(job.scene), options.detail)
@@ -165,10 +165,16 @@ def scene_report(job: FolderJob, inputs: SceneInputs, refined: SceneRefinement, 
                  warnings: list[str]) -> SceneReport:
     """The report of a scene's refinement (its ``timings`` to be filled in)."""
     found, models = refined.found, inputs.models
+    from autoalign.geometry.se3 import pose_change
+
     instances = [InstanceReport(r.instance.index, r.instance.obj_id, pos, models.path(r.instance.obj_id).absolute(),
                                 r.result, r.verdict, r.instance.index in inputs.seeds,
                                 [int(i) for i in found.scenes[pos].empty], models.symmetric(r.instance.obj_id),
-                                r.seconds)
+                                r.seconds,
+                                None if r.instance.index not in inputs.seeds or inputs.guess is not None else
+                                pose_change(inputs.seeds[r.instance.index], r.result.T_wm,
+                                            models.mesh(r.instance.obj_id).centre),
+                                job.seed_radius_mm_deg if r.instance.index in inputs.seeds else None)
                  for pos, r in enumerate(refined.results)]
     scale = None
     if inputs.guess is not None:

@@ -130,10 +130,13 @@ class Seed:
     init_file: str | None = None
     click: dict[str, float] | None = None
     pose: NDArray[np.float64] | None = None
+    radius: tuple[float, float] | None = None  # the seed's stated uncertainty (mm, degrees)
+    moved: tuple[float, float] | None = None  # how far the result ended from it (mm at the model's centre, degrees)
 
     def to_json(self) -> dict[str, Any]:
         return {"kind": self.kind, "init_file": self.init_file, "click": self.click,
-                "pose": None if self.pose is None else pose_record(self.pose)}
+                "pose": None if self.pose is None else pose_record(self.pose),
+                "radius_mm_deg": self.radius, "moved_mm_deg": self.moved}
 
 
 @dataclass
@@ -278,6 +281,8 @@ class InstanceReport:
     empty: list[int]
     symmetric: bool
     seconds: float
+    seed_move: tuple[float, float] | None = None  # how far it ended from its seed pose (mm at the centre, degrees)
+    seed_radius: tuple[float, float] | None = None  # the seed's stated uncertainty (mm, degrees)
 
     def to_json(self) -> dict[str, Any]:
         res = self.result
@@ -287,7 +292,8 @@ class InstanceReport:
             "verdict": self.verdict.status, "reasons": self.verdict.reasons, "set_aside_ids": self.verdict.set_aside,
             "pose": pose_record(res.T_wm), "pose_before": pose_record(res.T_init),
             "uncertainty": uncertainty_record(res.uncertainty),
-            "seed": "init" if self.seeded else "hull",
+            "seed": "init" if self.seeded else "hull", "moved_from_seed_mm_deg": self.seed_move,
+            "seed_radius_mm_deg": self.seed_radius,
             "image_ids": [int(i) for i in res.image_ids], "iou_before": res.iou_before, "iou_after": res.iou_after,
             "weights": res.weights, "median_iou_after": float(np.median(res.iou_after)),
             "empty_masks": self.empty,

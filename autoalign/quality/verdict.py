@@ -64,6 +64,11 @@ PHOTO_CONTRADICTS = 0.1
 the outline): synthetic 0.07-0.13 at 10 mm / 10 deg off; real LM-O never below 0.16 at the
 dataset's labels (no false alarm measured), but 0.10-0.24 at 10 mm off (most such poses not caught
 by the photo: the masks and the depth must)."""
+SEED_RADIUS = (25.0, 30.0)
+"""The stated uncertainty of a given seed pose (mm at the model's centre, degrees) unless the person
+gives another (``refine --seed-radius``): a coarse pose as the studies give it (10 mm / 15 deg off)
+with a margin. A result farther from the seed is flagged: a seed is evidence, and a pose 256 mm
+away (the real driller of issue 29, on masks that miss its handle) is the masks pulling it elsewhere."""
 MIN_DEPTH_SAMPLES = 50
 """A view with fewer depth samples on the object says nothing about it."""
 NEAR_SYMMETRY_GAP = 0.02
@@ -182,7 +187,8 @@ def judge(iou_after: NDArray[np.float64], weights: NDArray[np.float64], image_id
           empty_ids: tuple[int, ...] = (), ambiguous: bool = False, symmetric: bool = False,
           uncertainty: Uncertainty | None = None, free_axes_m: tuple[NDArray[np.float64], ...] = (),
           turn_gap: float | None = None, depth: DepthTerms | None = None,
-          photo: PhotoEvidence | None = None) -> Verdict:
+          photo: PhotoEvidence | None = None, seed_move: tuple[float, float] | None = None,
+          seed_radius: tuple[float, float] = SEED_RADIUS) -> Verdict:
     """The verdict on one pose from its per-view IoU and robust weights (see the module doc).
 
     Args:
@@ -199,6 +205,8 @@ def judge(iou_after: NDArray[np.float64], weights: NDArray[np.float64], image_id
         depth: the depth term at the pose (:class:`~autoalign.losses.depth.DepthTerms`), if measured.
         photo: the region term's evidence at the pose (:class:`~autoalign.engine.photo_evidence.PhotoEvidence`),
             if the photos were used.
+        seed_move: how far the pose ended from a given seed pose (mm at the model's centre, degrees;
+            :func:`~autoalign.geometry.se3.pose_change`); beyond ``seed_radius`` it is a reason to check.
     """
     iou = np.asarray(iou_after, dtype=np.float64)
     w = np.asarray(weights, dtype=np.float64)
@@ -224,6 +232,11 @@ def judge(iou_after: NDArray[np.float64], weights: NDArray[np.float64], image_id
     too_many = n_all > 0 and len(set_aside) > SET_ASIDE_FRACTION * n_all
     if ambiguous and not symmetric:
         reasons.append("ambiguous: a clearly different pose fits almost as well")
+    far = seed_move is not None and (seed_move[0] > seed_radius[0] or seed_move[1] > seed_radius[1])
+    if far:
+        reasons.append(f"ended {seed_move[0]:.0f} mm / {seed_move[1]:.0f} deg from the given seed, beyond its stated "
+                       f"uncertainty ({seed_radius[0]:g} mm / {seed_radius[1]:g} deg): check whether the seed or the "
+                       "result is right (--seed-radius states another)")
     uncertain = False
     if uncertainty is not None:
         s_mm, s_deg = largest_sigmas(uncertainty, free_axes_m)
@@ -239,7 +252,8 @@ def judge(iou_after: NDArray[np.float64], weights: NDArray[np.float64], image_id
                            + " is weakly observed; check the object's distinguishing detail")
     if failed:
         status = "failed"
-    elif (med < CHECK_IOU and not supported) or too_many or (ambiguous and not symmetric) or uncertain or photo_contradicts:
+    elif ((med < CHECK_IOU and not supported) or too_many or (ambiguous and not symmetric) or uncertain
+          or photo_contradicts or far):
         status = "check"
         if too_many:
             reasons.append(f"{len(set_aside)} of {n_all} views set aside (more than {SET_ASIDE_FRACTION:.0%})")

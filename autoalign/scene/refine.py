@@ -42,7 +42,7 @@ from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
 from autoalign.losses.region import RegionOptions
 from autoalign.quality.overlap import view_ious
-from autoalign.quality.verdict import Verdict, judge
+from autoalign.quality.verdict import SEED_RADIUS, Verdict, judge
 from autoalign.rasterizers.pyramid import MeshPyramid
 from autoalign.scene.cameras import corrections_accepted
 from autoalign.scene.joint import JointRefinement, refine_jointly
@@ -71,14 +71,19 @@ class InstanceResult:
     seconds: float
 
 
-def verdict_of(result: RefineResult, empty: tuple[int, ...], models: ModelSet, obj_id: int) -> Verdict:
-    """The verdict on an instance's result, with its model's symmetries (:func:`~autoalign.quality.verdict.judge`)."""
+def verdict_of(result: RefineResult, empty: tuple[int, ...], models: ModelSet, obj_id: int,
+               seed: NDArray[np.float64] | None = None, seed_radius: tuple[float, float] = SEED_RADIUS) -> Verdict:
+    """The verdict on an instance's result, with its model's symmetries and, given its seed pose,
+    how far it ended from it (:func:`~autoalign.quality.verdict.judge`)."""
+    seed_move = None if seed is None else pose_change(seed, result.T_wm, models.mesh(obj_id).centre)
     return judge(result.iou_after, result.weights, result.image_ids, empty, result.ambiguous, models.symmetric(obj_id),
-                 result.uncertainty, models.continuous_axes(obj_id), result.turn_gap, result.depth, result.photo)
+                 result.uncertainty, models.continuous_axes(obj_id), result.turn_gap, result.depth, result.photo,
+                 seed_move, seed_radius)
 
 
 def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArray[np.float64]],
-                     options: RefineOptions | None = None, progress: Progress | None = None) -> list[InstanceResult]:
+                     options: RefineOptions | None = None, progress: Progress | None = None,
+                     seed_radius: tuple[float, float] = SEED_RADIUS, judge_seeds: bool = True) -> list[InstanceResult]:
     """Refine every instance of ``found`` from its seed (``seeds[index]``: 4x4 world-from-model, mm;
     an instance without one is searched from the visual hull of its masks)."""
     out = []
@@ -92,7 +97,8 @@ def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, N
                 progress(f"{label}: {stage}", done, total)
 
         result = refine(scene, models.pyramid(inst.obj_id), seeds.get(inst.index), options, progress=step)
-        out.append(InstanceResult(inst, result, verdict_of(result, scene.empty, models, inst.obj_id),
+        seed = seeds.get(inst.index) if judge_seeds else None
+        out.append(InstanceResult(inst, result, verdict_of(result, scene.empty, models, inst.obj_id, seed, seed_radius),
                                   time.perf_counter() - t0))
     return out
 
@@ -163,7 +169,7 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
 
 def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArray[np.float64]],
                  options: RefineOptions | None = None, refine_cameras: bool = False, solve_scale: bool = False,
-                 progress: Progress | None = None) -> SceneRefinement:
+                 progress: Progress | None = None, seed_radius: tuple[float, float] = SEED_RADIUS) -> SceneRefinement:
     """Every instance alone (seed, search, polish: :func:`refine_instances`), then all of them
     together, occlusion-aware (:func:`~autoalign.scene.joint.refine_jointly`), with a correction
     of every camera if ``refine_cameras``. Corrections that explain too little of the misfit to be
@@ -176,10 +182,11 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
     scaled by a first guess (:func:`~autoalign.scene.scale.scale_from_masks`); the scale is solved
     with the poses (see module doc)."""
     opts = options or RefineOptions()
+    given_seeds = dict(seeds)  # a result farther than seed_radius from its seed is flagged (not with a scale to solve)
     scale, scale_sigma, settled = 1.0, 0.0, not solve_scale
     rounds = SCALE_ROUNDS if solve_scale else 1
     for round_ in range(rounds):
-        alone = refine_instances(found, models, seeds, opts, progress)
+        alone = refine_instances(found, models, seeds, opts, progress, seed_radius, judge_seeds=not solve_scale)
         if len(alone) == 1 and not refine_cameras and not solve_scale:
             return SceneRefinement(alone, None, None, found)
         fits = [r.verdict.status == "ok" for r in alone]
@@ -221,7 +228,9 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
     after = _after_joint(alone, joint, given, found, pyramids, models, opts, photo_alone)
     seconds = (time.perf_counter() - t0) / max(len(alone), 1)
     results = [InstanceResult(r.instance, replace(res, timings={**res.timings, "joint": seconds}),
-                              verdict_of(res, found.scenes[k].empty, models, r.instance.obj_id), r.seconds + seconds)
+                              verdict_of(res, found.scenes[k].empty, models, r.instance.obj_id,
+                                         None if solve_scale else given_seeds.get(r.instance.index), seed_radius),
+                              r.seconds + seconds)
                for k, (r, res) in enumerate(zip(alone, after))]
     if not settled:  # every label's depth in its camera follows the scale: none can be trusted
         reason = (f"the scene's scale did not settle in {rounds} rounds: the objects' masks and their fit disagree "
