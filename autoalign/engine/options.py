@@ -60,7 +60,7 @@ class RankingOptions:
         competitive: a distinct hypothesis goes on to the next level only if its loss there is
             within this factor of the best one's.
         polish_margin: at the last level a finalist other than the best is polished only when its
-            estimated loss is below the best's by more than this fraction (see :func:`_polish`);
+            estimated loss is below the best's by more than this fraction (see :func:`~autoalign.engine.refine._polish`);
             ``-inf`` polishes every one.
         ambiguity_tol: a runner-up within this relative loss of the winner (and at another pose)
             means ambiguous; so does one within ``competitive`` whose mean IoU is higher.
@@ -73,7 +73,7 @@ class RankingOptions:
 
 @dataclass(frozen=True)
 class DisambiguationOptions:
-    """Poses the polish cannot tell apart from the best by descent (:func:`_disambiguate`).
+    """Poses the polish cannot tell apart from the best by descent (:func:`~autoalign.engine.refine._disambiguate`).
 
     Attributes:
         orbits: when the runner-up reached the last level within ``competitive`` of the best (a
@@ -94,7 +94,7 @@ class DisambiguationOptions:
 
 @dataclass(frozen=True)
 class RefineOptions:
-    """Settings of :func:`refine`, grouped by concern.
+    """Settings of :func:`~autoalign.engine.refine.refine`, grouped by concern.
 
     Attributes:
         loss: ``l2`` (default: per-pixel residuals give Gauss-Newton a full-rank model and it

@@ -6,8 +6,9 @@ with the instance's mask where it has one (:func:`~autoalign.losses.region.regio
 pose is then descended on those targets by the mask engine (:func:`~autoalign.engine.refine.polish`,
 depth included) at the schedule's first level; once a round moves the pose less than the options'
 tolerance (or after ``rounds``), a last round on targets learned at the pose reached runs the rest
-of the schedule with the disambiguation and the report (:func:`~autoalign.engine.refine.refine`). The histograms stay fixed within a round, so the solver compares its steps on
-one objective; learning them again between rounds is the alternation PWP3D and RBOT use per frame.
+of the schedule with the disambiguation and the report (:func:`~autoalign.engine.refine.refine`).
+The histograms stay fixed within a round, so the solver compares its steps on one objective;
+learning them again between rounds is the alternation PWP3D and RBOT use per frame.
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ def photo_targets(scene: Scene, silhouettes: list[NDArray[np.bool_]],
     the views' photos dropped (they are used), and the per-view evidence."""
     if scene.photos is None:
         raise ValueError("the scene has no photos")
-    has_mask = any(np.any(np.asarray(m) > 0.5) for m in scene.masks)
+    has_mask = scene.has_masks
     per_view = [region_target(photo, sil, scene.masks[k] if has_mask else None,
                               None if scene.ignore is None else scene.ignore[k], options)
                 for k, (photo, sil) in enumerate(zip(scene.photos, silhouettes))]
@@ -71,7 +72,7 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
     region = options.region
     assert region is not None
     masks_only = replace(options, region=None)
-    has_mask = any(np.any(np.asarray(m) > 0.5) for m in scene.masks)
+    has_mask = scene.has_masks
     if seed is None or isinstance(seed, Click):
         if not has_mask:
             raise AutoalignError("without masks the photos refine a coarse pose: give --init (a coarse scene_gt.json)")
@@ -85,7 +86,7 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
     rounds = 0
     for r in range(region.rounds):
         targets, _ = photo_targets(scene, rast.hard_masks(T, scene.cameras), region)
-        if not any(np.any(t > 0.5) for t in targets.masks):
+        if not targets.has_masks:
             break
         T_new, its, n = polish(targets, pyramid, T, first_level, masks_only, progress, f"photo round {r + 1}")
         iterations, renders, rounds = iterations + its, renders + n, rounds + 1
@@ -94,7 +95,7 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
         if mm < region.tol_mm and deg < region.tol_deg:
             break
     targets, evidence = photo_targets(scene, rast.hard_masks(T, scene.cameras), region)
-    if not any(np.any(t > 0.5) for t in targets.masks):
+    if not targets.has_masks:
         raise AutoalignError("the object is in no view at the given pose: check the --init pose and its obj_id")
     # the rounds converged at the first level: the last one goes on from the second (if the schedule has one)
     last = replace(masks_only, schedule=options.schedule[1:]) if rounds and len(options.schedule) > 1 else masks_only

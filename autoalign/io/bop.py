@@ -70,6 +70,11 @@ class Scene:
     def __len__(self) -> int:
         return len(self.cameras)
 
+    @property
+    def has_masks(self) -> bool:
+        """Whether any view's mask is non-empty (> 0.5 somewhere)."""
+        return any(np.any(np.asarray(m) > 0.5) for m in self.masks)
+
     def spread(self, k: int) -> NDArray[np.int64]:
         """Positions of at most ``k`` views evenly spread through the scene's order."""
         return np.unique(np.linspace(0, len(self) - 1, min(k, len(self))).round().astype(np.int64))

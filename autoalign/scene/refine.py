@@ -157,7 +157,7 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
         depth = None if joint.evaluation.depth is None else joint.evaluation.depth[k]
         iou = joint.evaluation.hard_iou(k)
         own_scene = given.scenes[k]
-        if photo[k] is not None and any(np.any(np.asarray(m) > 0.5) for m in own_scene.masks):  # with its own masks
+        if photo[k] is not None and own_scene.has_masks:  # with its own masks
             iou = view_ious(pyramids[k].fine(opts.detail).hard_masks(joint.poses[k], found.scenes[k].cameras),
                             replace(own_scene, cameras=found.scenes[k].cameras))
         evidence = r.result.photo if photo[k] is None else replace(photo[k], rounds=r.result.photo.rounds)
