@@ -83,6 +83,18 @@ class InstanceScenes:
         read: dict[int, NDArray[np.float32] | None] = {}
         return replace(self, scenes=[with_depth(sc, read) for sc in self.scenes])
 
+    def views(self, image_ids: list[int]) -> "InstanceScenes":
+        """The same instances seen only in the images ``image_ids`` (each instance's views among
+        them, :meth:`Scene.subset`; its empty masks and skipped images among them too), e.g. one
+        half of the views. An instance with no view there keeps an empty scene."""
+        keep = set(int(i) for i in image_ids)
+        scenes = [replace(sc.subset([k for k, im in enumerate(sc.image_ids) if im in keep]),
+                          empty=tuple(im for im in sc.empty if im in keep),
+                          skipped=tuple(im for im in sc.skipped if im in keep)) for sc in self.scenes]
+        pos = [k for k, im in enumerate(self.image_ids) if im in keep]
+        return replace(self, scenes=scenes, cameras=[self.cameras[k] for k in pos],
+                       image_ids=[self.image_ids[k] for k in pos])
+
     @property
     def camera_by_id(self) -> dict[int, Camera]:
         """Every image's camera by image id."""
@@ -98,7 +110,15 @@ def read_instances(scene_dir: str | os.PathLike[str],
     if not path.is_file():
         raise AutoalignError(f"{path}: not found, and no --instances file was given; say which object each "
                              f"instance is ({INSTANCES_FIX}), or add the scene's scene_gt.json")
-    data = read_json_file(path, "pass an --instances file")
+    return instances_of_scene_gt(path)
+
+
+def instances_of_scene_gt(path: str | os.PathLike[str],
+                          fix: str = f"pass an --instances file ({INSTANCES_FIX})") -> list[Instance]:
+    """The instances a BOP ``scene_gt.json`` lists: entry ``k`` of an image is instance ``k``, whose
+    ``obj_id`` must be the same in every image that lists it; ``fix`` ends the error when it lists none."""
+    path = Path(path)
+    data = read_json_file(path, fix)
     seen: dict[int, tuple[int, str]] = {}
     if not isinstance(data, dict):
         raise AutoalignError(f"{path}: expected image ids mapping to lists of {{\"obj_id\", ...}}; fix the file")
@@ -113,7 +133,7 @@ def read_instances(scene_dir: str | os.PathLike[str],
                                      f"every image, or pass an --instances file")
             seen.setdefault(k, (e["obj_id"], im))
     if not seen:
-        raise AutoalignError(f"{path}: lists no objects; pass an --instances file ({INSTANCES_FIX})")
+        raise AutoalignError(f"{path}: lists no objects; {fix}")
     return [Instance(k, obj) for k, (obj, _) in sorted(seen.items())]
 
 

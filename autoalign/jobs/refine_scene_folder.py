@@ -20,6 +20,7 @@ import numpy as np
 from autoalign.engine.refine import RefineOptions
 from autoalign.errors import AutoalignError
 from autoalign.io.instances import (
+    Instance,
     InstanceScenes,
     read_init_poses,
     read_instance_scenes,
@@ -109,12 +110,14 @@ def refine_scene_folder(job: FolderJob, log: RunLog, progress: Stages, t_start: 
     return FolderOutcome(EXIT_FLAGGED if flagged else EXIT_OK, report, paths, notes)
 
 
-def read_scene_inputs(job: FolderJob, log: RunLog) -> SceneInputs:
-    """The instances, models and seeds of ``job``; with a scale to solve, the scene rescaled by a
-    first guess from the masks' areas, then by the factor at which the seeds overlap their masks best;
-    else, with ``job.depth`` ``auto``, every instance's scene with the folder's measured depth."""
+def read_scene_inputs(job: FolderJob, log: RunLog, instances: list[Instance] | None = None) -> SceneInputs:
+    """The instances (``instances``, else ``job``'s), models and seeds of ``job``; with a scale to
+    solve, the scene rescaled by a first guess from the masks' areas, then by the factor at which the
+    seeds overlap their masks best; else, with ``job.depth`` ``auto``, every instance's scene with
+    the folder's measured depth."""
     scene_dir = Path(job.scene)
-    instances = read_instances(scene_dir, Path(job.instances) if job.instances else None)
+    if instances is None:
+        instances = read_instances(scene_dir, Path(job.instances) if job.instances else None)
     if job.masks == "none":
         from autoalign.io.evidence import read_instance_scenes_without_masks
 
