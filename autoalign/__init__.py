@@ -37,7 +37,7 @@ if os.path.isfile(os.path.join(_checkout, "pyproject.toml")) and os.path.isdir(o
 _LAZY = {
     "refine": "autoalign.engine.refine", "RefineOptions": "autoalign.engine.options", "RefineResult": "autoalign.engine.refine",
     "read_scene": "autoalign.io.bop", "Scene": "autoalign.io.bop", "read_init_pose": "autoalign.io.bop",
-    "read_evidence": "autoalign.io.evidence",
+    "read_evidence": "autoalign.io.evidence", "check": "autoalign.jobs.check",
     "load_mesh": "autoalign.geometry.mesh", "Mesh": "autoalign.geometry.mesh", "mesh_from_trimesh": "autoalign.geometry.mesh",
     "Camera": "autoalign.geometry.camera", "Click": "autoalign.engine.seeding", "AutoalignError": "autoalign.errors",
     "Level": "autoalign.engine.objective", "SearchOptions": "autoalign.engine.options",
@@ -45,6 +45,8 @@ _LAZY = {
     "MeshDetail": "autoalign.rasterizers.pyramid", "MeshPyramid": "autoalign.rasterizers.pyramid",
 }
 
+# ``check`` (autoalign.jobs.check) is left out below: it reaches autoalign.jobs.report, which imports
+# __version__ from this package, a cycle for type checkers and tests/test_layers.
 if TYPE_CHECKING:  # pragma: no cover
     from autoalign.engine.objective import Level  # noqa: F401
     from autoalign.engine.options import (  # noqa: F401

@@ -26,7 +26,12 @@ to judge and are flagged so. The edge distance needs no texture: the mean distan
 pixel counted at most 10) from the label's rendered outline to the nearest edge of the photo
 (Canny); compare it between labels of the same photos, since texture edges near the object make
 every outline look closer than it is. With visible masks in mask_visib/, the IoU of the label's rendered
-visible silhouette with them is reported too."""
+visible silhouette with them is reported too.
+
+--split-half measures the labels' precision instead (the photo check above is skipped): every
+instance is labelled twice, as 'autoalign refine SCENE_DIR --models MODELS_DIR --init LABELS' would,
+once from the views at even positions of the scene's image ids and once from those at odd
+positions, both starting from the labels being checked, and the two labels are compared."""
 
 _CHECK_EPILOG = """\
 inputs:
@@ -57,6 +62,16 @@ output:
   check.json gets "against" (the reference's report and the comparison) and compare.png shows a
   row per instance: 5 views cropped around the object, mask outline cyan, labels green,
   reference red.
+  With --split-half (instead of all the above): a table per instance: each half's views and
+  verdict, how far apart the halves are (mm at the model's centre, degrees; along and across the
+  viewing ray of the median view), the largest |z| (the difference along/about a model axis over
+  sqrt(sigma_A^2 + sigma_B^2)), how many of the 6 axes are within 3 sigma, the chi-square
+  d^T (S_A + S_B)^-1 d (6 on average when the sigmas are right) and whether both reached the same
+  solution (neither failed, less than 10% of the diameter and 10 degrees apart); then per instance
+  the difference, z and both halves' sigmas per axis. check.json holds only a "split_half" block
+  with all of it (twist in the model's axes about its centre: mm and radians). The instances are
+  those the labels list; each needs its masks (mask_visib/) in at least 3 views of each half, and
+  the halves read rgb/ and depth/ as evidence as 'autoalign refine' does (--photos, --depth).
   Photos over 3.2 megapixels are checked at 1/2, 1/3, ... of their size (the smallest whole factor
   that brings them under it, masks and cam_K with them, as refine reads masks): check.json's
   "image_scale" says so, and its px (distances, boxes, the 10 px limits) are those pixels.
@@ -66,6 +81,7 @@ examples:
   autoalign check scenes/000002 --labels scenes/000002/scene_gt.json --models models/ --images 10 --out report/
   autoalign check scenes/000002 --labels labels/000002/scene_gt.json --against scenes/000002/scene_gt.json \\
       --models models/ --out report/
+  autoalign check scenes/000002 --labels labels/000002/scene_gt.json --models models/ --split-half --out report/
 
 exit status: 0 the check ran (whatever the numbers), 2 a mistake in the command or the input files."""
 
@@ -73,6 +89,7 @@ exit status: 0 the check ran (whatever the numbers), 2 a mistake in the command 
 def add_check_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``autoalign check`` on an argparse subparsers object."""
     from autoalign.cli.common import HelpFormatter, positive_int
+    from autoalign.jobs.job import DEPTH_MODES, PHOTO_MODES
 
     p = subparsers.add_parser(
         "check", help="check pose labels against the photos without ground truth (SIFT feature distance, edge "
@@ -101,6 +118,18 @@ def add_check_parser(subparsers: Any) -> argparse.ArgumentParser:
                           "nothing else there")
     opt.add_argument("--quiet", action="store_true",
                      help="no progress bar on stderr (the table or --json, warnings and errors still appear)")
+    half = p.add_argument_group("precision without ground truth")
+    half.add_argument("--split-half", action="store_true",
+                      help="label every instance again from the views at even positions and from those at odd "
+                           "positions, both from --labels, and report how far apart the two labels are, in mm, "
+                           "degrees and units of their sigmas (see 'output'); the photo check is skipped, and "
+                           "--images and --against do not apply")
+    half.add_argument("--photos", choices=PHOTO_MODES, default=None,
+                      help="with --split-half, the photos as evidence as in 'autoalign refine' (auto: when the scene "
+                           "has rgb/; on; off: masks only)")
+    half.add_argument("--depth", choices=DEPTH_MODES, default=None,
+                      help="with --split-half, the measured depth as evidence as in 'autoalign refine' (auto: when the "
+                           "scene has depth/ and metric cameras; off)")
     p.set_defaults(func=run_check)
     return p
 
@@ -170,6 +199,12 @@ def run_check(args: argparse.Namespace) -> int:
                 raise AutoalignError(f"--out {out}: writing {name} there would replace the input file {out / name}; "
                                      "choose another folder with --out")
     as_json = bool(getattr(args, "json", False))
+    if getattr(args, "split_half", False):
+        return run_split_half(args, scene, labels, models, out, as_json)
+    for option in ("photos", "depth"):
+        if getattr(args, option, None) is not None:
+            raise AutoalignError(f"--{option}: only with --split-half, whose halves are refined with that evidence; "
+                                 "add --split-half or drop it")
     from autoalign.quality import scene_check
 
     # every input file is read and validated before any photo is checked (a bad --against file
@@ -220,6 +255,83 @@ def run_check(args: argparse.Namespace) -> int:
         for name, p in paths.items():
             print(f"wrote {p}")
     return 0
+
+
+def run_split_half(args: argparse.Namespace, scene: Path, labels: Path, models: Path, out: Path | None,
+                   as_json: bool) -> int:
+    """``autoalign check --split-half``: every input read and validated before anything is refined
+    or created, then both halves refined; the table, or --json, and check.json with --out."""
+    from autoalign.cli.common import LOG, ProgressBar
+    from autoalign.io.out_folder import prepare_out_dir, remove_empty_dirs
+    from autoalign.jobs.check import prepare_split_half, run_split_half
+
+    for option in ("against", "images"):
+        if getattr(args, option, None) is not None:
+            raise AutoalignError(f"--{option}: not with --split-half, which refines every view of the scene from "
+                                 "--labels; drop one of them")
+    prepared = prepare_split_half(scene, labels, models, photos=getattr(args, "photos", None) or "auto",
+                                  depth=getattr(args, "depth", None) or "auto", log=LOG)
+    created = prepare_out_dir(out) if out is not None else []
+    try:
+        bar = ProgressBar(enabled=not getattr(args, "quiet", False))
+        try:
+            report = run_split_half(prepared, progress=bar)
+        finally:
+            bar.close()
+        record = {"split_half": report.record()}
+        paths: dict[str, str] = {}
+        if out is not None:
+            files = {out / "check.json": (json.dumps(record, indent=1) + "\n").encode()}
+            _write(files, out)
+            paths = {p.name: str(p) for p in files}
+    except BaseException:
+        remove_empty_dirs(created)
+        raise
+    if as_json:
+        print(json.dumps({**record, "outputs": paths}))
+    else:
+        print(format_split_half(report))
+        for name, p in paths.items():
+            print(f"wrote {p}")
+    return 0
+
+
+def format_split_half(report: Any) -> str:
+    """The tables of a :class:`autoalign.quality.split_half.SplitHalfReport`: a line per instance, then
+    its difference, z and both halves' sigmas per model axis."""
+    import numpy as np
+
+    from autoalign.quality.split_half import AXES, WITHIN_SIGMAS
+
+    a, b = report.halves
+    head = (f"{'obj':>4} {'inst':>4} {'views A/B':>9}  {'verdict A/B':<15} {'apart mm':>8} {'deg':>6} "
+            f"{'along ray mm':>12} {'across mm':>9} {'max |z|':>7} {f'in {WITHIN_SIGMAS:g} sigma':>10} "
+            f"{'chi2 (6)':>8}  same solution")
+    lines = [f"split half: A = {len(a)} images at even positions, B = {len(b)} at odd positions, both from the labels",
+             head, "-" * len(head)]
+    for s in report.instances:
+        zmax = f"{np.max(np.abs(s.z)):.2f}" if s.z is not None else "-"
+        within = f"{int(np.sum(s.within))}/6" if s.within is not None else "-"
+        chi2 = f"{s.mahalanobis_sq:.2f}" if s.mahalanobis_sq is not None else "-"
+        verdicts = f"{s.a.status} / {s.b.status}"
+        lines.append(f"{s.obj_id:>4} {s.index:>4} {f'{len(s.a.image_ids)}/{len(s.b.image_ids)}':>9}  {verdicts:<15} "
+                     f"{s.translation_mm:>8.2f} {s.rotation_deg:>6.2f} {s.along_ray_mm:>+12.2f} "
+                     f"{s.across_ray_mm:>9.2f} {zmax:>7} {within:>10} {chi2:>8}  {'yes' if s.same_basin else 'no: ' + s.basin_reason}")
+    if report.fraction_within is not None:
+        lines.append(f"axes within {WITHIN_SIGMAS:g} sigma, all instances: {report.fraction_within:.0%}")
+    lines.append("")
+    lines.append("per model axis (B - A in mm / deg; z = difference / sqrt(sigma_A^2 + sigma_B^2)):")
+    lines.append(f"{'obj':>4} {'inst':>4} {'':<9}" + "".join(f"{ax:>8}" for ax in AXES))
+    for s in report.instances:
+        diff = np.concatenate([s.twist[:3], np.degrees(s.twist[3:])])
+        rows = [("B - A", diff), ("z", s.z)]
+        for name, h in (("sigma A", s.a), ("sigma B", s.b)):
+            rows.append((name, None if h.sigma_mm is None else np.concatenate([h.sigma_mm, h.sigma_deg])))
+        for name, values in rows:
+            cells = "".join(f"{x:>+8.2f}" if name in ("B - A", "z") else f"{x:>8.2f}" for x in values) \
+                if values is not None else f"{'-':>8}" * 6
+            lines.append(f"{s.obj_id:>4} {s.index:>4} {name:<9}{cells}")
+    return "\n".join(lines)
 
 
 def _keep_freed_memory(trim_mb: int = 256) -> None:
