@@ -301,6 +301,16 @@ def check_against(root: Path, stdout: str) -> None:
     assert "no clear difference" in stdout
 
 
+def check_split_half(root: Path, stdout: str) -> None:
+    """Our labels' two halves (12 views each) reach one solution, well under a millimetre apart."""
+    block = json.loads((root / "out" / "example_split" / "check.json").read_text())["split_half"]
+    assert block["halves"] == {"a": list(range(0, 24, 2)), "b": list(range(1, 24, 2))}
+    (inst,) = block["instances"]
+    assert inst["same_basin"] and inst["a"]["views"] == inst["b"]["views"] == 12, inst
+    assert inst["translation_mm"] < 0.5 and inst["rotation_deg"] < 0.5 and len(inst["z"]) == 6, inst
+    assert "same solution" in stdout and "sigma A" in stdout
+
+
 def check_export(root: Path, stdout: str) -> None:
     """A BOP scene of the 24 labelled images whose visible masks are the example's own."""
     out = root / "out" / "example_bop"
@@ -366,6 +376,7 @@ CHECKS: list[tuple[str, Callable[[Path, Any], None]]] = [
     ("autoalign recon out/capture", check_recon),
     ("--images 4 --out out/example_check", check_check),
     ("--against autoalign/data/example/scene/scene_gt.json", check_against),
+    ("--split-half --out out/example_split", check_split_half),
     ("autoalign export autoalign/data/example/scene", check_export),
     ("autoalign label autoalign/data/example/scene", check_label),
     ("autoalign simulate --max-models", check_simulate),
