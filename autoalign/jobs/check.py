@@ -99,8 +99,9 @@ def prepare_split_half(scene_dir: str | os.PathLike[str], labels: str | os.PathL
                              f"{scene_dir / 'scene_camera.json'}; the split-half check starts both halves from "
                              "the labels, so label every instance in at least one image of the scene")
     halves = interleaved_halves(found.image_ids)
+    sets = [set(h) for h in halves]
     for inst, sc in zip(found.instances, found.scenes):
-        counts = [sum(im in set(h) for im in sc.image_ids) for h in halves]
+        counts = [sum(im in s for im in sc.image_ids) for s in sets]
         if min(counts) < MIN_HALF_VIEWS:
             raise AutoalignError(
                 f"{scene_dir / 'mask_visib'}: instance {inst.index} (obj {inst.obj_id}) has masks in {len(sc)} views, "

@@ -202,16 +202,20 @@ def interleaved_halves(image_ids: Sequence[int]) -> tuple[list[int], list[int]]:
     return ids[0::2], ids[1::2]
 
 
+def midway_rotation(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The rotation (world from model) halfway from ``T_a``'s to ``T_b``'s along the shortest arc."""
+    return T_a[:3, :3] @ so3_exp(0.5 * so3_log(T_a[:3, :3].T @ T_b[:3, :3]))
+
+
 def twist_between(T_a: NDArray[np.float64], T_b: NDArray[np.float64],
                   centre_m: NDArray[np.float64]) -> NDArray[np.float64]:
     """The twist ``(v [mm], w [rad])`` from pose ``T_a`` to ``T_b`` (world from model) about the model
     point ``centre_m``, in the model's axes at the rotation midway between them: ``w`` is the
-    rotation ``R_a^T R_b`` as an axis-angle vector, ``v`` the displacement of the centre."""
+    rotation ``R_a^T R_b`` as an axis-angle vector (the same in A's, B's and the midway axes), ``v``
+    the displacement of the centre."""
     c = np.asarray(centre_m, dtype=np.float64)[None]
-    w = so3_log(T_a[:3, :3].T @ T_b[:3, :3])
-    R_mid = T_a[:3, :3] @ so3_exp(0.5 * w)
     shift = transform_points(T_b, c)[0] - transform_points(T_a, c)[0]
-    return np.concatenate([R_mid.T @ shift, w])
+    return np.concatenate([midway_rotation(T_a, T_b).T @ shift, so3_log(T_a[:3, :3].T @ T_b[:3, :3])])
 
 
 def median_view(centre_w: NDArray[np.float64], cameras: Sequence[Camera],
@@ -257,8 +261,7 @@ def compare_halves(index: int, obj_id: int, centre_m: NDArray[np.float64], diame
         with np.errstate(divide="ignore", invalid="ignore"):
             z = np.where(var > 0, d / np.sqrt(np.maximum(var, 0.0)), np.where(d == 0, 0.0, np.inf))
         chi2 = float(d @ np.linalg.pinv(S, hermitian=True) @ d)
-        w = so3_log(a.T_wm[:3, :3].T @ b.T_wm[:3, :3])
-        u_m = (a.T_wm[:3, :3] @ so3_exp(0.5 * w)).T @ u  # the ray in the midway model axes, as d's v
+        u_m = midway_rotation(a.T_wm, b.T_wm).T @ u  # the ray in the model axes of d's v
         var_along = float(u_m @ S[:3, :3] @ u_m)
         along_z = along / np.sqrt(var_along) if var_along > 0 else (0.0 if along == 0 else float("inf"))
     same, why = same_basin(a, b, translation, rotation, diameter_mm)
