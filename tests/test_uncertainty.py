@@ -112,3 +112,80 @@ def test_init_turned_about_the_weak_axis_is_not_returned(k):
     assert rotation_angle_deg(stuck.T_wm[:3, :3], T[:3, :3]) > 45.0
     found = refine(scene, mesh, T0)
     assert rotation_angle_deg(found.T_wm[:3, :3], T[:3, :3]) < 1.0
+
+
+def test_outline_shift_rate_integrates_to_the_perimeter():
+    """Per pixel of outward shift a mask gains its perimeter in pixels: a disk of radius 40 and a
+    square of side 120 turned 0 and 30 degrees: 1.0 to 1.12 times (the ring's slant error, see its doc)."""
+    import cv2
+
+    from autoalign.losses.silhouette import outline_shift_rate
+
+    disk = np.zeros((200, 200), np.uint8)
+    cv2.circle(disk, (100, 100), 40, 1, -1)
+    assert 1.0 <= outline_shift_rate(disk).sum() / (2 * np.pi * 40) < 1.12
+    for angle in (0.0, 30.0):
+        square = np.zeros((300, 300), np.uint8)
+        box = cv2.boxPoints(((150.0, 150.0), (120.0, 120.0), angle))
+        cv2.fillPoly(square, [np.round(box).astype(np.int32)], 1)
+        assert 1.0 <= outline_shift_rate(square).sum() / 480.0 < 1.13
+
+
+def _cameras_from_one_side(n: int, rng: np.random.Generator):
+    """``n`` views within 15 degrees of azimuth and 10 of elevation, 700-800 mm from the origin."""
+    from autoalign.experiments.scenes.synthetic import default_K
+    from autoalign.geometry.camera import look_at
+
+    cams = []
+    for _ in range(n):
+        a, e = np.radians(rng.uniform(0, 15)), np.radians(rng.uniform(30, 40))
+        d = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+        cams.append(look_at(rng.uniform(700, 800) * d, np.zeros(3), default_K(), 640, 480, up=np.array([0.0, 0.0, 1.0])))
+    return cams
+
+
+@pytest.mark.parametrize("k", range(2))
+def test_outline_shift_moves_the_pose_as_predicted_and_is_in_the_sigma(k):
+    """From one side (10 views in a 15 degree cone), masks moved 1 px in (exact Euclidean erosion
+    of open3d-cast masks) push the pose along the viewing ray as the covariance's outline-shift
+    term predicts (within 30%), and a 3 px tight mask's pose is within 3 sigma along the ray and
+    not ok: the sigma is that of the shared shift, not of pixel noise."""
+    from autoalign.experiments.studies.sam_failures import shift_outline
+    from autoalign.quality.verdict import judge
+
+    mesh = study_meshes()[k]
+    rng = np.random.default_rng([29, k])
+    R = random_rotation(rng)
+    T = make_pose(R, -R @ mesh.centre)
+    scene = make_scene(mesh, T, _cameras_from_one_side(10, rng))
+    exact = refine(scene, mesh, T)
+
+    def centre(T_wm):
+        return T_wm[:3, :3] @ mesh.centre + T_wm[:3, 3]
+
+    ray = exact.T_wm[:3, :3] @ exact.uncertainty.view_dir_m
+    predicted = exact.T_wm[:3, :3] @ exact.uncertainty.bias_shift[:3]  # per px outwards
+    for px in (-1.0, -3.0):
+        tight = Scene(scene.cameras, [shift_outline(m > 0.5, px).astype(np.float32) for m in scene.masks], scene.image_ids)
+        r = refine(tight, mesh, exact.T_wm)
+        moved = centre(r.T_wm) - centre(exact.T_wm)
+        if px == -1.0:
+            assert np.linalg.norm(moved - px * predicted) < 0.3 * np.linalg.norm(moved), (moved, predicted)
+            assert abs(moved @ ray) > 3.0  # the shift is along the ray, and large: a real test of the sigma
+        else:
+            err = centre(r.T_wm) - centre(T)
+            assert abs(err @ ray) < 3.0 * r.uncertainty.sigma_ray_mm, (err @ ray, r.uncertainty.sigma_ray_mm)
+            assert r.uncertainty.sigma_ray_mm > 10 * r.uncertainty.sigma_across_mm
+            assert judge(r.iou_after, r.weights, r.image_ids, uncertainty=r.uncertainty).status != "ok"
+
+
+def test_sigmas_along_and_across_the_ray():
+    """A covariance with 9 mm^2 along the model's x and 1 mm^2 across, the median view along x."""
+    from autoalign.engine.uncertainty import Uncertainty, with_outline_shift
+
+    cov = np.diag([9.0, 1.0, 0.25, 1e-6, 1e-6, 1e-6])
+    u = Uncertainty(cov, np.sqrt(np.diag(cov)[:3]), np.zeros(3))
+    out = with_outline_shift(u, np.zeros(6), np.array([2.0, 0.0, 0.0]))
+    assert out.sigma_ray_mm == pytest.approx(3.0) and out.sigma_across_mm == pytest.approx(1.0)
+    shifted = with_outline_shift(u, np.array([0.0, 1.5, 0.0, 0.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), bias_px=2.0)
+    assert shifted.sigma_mm[1] == pytest.approx(np.sqrt(1.0 + 9.0))  # 2 px of 1.5 mm each

@@ -41,10 +41,11 @@ from autoalign.engine.solver import Trace
 from autoalign.engine.uncertainty import Uncertainty, pose_uncertainty
 from autoalign.errors import AutoalignError
 from autoalign.geometry.mesh import Mesh
-from autoalign.geometry.se3 import pose_change
+from autoalign.geometry.se3 import pose_change, transform_points
 from autoalign.io.bop import Scene
 from autoalign.losses import targets_in_crops
 from autoalign.losses.depth import DepthTerms
+from autoalign.losses.silhouette import boundary_bias_grads
 from autoalign.quality.overlap import iou_from_counts, view_ious
 from autoalign.rasterizers.pyramid import MeshPyramid
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
@@ -312,7 +313,19 @@ def _final_state(obj: SilhouetteObjective, best: Hypothesis, weights: NDArray[np
         ev = last_trace.final
     else:
         ev = obj.evaluate(best.T_final, Level(1.0, levels[-1].sigma, 0), weights=weights)
-    return ev, pose_uncertainty(ev.gn, ev.terms.grad, ev.weights, ev.value, len(ev.silhouettes.band), best.T_final[:3, :3])
+    return ev, final_uncertainty(obj, ev, best.T_final)
+
+
+def final_uncertainty(obj: SilhouetteObjective, ev: Evaluation, T_wm: NDArray[np.float64]) -> Uncertainty:
+    """The pose's uncertainty from a full-resolution evaluation at it, with the prior on a shared
+    shift of the masks' outlines (:mod:`autoalign.engine.uncertainty`)."""
+    views = obj.at_scale(1.0)
+    centre_w = transform_points(T_wm, obj.centre_m[None])[0]
+    dirs = np.array([centre_w - c.centre for c in views.cameras])
+    dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
+    bias = boundary_bias_grads(ev.silhouettes, views.targets, views.totals)
+    return pose_uncertainty(ev.gn, ev.terms.grad, ev.weights, ev.value, len(ev.silhouettes.band), T_wm[:3, :3],
+                            bias, dirs)
 
 
 def _seed(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,

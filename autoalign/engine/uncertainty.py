@@ -7,10 +7,17 @@ At the optimum of the weighted least-squares silhouette loss, with the Gauss-New
 * ``naive``: ``H^-1 * 2 loss / (n - 6)``, the textbook residual-variance estimate, with ``n`` the
   pixels whose silhouette value depends on the pose (the band). It takes pixels as independent,
   but a mask's boundary error runs along the outline over many pixels, so it is far too small;
-* ``sandwich`` (reported): ``H^-1 (V / (V - 1) sum_v g_v g_v^T) H^-1``, the cluster-robust
-  estimate with one cluster per view: whatever the correlation of a view's pixels, the views'
-  errors are taken as independent. On synthetic scenes with noisy mask outlines it covers the
-  true error as a Gaussian would (README, "Uncertainty"; ``tests/test_uncertainty.py``).
+* ``sandwich``: ``H^-1 (V / (V - 1) sum_v g_v g_v^T) H^-1``, the cluster-robust estimate with one
+  cluster per view: whatever the correlation of a view's pixels, the views' errors are taken as
+  independent. It sees what the views disagree on (a mask tight in one view and loose in another,
+  a camera off by a pixel), but not an error every view shares;
+* ``boundary bias`` (added to the sandwich; reported): a mask outline a few pixels too tight or too
+  loose in *every* view moves the pose coherently, and no spread of the residuals shows it. With
+  ``b_v`` the change of view ``v``'s gradient per pixel of outward boundary shift of its target,
+  the pose moves by ``s = H^-1 sum_v w_v b_v`` per pixel; a prior ``sigma_b`` (px) on that shared
+  shift adds ``sigma_b^2 s s^T``. From one viewpoint ``s`` lies along the viewing ray: apparent
+  size is all that fixes distance there, and a 4 px tight mask makes the object look several
+  percent farther.
 
 The twist is ``(v [mm], w [rad])`` in the world frame about the object centre; sigmas are
 reported about and along the model's own axes (its x, y, z), since those name what a person sees
@@ -19,7 +26,7 @@ reported about and along the model's own axes (its x, y, z), since those name wh
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,6 +38,10 @@ WEAK_MM = 1.0
 WEAK_RATIO = 5.0
 """... or either whose sigma is this many times that of the best observed direction of its kind
 (a flashlight's roll about its axis: 0.3-0.4 degrees against 0.03 about the other axes)."""
+BOUNDARY_BIAS_PX = 2.0
+"""The prior sigma (px, full resolution) of a mask outline's shared shift: a segmenter's masks are
+biased by a pixel or two (SAM's on the real LM-O scenes, ``experiments/results/uncertainty_calibration.md``),
+masks dilated or eroded on purpose by a few."""
 _AXES = "xyz"
 
 
@@ -43,8 +54,15 @@ class Uncertainty:
         sigma_mm: (3,) standard deviation of the position along the model's x, y, z (mm).
         sigma_deg: (3,) standard deviation of the orientation about the model's x, y, z (degrees).
         weak: the weakly observed directions, e.g. ``"turn about model z: 12.3 deg"``.
-        weak_turn_axes: the unit model-frame axes of the weakly observed turns, in that order.
+        weak_turn_axes: the unit model-frame axes of the turns the views' geometry barely fixes
+            (from the sandwich alone, before the outline shift's prior), largest first.
         naive_sigma_mm / naive_sigma_deg: the same from the residual-variance estimate (for comparison).
+        bias_shift: (6,) the twist (model axes, mm and rad) the pose moves by per pixel of outward
+            shift of every mask's outline (see the module doc); zero where it was not measured.
+        view_dir_m: (3,) unit viewing direction of the median view, in the model's axes (camera
+            to object centre; the view closest to the mean direction); ``None``: not known.
+        sigma_ray_mm: position sigma along ``view_dir_m`` (mm), where silhouettes are weakest.
+        sigma_across_mm: the largest position sigma across it (mm).
     """
 
     covariance: NDArray[np.float64]
@@ -54,6 +72,10 @@ class Uncertainty:
     weak_turn_axes: list[NDArray[np.float64]] = field(default_factory=list)
     naive_sigma_mm: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
     naive_sigma_deg: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    bias_shift: NDArray[np.float64] = field(default_factory=lambda: np.zeros(6))
+    view_dir_m: NDArray[np.float64] | None = None
+    sigma_ray_mm: float | None = None
+    sigma_across_mm: float | None = None
 
 
 def _to_model(cov_w: NDArray[np.float64], R_wm: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -94,7 +116,9 @@ def _weak(cov_m: NDArray[np.float64], weak_mm: float = WEAK_MM, weak_deg: float 
 
 
 def pose_uncertainty(H: NDArray[np.float64], view_grads: NDArray[np.float64], weights: NDArray[np.float64],
-                     value: float, n_band: int, R_wm: NDArray[np.float64]) -> Uncertainty:
+                     value: float, n_band: int, R_wm: NDArray[np.float64],
+                     bias_grads: NDArray[np.float64] | None = None, view_dirs_w: NDArray[np.float64] | None = None,
+                     bias_px: float = BOUNDARY_BIAS_PX) -> Uncertainty:
     """The uncertainty of a converged pose (see the module doc).
 
     Args:
@@ -104,10 +128,29 @@ def pose_uncertainty(H: NDArray[np.float64], view_grads: NDArray[np.float64], we
         value: the weighted loss ``sum_v w_v loss_v``.
         n_band: pixels whose value depends on the pose.
         R_wm: the pose's rotation (world from model).
+        bias_grads: (V, 6) unweighted per-view gradient change per pixel of outward shift of the
+            target's outline (:func:`~autoalign.losses.silhouette.boundary_bias_grads`); ``None``: not measured.
+        view_dirs_w: (V, 3) unit directions from each camera to the object centre (world).
+        bias_px: the prior sigma of the shared outline shift (px).
     """
     H_inv = np.linalg.pinv(H, rcond=1e-12, hermitian=True)
-    g = view_grads * np.asarray(weights, dtype=np.float64)[:, None]
-    return uncertainty_of(sandwich(H_inv, g), H_inv * (2.0 * value / max(n_band - 6, 1)), R_wm)
+    w = np.asarray(weights, dtype=np.float64)[:, None]
+    shift_w = np.zeros(6) if bias_grads is None else -H_inv @ (w * bias_grads).sum(axis=0)
+    return uncertainty_of(sandwich(H_inv, view_grads * w), H_inv * (2.0 * value / max(n_band - 6, 1)), R_wm,
+                          shift_w, median_view_direction(view_dirs_w, w[:, 0]), bias_px)
+
+
+def median_view_direction(view_dirs_w: NDArray[np.float64] | None,
+                          weights: NDArray[np.float64] | None = None) -> NDArray[np.float64] | None:
+    """The unit direction (world) of the view closest to the (weighted) mean viewing direction."""
+    if view_dirs_w is None or len(view_dirs_w) == 0:
+        return None
+    d = np.asarray(view_dirs_w, dtype=np.float64)
+    w = np.ones(len(d)) if weights is None else np.asarray(weights, dtype=np.float64)
+    mean = (w[:, None] * d).sum(axis=0)
+    if np.linalg.norm(mean) < 1e-9:
+        mean = d.sum(axis=0)
+    return d[int(np.argmax(d @ mean))]
 
 
 def sandwich(H_inv: NDArray[np.float64], cluster_grads: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -118,11 +161,45 @@ def sandwich(H_inv: NDArray[np.float64], cluster_grads: NDArray[np.float64]) -> 
     return H_inv @ meat @ H_inv
 
 
-def uncertainty_of(cov_w: NDArray[np.float64], naive_w: NDArray[np.float64], R_wm: NDArray[np.float64]) -> Uncertainty:
+def _ray_sigmas(cov_m: NDArray[np.float64], d_m: NDArray[np.float64]) -> tuple[float, float]:
+    """Position sigma along the unit model-frame direction ``d_m`` and the largest across it (mm)."""
+    P = cov_m[:3, :3]
+    along = float(np.sqrt(max(d_m @ P @ d_m, 0.0)))
+    Q = np.eye(3) - np.outer(d_m, d_m)
+    across = float(np.sqrt(max(np.linalg.eigvalsh(Q @ P @ Q).max(), 0.0)))
+    return along, across
+
+
+def uncertainty_of(cov_w: NDArray[np.float64], naive_w: NDArray[np.float64], R_wm: NDArray[np.float64],
+                   bias_shift_w: NDArray[np.float64] | None = None, view_dir_w: NDArray[np.float64] | None = None,
+                   bias_px: float = BOUNDARY_BIAS_PX) -> Uncertainty:
     """What the world-twist covariance ``cov_w`` (6x6, about the object centre) says, in the
-    model's axes; ``naive_w`` is the residual-variance estimate, for comparison."""
-    cov = _to_model(cov_w, R_wm)
-    s_mm, s_deg = _sigmas(cov)
+    model's axes, with the prior on a shared outline shift (``bias_shift_w``: the world twist per
+    px, ``bias_px``: its sigma) added; ``naive_w`` is the residual-variance estimate, for
+    comparison; ``view_dir_w``: the median view's unit direction (world), for the sigmas along
+    and across it."""
+    A = np.zeros((6, 6))
+    A[:3, :3] = A[3:, 3:] = R_wm.T
+    noise = _to_model(cov_w, R_wm)
     n_mm, n_deg = _sigmas(_to_model(naive_w, R_wm))
-    weak = _weak(cov)
-    return Uncertainty(cov, s_mm, s_deg, [t for t, _ in weak], [u for t, u in weak if t.startswith("turn")], n_mm, n_deg)
+    # the turns the views' geometry barely fixes (what a nearly symmetric object can hide), before
+    # the outline shift's prior, which inflates every direction it moves and hides the ratio
+    weak_turns = [u for t, u in _weak(noise) if t.startswith("turn")]
+    u = Uncertainty(noise, *_sigmas(noise), [], weak_turns, n_mm, n_deg)
+    shift = np.zeros(6) if bias_shift_w is None else A @ np.asarray(bias_shift_w, dtype=np.float64)
+    d_m = None if view_dir_w is None else R_wm.T @ np.asarray(view_dir_w, dtype=np.float64)
+    return with_outline_shift(u, shift, d_m, bias_px)
+
+
+def with_outline_shift(u: Uncertainty, shift_m: NDArray[np.float64], view_dir_m: NDArray[np.float64] | None,
+                       bias_px: float = BOUNDARY_BIAS_PX) -> Uncertainty:
+    """``u`` (a covariance without the prior) with the prior on a shared outline shift added:
+    ``shift_m`` (6,) the model-frame twist per px (the joint stage takes the one measured alone,
+    at a pose a few mm away), ``view_dir_m`` the median view's unit direction in the model's axes."""
+    shift = np.asarray(shift_m, dtype=np.float64)
+    cov = u.covariance + bias_px ** 2 * np.outer(shift, shift)
+    s_mm, s_deg = _sigmas(cov)
+    d_m = None if view_dir_m is None else np.asarray(view_dir_m, dtype=np.float64) / np.linalg.norm(view_dir_m)
+    along, across = _ray_sigmas(cov, d_m) if d_m is not None else (None, None)
+    return replace(u, covariance=cov, sigma_mm=s_mm, sigma_deg=s_deg, weak=[t for t, _ in _weak(cov)],
+                   bias_shift=shift, view_dir_m=d_m, sigma_ray_mm=along, sigma_across_mm=across)

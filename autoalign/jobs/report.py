@@ -22,7 +22,7 @@ from autoalign import __version__
 from autoalign.engine.objective import ViewTermsRecord
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult
-from autoalign.engine.uncertainty import Uncertainty
+from autoalign.engine.uncertainty import BOUNDARY_BIAS_PX, Uncertainty
 from autoalign.geometry.camera import PIXEL_CONVENTION
 from autoalign.geometry.se3 import rotation_angle_deg, transform_points
 from autoalign.losses.depth import DepthTerms
@@ -105,9 +105,14 @@ def uncertainty_record(u: Uncertainty | None) -> dict[str, Any] | None:
     if u is None:
         return None
     return {"sigma_mm": u.sigma_mm, "sigma_deg": u.sigma_deg, "axes": "along / about the model's x, y, z",
+            "sigma_along_ray_mm": u.sigma_ray_mm, "sigma_across_ray_mm": u.sigma_across_mm,
+            "median_view_direction": u.view_dir_m,
+            "ray": "the median view's direction (camera to object centre) in the model's axes",
             "weakly_observed": list(u.weak), "covariance": u.covariance,
             "covariance_of": "twist (v mm, w rad) in the model's axes, about the model centre; cluster-robust "
-                             "(one cluster per view) Gauss-Newton sandwich",
+                             "(one cluster per view) Gauss-Newton sandwich plus the prior on a shift of every "
+                             f"mask's outline ({BOUNDARY_BIAS_PX:g} px)",
+            "outline_shift_per_px": u.bias_shift,
             "naive_sigma_mm": u.naive_sigma_mm, "naive_sigma_deg": u.naive_sigma_deg}
 
 

@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 from autoalign.engine.hypotheses import weak_turn_scores
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult, refine
+from autoalign.engine.uncertainty import with_outline_shift
 from autoalign.geometry.se3 import pose_change
 from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
@@ -147,7 +148,9 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
             photo[k] = again[k]
     after = []
     for k, r in enumerate(alone):
-        unc = joint.uncertainties[k]
+        alone_unc = r.result.uncertainty
+        unc = joint.uncertainties[k] if alone_unc is None else with_outline_shift(
+            joint.uncertainties[k], alone_unc.bias_shift, alone_unc.view_dir_m)
         gap = None
         if unc.weak_turn_axes and opts.disambiguation.weak_turns:  # the joint system's weak turns, tried at its pose
             own, scores, _ = weak_turn_scores(pyramids[k].with_faces(opts.detail.coarse), found.scenes[k],

@@ -28,7 +28,7 @@ from autoalign.experiments.result_files import write_results
 from autoalign.experiments.studies.metrics import Symmetries, pose_errors
 from autoalign.experiments.studies.shared_data import YCBV_RGBD
 from autoalign.geometry.mesh import load_mesh
-from autoalign.geometry.se3 import apply_twist, make_pose, transform_points
+from autoalign.geometry.se3 import apply_twist, make_pose, pose_change, transform_points
 from autoalign.io.bop import Scene, read_scene, with_depth
 from autoalign.io.evidence import read_evidence
 from autoalign.io.models import ModelSet
@@ -54,8 +54,8 @@ def degraded(scene: Scene, cut: bool) -> Scene:
     return replace(scene, masks=masks)
 
 
-def run(data: Path) -> list[dict]:
-    """One row per object, mask condition, start and depth setting."""
+def run(data: Path, masks_kinds: tuple[str, ...] = MASKS, depths: tuple[bool, ...] = (True, False)) -> list[dict]:
+    """One row per object, mask condition (of ``masks_kinds``), start and depth setting (of ``depths``)."""
     gt = json.loads((data / "scene_gt.json").read_text())["1"]  # world = camera of image 1
     models = ModelSet.read(data / "models")
     rng = np.random.default_rng(0)
@@ -72,21 +72,23 @@ def run(data: Path) -> list[dict]:
         for start in range(STARTS):
             axis = rng.normal(size=3)
             T0 = apply_twist(T, np.array([*(20.0 * c / np.linalg.norm(c)), *(np.radians(10.0) * axis / np.linalg.norm(axis))]), c)
-            for masks in MASKS:
+            for masks in masks_kinds:
                 sc = no_masks if masks.startswith("none") else degraded(scene, cut=masks != MASKS[0])
                 if masks.endswith("photos") and sc.photos is None:
                     sc = replace(sc, photos=photos)
-                for depth in (True, False):
+                for depth in depths:
                     t0 = time.perf_counter()
                     res = refine(sc, mesh, T0, RefineOptions() if depth else RefineOptions(depth=None))
                     wall = time.perf_counter() - t0
                     e = pose_errors(res.T_wm, T, mesh.centre, None, sym)
                     along = float((transform_points(res.T_wm, mesh.centre[None])[0] - c) @ c / np.linalg.norm(c))
                     verdict = judge(res.iou_after, res.weights, res.image_ids, sc.empty, res.ambiguous,
-                                    bool(sym.discrete or sym.continuous), res.uncertainty, (), res.turn_gap, res.depth)
+                                    bool(sym.discrete or sym.continuous), res.uncertainty, (), res.turn_gap, res.depth,
+                                    seed_move=pose_change(res.T_wm, T0, mesh.centre))
                     rows.append({"obj_id": obj, "start": start, "masks": masks, "depth": depth,
                                  "err_mm": float(e.pos_err_mm), "err_deg": float(e.rot_err_deg), "along_ray_mm": along,
-                                 "verdict": verdict.status, "wall_s": wall})
+                                 "sigma_ray_mm": res.uncertainty.sigma_ray_mm, "weak": res.uncertainty.weak,
+                                 "verdict": verdict.status, "reasons": verdict.reasons, "wall_s": wall})
     return rows
 
 

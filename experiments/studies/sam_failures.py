@@ -19,6 +19,7 @@ import json
 import sys
 import tempfile
 from collections import Counter
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -129,13 +130,32 @@ def corrupt_like_sam(masks: list[list[NDArray[np.bool_]]], rng: np.random.Genera
     return out, counts
 
 
-def make_sam_scene(root: Path, k: int, n_obj: int = 5, views: int = 40, rates: dict[str, float] = MEASURED_RATES
+def shift_outline(mask: NDArray[np.bool_], px: float) -> NDArray[np.bool_]:
+    """``mask`` with its outline moved ``px`` outwards (negative: inwards), by the exact Euclidean
+    distance to it."""
+    if px >= 0:
+        return mask | (cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE) <= px)
+    return cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE) > -px
+
+
+@dataclass(frozen=True)
+class SystematicErrors:
+    """Errors no pixel noise explains, drawn per view: each instance's mask outline moved by up to
+    ``outline_px`` in or out (uniform), and each camera's principal point off by ``camera_px`` in a
+    random direction (masks cast through the moved camera, the true one written)."""
+
+    outline_px: float = 0.0
+    camera_px: float = 0.0
+
+
+def make_sam_scene(root: Path, k: int, n_obj: int = 5, views: int = 40, rates: dict[str, float] = MEASURED_RATES,
+                   systematic: SystematicErrors = SystematicErrors(), seed: int = 13
                    ) -> tuple[list[NDArray[np.float64]], Counter, list[str]]:
     """Synthetic scene ``k``: ``n_obj`` procedural objects close together (they hide each other),
-    ``views`` views of 640x480, masks ray-cast then failed like SAM's; writes ``root/scene``,
-    ``root/models`` and ``root/init_gt.json`` (10 mm / 15 deg off); returns the true poses, the
-    failures drawn and the objects' names."""
-    rng = np.random.default_rng([13, k])
+    ``views`` views of 640x480, masks ray-cast (with ``systematic`` errors) then failed like SAM's;
+    writes ``root/scene``, ``root/models`` and ``root/init_gt.json`` (10 mm / 15 deg off); returns
+    the true poses, the failures drawn and the objects' names."""
+    rng = np.random.default_rng([seed, k])
     pool = procedural_models()
     chosen = [pool[int(i)] for i in rng.choice(len(pool), n_obj, replace=False)]
     write_models(root / "models", chosen)
@@ -147,7 +167,16 @@ def make_sam_scene(root: Path, k: int, n_obj: int = 5, views: int = 40, rates: d
         R = random_rotation(rng)
         truth.append(make_pose(R, np.array([75 * np.cos(a), 75 * np.sin(a), 40.0]) - R @ m.centre))
     cams = ring_cameras(views, rng, target=(0.0, 0.0, 40.0), K=default_K(640, 480, 600.0))
-    masks, counts = corrupt_like_sam(raycast_visible_masks(meshes, truth, cams), rng, rates)
+    cast_through = cams
+    if systematic.camera_px > 0:
+        angles = rng.uniform(0, 2 * np.pi, len(cams))
+        cast_through = [replace(c, K=c.K + systematic.camera_px * np.array([[0, 0, np.cos(a)], [0, 0, np.sin(a)], [0, 0, 0]]))
+                        for c, a in zip(cams, angles)]
+    cast = raycast_visible_masks(meshes, truth, cast_through)
+    if systematic.outline_px > 0:
+        cast = [[shift_outline(m, rng.uniform(-systematic.outline_px, systematic.outline_px)) if m.any() else m
+                 for m in view] for view in cast]
+    masks, counts = corrupt_like_sam(cast, rng, rates)
     write_multi_scene(root / "scene", meshes, list(range(1, n_obj + 1)), truth, cams, masks)
     coarse = [perturb_pose(T, 10.0, 15.0, rng, m.centre) for T, m in zip(truth, meshes)]
     write_json_atomic(root / "init_gt.json", scene_gt_of([(j + 1, T) for j, T in enumerate(coarse)], cams[:1], [0]))
