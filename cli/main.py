@@ -413,10 +413,15 @@ def _print_object_outcome(outcome: FolderOutcome, out: Path, elapsed: float, as_
     iou_b, iou_a = np.asarray(r.iou_before, float), np.asarray(r.iou_after, float)
     rows = "\n".join("    [" + ", ".join(f"{x:+.6f}" for x in row) + "]" for row in T_cm[:3, :3])
     u = r.uncertainty
+    trusted = report.verdict.status == "ok"  # a sigma is the precision of a pose only where the pose is trusted
     sigma = "" if u is None else (
-        f"sigma (model x, y, z): {', '.join(f'{x:.3f}' for x in u.sigma_mm)} mm, "
-        f"{', '.join(f'{x:.3f}' for x in u.sigma_deg)} deg" + (f"; weakly observed: {'; '.join(u.weak)}" if u.weak else "")
-        + "\n")
+        (f"sigma (model x, y, z): {', '.join(f'{x:.3f}' for x in u.sigma_mm)} mm, "
+         f"{', '.join(f'{x:.3f}' for x in u.sigma_deg)} deg"
+         + (f"; along / across the view: {u.sigma_ray_mm:.3f} / {u.sigma_across_mm:.3f} mm" if u.sigma_ray_mm is not None
+            else "")
+         + (f"; weakly observed: {'; '.join(u.weak)}" if u.weak else "")) if trusted else
+        f"no sigma shown: the pose is '{report.verdict.status}', so a sigma would not be its precision (refine.json "
+        "has the covariance)") + "\n"
     print(f"pose of obj {report.obj_id} in the camera of image {ids[0]} (model to camera):\n"
           f"  cam_R_m2c =\n{rows}\n"
           f"  cam_t_m2c = [{', '.join(f'{x:.2f}' for x in T_cm[:3, 3])}] mm\n"

@@ -120,6 +120,7 @@ def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
         mm, deg = pose_error(np.array(placed["T_wm"]), labelled.truth[0], centre)
         assert mm < 1.0 and deg < 1.0, (mm, deg)
         assert page.locator('.instance[data-index="0"] .verdict').inner_text() == "ok"
+        assert "σ not shown" not in page.locator('.instance[data-index="0"]').inner_text()  # trusted: its sigma
 
         # nudge: three times right in view 0's axes (the keys act on the view under the mouse)
         page.hover('.view[data-image-id="0"] img.tint')
@@ -136,6 +137,8 @@ def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
         np.testing.assert_allclose(T1[:3, 3] - T0[:3, 3], R_w2c.T @ [3.0, 0.0, 0.0], atol=1e-6)
         np.testing.assert_allclose(T1[:3, :3], T0[:3, :3], atol=1e-9)
         assert nudged["verdict"] is None and nudged["source"] == "nudge"
+        # a pose not judged (or not ok) shows no sigma: it would not be its precision
+        page.wait_for_function("document.querySelector('.instance[data-index=\"0\"]').innerText.includes('σ not shown')")
         page.screenshot(path=str(shots / "3-nudged.png"))
 
         # Ctrl+Z undoes the last nudge

@@ -242,6 +242,24 @@ def test_nearly_symmetric_is_a_reason_unless_turning_clearly_worsens_the_fit():
     assert judge(*fit, uncertainty=u, turn_gap=0.5 * NEAR_SYMMETRY_GAP).status == "check"
     assert judge(*fit, uncertainty=u, turn_gap=2 * NEAR_SYMMETRY_GAP).status == "ok"
     assert judge(*fit, uncertainty=u, free_axes_m=(np.array([0.0, 0.0, 1.0]),)).status == "ok"  # a true symmetry
+    # a weak turn whose sigma reaches NEAR_SYMMETRY_DEG: the descent can stop degrees off in it, whatever the gap
+    from autoalign.quality.verdict import NEAR_SYMMETRY_DEG
+
+    loose = Uncertainty(np.diag([0.01, 0.01, 0.01, 1e-6, 1e-6, np.radians(NEAR_SYMMETRY_DEG * 1.1) ** 2]),
+                        np.full(3, 0.1), np.array([0.06, 0.06, 1.1]), [], [np.array([0.0, 0.0, 1.0])])
+    v = judge(*fit, uncertainty=loose, turn_gap=2 * NEAR_SYMMETRY_GAP)
+    assert v.status == "check" and "the turn about model z (1.1 deg)" in v.reasons[-1]
+
+
+def test_partial_masks_with_views_that_agree_are_check_not_failed():
+    """Most masks cover part of the object or another one (IoU 0.3, set aside), but 4 of 10 views
+    fit the pose well: `check`, with the agreeing views named; with only 2 agreeing, `failed`."""
+    ids = list(range(10))
+    w = np.r_[np.full(6, 0.05), np.ones(4)]
+    v = judge(np.r_[np.full(6, 0.3), np.full(4, 0.92)], w, ids)
+    assert v.status == "check" and "4 of 10 views fit it well" in v.reasons[0]
+    w2 = np.r_[np.full(8, 0.05), np.ones(2)]
+    assert judge(np.r_[np.full(8, 0.3), np.full(2, 0.92)], w2, ids).status == "failed"
 
 
 def test_masks_failing_like_sam_leave_poses_right_or_flagged(tmp_path):

@@ -90,7 +90,7 @@ def _sigmas(cov: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.f
     return d[:3], np.degrees(d[3:])
 
 
-def _direction_name(u: NDArray[np.float64]) -> str:
+def direction_name(u: NDArray[np.float64]) -> str:
     """A unit model-frame direction by its nearest model axis (``model z``) or its components."""
     k = int(np.argmax(np.abs(u)))
     if abs(u[k]) > 0.9:
@@ -111,7 +111,7 @@ def _weak(cov_m: NDArray[np.float64], weak_mm: float = WEAK_MM, weak_deg: float 
         for lam, u in sorted(zip(vals, vecs.T), key=lambda x: -x[0]):
             s = float(np.sqrt(max(lam, 0.0))) * unit
             if s > limit or s > ratio * best:
-                out.append((f"{what} {_direction_name(u)}: {s:.2g} {'deg' if what == 'turn about' else 'mm'}", u))
+                out.append((f"{what} {direction_name(u)}: {s:.2g} {'deg' if what == 'turn about' else 'mm'}", u))
     return out
 
 

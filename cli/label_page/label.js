@@ -109,7 +109,9 @@ function renderInstances() {
       (inst.verdict ? `<span class="badge verdict ${inst.verdict}">${inst.verdict}</span>` : "") +
       (inst.symmetric ? `<span class="badge">symmetric</span>` : "") + `</div>` +
       (placed ? `<div class="row">IoU ${inst.median_iou != null ? inst.median_iou.toFixed(3) : "–"} · ` +
-        `σ ${fmt(inst.sigma_mm, "mm")} ${fmt(inst.sigma_deg, "°")} · worst views ` +
+        (inst.verdict === "ok" ? `σ ${fmt(inst.sigma_mm, "mm")} ${fmt(inst.sigma_deg, "°")}`
+          : `<span class="no-sigma" title="a sigma is the precision of a trusted pose only">σ not shown (${inst.verdict || "not judged"})</span>`) +
+        ` · worst views ` +
         inst.worst_views.map((w) => `<a href="#" data-view="${w}">${w}</a>`).join(" ") + `</div>` +
         `<div class="reasons">${inst.reasons.join("; ")}</div>` +
         `<div class="row"><button data-act="refine">refine from here</button>` +
