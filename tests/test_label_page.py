@@ -470,3 +470,22 @@ def test_click_where_the_mask_misses_the_object_places_it_from_the_photo(labelle
     blind = LabelSession(scene, models, tmp_path / "session_blind")
     with pytest.raises(AutoalignError, match=f"no instance mask under pixel {col},{row} of image {im}"):
         blind.place(1, im, col, row)
+
+
+def test_a_placement_far_from_the_click_is_shown_as_such():
+    """A placement whose outline in the clicked view passes more than FAR_FROM_CLICK_PX from the
+    click is 'check' with the distance (or stays 'failed'); one over or near the click is left as judged."""
+    from autoalign.label.records import FAR_FROM_CLICK_PX, Judgement, click_distance_px, far_from_click
+    from autoalign.quality.verdict import Verdict
+
+    sil = np.zeros((100, 200), bool)
+    sil[40:60, 100:140] = True  # columns 100-139, rows 40-59
+    assert click_distance_px(sil, 120.0, 50.0) == 0.0
+    assert click_distance_px(sil, 60.0, 50.0) == pytest.approx(40.0)  # 40 columns left of column 100
+    ok = Judgement(Verdict("ok"), None)
+    assert far_from_click(ok, sil, 3, 120.0 - 0.0, 50.0) is ok
+    assert far_from_click(ok, sil, 3, 100.0 - FAR_FROM_CLICK_PX + 1, 50.0) is ok
+    far = far_from_click(ok, sil, 3, 60.0, 50.0)
+    assert far.verdict.status == "check" and "image 3 is 40 px from the click" in far.verdict.reasons[-1]
+    assert far_from_click(Judgement(Verdict("failed"), None), sil, 3, 60.0, 50.0).verdict.status == "failed"
+    assert "not in the clicked view" in far_from_click(ok, np.zeros_like(sil), 3, 60.0, 50.0).verdict.reasons[-1]

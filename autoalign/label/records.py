@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -95,6 +96,36 @@ class Judgement:
 
     verdict: Verdict
     uncertainty: Uncertainty | None
+
+
+FAR_FROM_CLICK_PX = 20.0
+"""A placement whose silhouette in the clicked view passes farther than this from the clicked pixel
+is shown as far from the click (its verdict ``check``, with the distance): the search found a pose
+elsewhere, on another object's mask or on a part the person did not mean."""
+
+
+def click_distance_px(silhouette: NDArray[np.bool_], u: float, v: float) -> float:
+    """Pixels from the OpenCV pixel ``(u, v)`` (centre of column u, row v) to the nearest pixel of
+    ``silhouette`` (0 inside it; infinite when it is empty)."""
+    if not silhouette.any():
+        return float("inf")
+    h, w = silhouette.shape
+    col, row = int(np.clip(round(u), 0, w - 1)), int(np.clip(round(v), 0, h - 1))
+    outside = (~silhouette).astype(np.uint8)
+    return float(cv2.distanceTransform(outside, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[row, col])
+
+
+def far_from_click(judged: Judgement, silhouette: NDArray[np.bool_], image_id: int, u: float, v: float) -> Judgement:
+    """``judged`` flagged ``check`` with the distance when the placement's silhouette in the clicked
+    view (``image_id``) passes farther than :data:`FAR_FROM_CLICK_PX` from the click ``(u, v)``."""
+    d = click_distance_px(silhouette, u, v)
+    if d <= FAR_FROM_CLICK_PX:
+        return judged
+    where = "not in the clicked view" if not np.isfinite(d) else f"{d:.0f} px from the click"
+    status = "failed" if judged.verdict.status == "failed" else "check"
+    reason = (f"placed far from the click: its outline in image {image_id} is {where} (more than "
+              f"{FAR_FROM_CLICK_PX:g} px); check that it is the object you clicked, or click it again nearer its middle")
+    return replace(judged, verdict=replace(judged.verdict, status=status, reasons=judged.verdict.reasons + [reason]))
 
 
 def moved(inst: LabelledInstance, obj_id: int, T_wm: NDArray[np.float64], source: str, ious: dict[int, float],

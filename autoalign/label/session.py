@@ -54,6 +54,7 @@ from autoalign.label.records import (
     JobState,
     Judgement,
     LabelledInstance,
+    far_from_click,
     moved,
 )
 from autoalign.label.scene import SessionScene
@@ -183,10 +184,13 @@ class LabelSession(SessionScene):
     # ------------------------------------------------------------------ moving a pose (render lock held)
 
     def _store_pose(self, index: int, obj_id: int, T_wm: NDArray[np.float64], source: str,
-                    judged: Judgement | None = None) -> None:
-        """Set the pose (and, after a refinement, its verdict and uncertainty), render its contours, save."""
+                    judged: Judgement | None = None, click: tuple[int, float, float] | None = None) -> None:
+        """Set the pose (and, after a refinement, its verdict and uncertainty), render its contours, save;
+        placed from a ``click`` (image id, OpenCV u, v), a placement far from it is flagged."""
         T_wm = np.asarray(T_wm, dtype=np.float64)
         silhouettes = self._renderer.silhouettes(obj_id, T_wm)  # ray-cast once for the fit and the outlines
+        if click is not None and judged is not None:
+            judged = far_from_click(judged, silhouettes[click[0]], *click)
         ious, polys = fit(self.scene_of(index), silhouettes), outlines(silhouettes)
         with self.state.lock:
             inst = self.instances[index]
@@ -222,12 +226,13 @@ class LabelSession(SessionScene):
         returns the instance. A click next to a mask that missed the part clicked means that mask's
         instance (:meth:`~autoalign.label.scene.SessionScene.click_target`)."""
         self.check_object(obj_id)
+        clicked = (image_id, float(u), float(v))  # where the person clicked, for the distance to the placement
         index, u, v = self.click_target(image_id, u, v)  # off a mask but next to one: seeded from its mask
         iu, iv = uv_from_opencv(np.array([u, v], dtype=np.float64))
         with self._render:
             result = refine(self.scene_of(index), self.models.pyramid(obj_id), Click(image_id, float(iu), float(iv)),
                             self.options, progress=progress)
-            self._store_pose(index, obj_id, result.T_wm, "click", self._judged(index, obj_id, result))
+            self._store_pose(index, obj_id, result.T_wm, "click", self._judged(index, obj_id, result), clicked)
         return index
 
     def refine_from_here(self, index: int, progress: Progress | None = None) -> None:
