@@ -12,6 +12,8 @@
   a1cd3bd; it is being reworked, so z is asserted only against 3 and the chi-square against its
   99% point): right masks max |z| 1.5, chi-square 7; shifted, the L bracket max |z| 16 and
   chi-square 2000, the box 4.4 and 100.
+* ``instances``: only some of the labels' instances are checked, the others' masks left
+  unmodelled (the real LM-O scenes, where some objects move between sub-sequences).
 * The command: ``--json`` prints the ``split_half`` block, ``--out`` writes it as check.json, the
   table names both verdicts; 5 views of an instance (a half with 2) is one line on stderr naming
   the masks and the fix, exit 2, nothing on stdout and no report folder.
@@ -204,6 +206,33 @@ def test_a_half_with_shifted_masks_is_far_off_in_sigma_units(synthetic: Syntheti
     worst = max(report.instances, key=lambda s: s.translation_mm)
     assert worst.translation_mm > 3.0 and np.max(np.abs(worst.z)) > 3.0 and worst.fraction_within < 1.0
     assert report.fraction_within < exact.fraction_within
+
+
+def test_instances_checks_only_those_and_leaves_the_others_masks_unmodelled(synthetic: Synthetic,
+                                                                               tmp_path: Path) -> None:
+    """``instances=[1]``: only mask 1 is checked, as ``refine --instances`` refines only some (the
+    real LM-O scenes: objects moved between sub-sequences have no one pose). Here the labels list
+    mask 0 as an object whose model is not even given, and mask 1 10 mm / 5 deg off: the check
+    reads neither model 7 nor mask 0's label and reaches one solution for mask 1. Instances the
+    labels do not list, none at all, or instances with the photo check are one-line errors."""
+    labels = json.loads(synthetic.off.read_text())
+    for entries in labels.values():
+        entries[0]["obj_id"] = 7  # no obj_000007.ply in the models
+    path = tmp_path / "labels.json"
+    path.write_text(json.dumps(labels))
+    with pytest.raises(AutoalignError):  # every instance: model 7 is missing
+        autoalign.check(synthetic.scene, path, synthetic.models, split_half=True)
+    report = autoalign.check(synthetic.scene, path, synthetic.models, split_half=True, instances=[1])
+    assert [(s.index, s.obj_id) for s in report.instances] == [(1, 2)]
+    s = report.instances[0]
+    assert s.same_basin and s.translation_mm < 0.5 and s.rotation_deg < 0.5, (s.translation_mm, s.rotation_deg)
+    assert pose_change(synthetic.truth[1], s.a.T_wm, synthetic.meshes[1].centre)[0] < 0.5
+    with pytest.raises(AutoalignError, match=r"lists no instance 3 \(it lists 0, 1\)"):
+        autoalign.check(synthetic.scene, path, synthetic.models, split_half=True, instances=[1, 3])
+    with pytest.raises(AutoalignError, match="none given"):
+        autoalign.check(synthetic.scene, path, synthetic.models, split_half=True, instances=[])
+    with pytest.raises(AutoalignError, match="only the split-half check"):
+        autoalign.check(synthetic.scene, path, synthetic.models, instances=[1])
 
 
 # ------------------------------------------------------------------------------------------

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -35,7 +35,7 @@ Progress = Callable[[str, int, int], None]
 
 def check(scene_dir: str | os.PathLike[str], labels: str | os.PathLike[str], models_dir: str | os.PathLike[str],
           split_half: bool = False, images: int | None = None, photos: str = "auto", depth: str = "auto",
-          progress: Progress | None = None) -> CheckReport | SplitHalfReport:
+          progress: Progress | None = None, *, instances: Iterable[int] | None = None) -> CheckReport | SplitHalfReport:
     """Check the labels ``labels`` (BOP ``scene_gt.json``, mm) of the scene ``scene_dir`` with the
     models of ``models_dir``, without ground truth.
 
@@ -43,7 +43,8 @@ def check(scene_dir: str | os.PathLike[str], labels: str | os.PathLike[str], mod
     scene (default all): :func:`autoalign.quality.scene_check.check_scene`, a
     :class:`~autoalign.quality.check_report.CheckReport`. With ``split_half``: both halves of the
     views refined from the labels and compared (:func:`split_half_check`, ``photos`` and ``depth``
-    as evidence as ``autoalign refine`` takes them), a
+    as evidence as ``autoalign refine`` takes them; ``instances``: only these of the labels'
+    instances, by mask number, as ``autoalign refine --instances`` refines only some), a
     :class:`~autoalign.quality.split_half.SplitHalfReport`.
 
     Raises :class:`AutoalignError` (one line naming the file and the fix) for a mistake in the inputs.
@@ -51,7 +52,9 @@ def check(scene_dir: str | os.PathLike[str], labels: str | os.PathLike[str], mod
     if split_half:
         if images is not None:
             raise AutoalignError("images: the split-half check refines every view of the scene; leave images out")
-        return split_half_check(scene_dir, labels, models_dir, photos, depth, progress)
+        return split_half_check(scene_dir, labels, models_dir, photos, depth, progress, instances=instances)
+    if instances is not None:
+        raise AutoalignError("instances: only the split-half check takes them; the photo check checks every label")
     from autoalign.quality.scene_check import check_scene
 
     report: CheckReport = check_scene(scene_dir, labels, models_dir, images=images,
@@ -74,10 +77,16 @@ class SplitHalfInputs:
 
 def prepare_split_half(scene_dir: str | os.PathLike[str], labels: str | os.PathLike[str],
                        models_dir: str | os.PathLike[str], photos: str = "auto", depth: str = "auto",
-                       log: RunLog | None = None) -> SplitHalfInputs:
+                       log: RunLog | None = None, *, instances: Iterable[int] | None = None) -> SplitHalfInputs:
     """Read and validate the split-half check's inputs: the instances are those the labels list
     (entry k of an image is mask ``..._{k:06d}.png``), each seeded with its label; each half must
-    hold :data:`~autoalign.quality.split_half.MIN_HALF_VIEWS` views of every instance."""
+    hold :data:`~autoalign.quality.split_half.MIN_HALF_VIEWS` views of every instance.
+
+    ``instances`` (mask numbers): check only these of the labels' instances; the masks of the
+    others are left as unmodelled instances, as ``autoalign refine --instances`` leaves them. A
+    real scene needs it when the labels list objects that are not one pose over all its views
+    (LM-O's objects moved between sub-sequences): refined as one they would disagree with
+    themselves, not measure the labels' precision."""
     from autoalign.io.instances import instances_of_scene_gt
     from autoalign.jobs.refine_scene_folder import read_scene_inputs
     from autoalign.quality.split_half import MIN_HALF_VIEWS, interleaved_halves
@@ -88,10 +97,21 @@ def prepare_split_half(scene_dir: str | os.PathLike[str], labels: str | os.PathL
                              "mask_visib/")
     job = FolderJob(str(scene_dir), "", models=str(models_dir), init=str(labels), photos=photos, depth=depth)
     job.check()
-    instances = instances_of_scene_gt(labels, 'give the labels to check, a BOP scene_gt.json ({"0": [{"obj_id", '
-                                              '"cam_R_m2c", "cam_t_m2c"}, ...], ...})')
+    listed = instances_of_scene_gt(labels, 'give the labels to check, a BOP scene_gt.json ({"0": [{"obj_id", '
+                                           '"cam_R_m2c", "cam_t_m2c"}, ...], ...})')
+    if instances is not None:
+        wanted = sorted({int(k) for k in instances})
+        if not wanted:
+            raise AutoalignError("instances: none given; name the mask numbers to check, or leave instances out to "
+                                 "check every label")
+        by_index = {i.index: i for i in listed}
+        absent = [k for k in wanted if k not in by_index]
+        if absent:
+            raise AutoalignError(f"{labels}: lists no instance {', '.join(map(str, absent))} (it lists "
+                                 f"{', '.join(str(i.index) for i in listed)}); give instances that the labels list")
+        listed = [by_index[k] for k in wanted]
     log = log if log is not None else RunLog()
-    inputs = read_scene_inputs(job, log, instances)
+    inputs = read_scene_inputs(job, log, listed)
     found = inputs.found
     unseeded = [i.index for i in found.instances if i.index not in inputs.seeds]
     if unseeded:
@@ -148,6 +168,8 @@ def run_split_half(prepared: SplitHalfInputs, progress: Progress | None = None) 
 
 def split_half_check(scene_dir: str | os.PathLike[str], labels: str | os.PathLike[str],
                      models_dir: str | os.PathLike[str], photos: str = "auto", depth: str = "auto",
-                     progress: Progress | None = None, log: RunLog | None = None) -> SplitHalfReport:
+                     progress: Progress | None = None, log: RunLog | None = None, *,
+                     instances: Iterable[int] | None = None) -> SplitHalfReport:
     """:func:`prepare_split_half` then :func:`run_split_half` (see them)."""
-    return run_split_half(prepare_split_half(scene_dir, labels, models_dir, photos, depth, log), progress)
+    return run_split_half(prepare_split_half(scene_dir, labels, models_dir, photos, depth, log, instances=instances),
+                          progress)
