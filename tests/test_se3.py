@@ -249,3 +249,24 @@ def test_pose_change_against_scipy():
         mm, deg = pose_change(A, B, c)
         assert mm == pytest.approx(np.linalg.norm(Ra.apply(c) + A[:3, 3] - Rb.apply(c) - B[:3, 3]))
         assert deg == pytest.approx(np.degrees((Ra.inv() * Rb).magnitude()))
+
+
+def test_symmetric_pose_change_is_zero_for_an_equivalent_pose():
+    """A pose turned about a continuous symmetry axis through an offset point, or by a discrete
+    symmetry, is 0 mm / 0 deg from the original; the plain change is not (rotations by scipy)."""
+    from scipy.spatial.transform import Rotation
+
+    from autoalign.geometry.se3 import make_pose, pose_change, symmetric_pose_change
+
+    rng = np.random.default_rng(4)
+    A = make_pose(Rotation.random(random_state=5).as_matrix(), rng.normal(size=3) * 100)
+    centre = np.array([3.0, 1.0, 30.0])
+    axis, offset = np.array([0.0, 0.0, 1.0]), np.array([2.0, -1.0, 0.0])
+    R = Rotation.from_rotvec(axis * np.radians(157.0)).as_matrix()
+    B = A @ make_pose(R, offset - R @ offset)
+    assert pose_change(A, B, centre)[1] > 150
+    assert symmetric_pose_change(A, B, centre, (), [(axis, offset)]) == pytest.approx((0.0, 0.0), abs=1e-6)
+    S = make_pose(Rotation.from_rotvec([np.pi, 0.0, 0.0]).as_matrix(), np.zeros(3))
+    B2 = A @ np.linalg.inv(S) @ make_pose(Rotation.from_rotvec([0.0, 0.0, 0.02]).as_matrix(), np.zeros(3))
+    mm, deg = symmetric_pose_change(A, B2, np.zeros(3), [S])
+    assert deg == pytest.approx(np.degrees(0.02), abs=1e-6) and mm < 1e-9

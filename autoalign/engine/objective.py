@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -15,6 +16,9 @@ from autoalign.losses import LOSSES, ViewTerms, robust_view_weights, targets_in_
 from autoalign.losses.depth import MAX_SAMPLES, DepthNoise, DepthTerms, depth_terms
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.rasterizers.soft_silhouette import Silhouettes
+
+if TYPE_CHECKING:
+    from autoalign.engine.seed_region import PriorTerm, SeedRegion
 
 DEPTH_SAMPLES_MIN = 250
 """Below full resolution the depth term samples fewer pixels (in proportion), but at least these."""
@@ -78,7 +82,7 @@ class ViewTermsRecord:
 class Evaluation:
     """Objective value and derivatives at one pose. ``value = sum_i w_i loss_i``; ``grad``/``gn``
     alike. ``terms`` are the views' whole terms (mask plus depth), ``depth`` the depth's own part
-    (``None`` without depth)."""
+    (``None`` without depth); ``prior`` a term on the pose alone (:class:`~autoalign.engine.seed_region.SeedRegion`)."""
 
     value: float
     grad: NDArray[np.float64]
@@ -87,6 +91,7 @@ class Evaluation:
     weights: NDArray[np.float64]
     silhouettes: Silhouettes
     depth: DepthTerms | None = None
+    prior: PriorTerm | None = None  # the seed region's penalty, included in value, grad and gn
 
     def record(self) -> ViewTermsRecord:
         """Each term per view (:class:`ViewTermsRecord`)."""
@@ -122,6 +127,7 @@ class SilhouetteObjective:
         self.robust = robust
         self._levels: dict[tuple[float, int | None], LevelViews] = {}
         self.renders = 0
+        self.region: SeedRegion | None = None  # while set, poses are held within it (engine.refine)
 
     def at_scale(self, scale: float, max_views: int | None = None) -> LevelViews:
         """The views at ``scale`` (cached), at most ``max_views`` of them spread through the scene
@@ -166,7 +172,8 @@ class SilhouetteObjective:
         terms = self.loss_fn(sil, targets_in_crops(views.targets, sil), views.totals)
         if depth is not None:
             terms = ViewTerms(terms.loss + depth.loss, terms.grad + depth.grad, terms.gn + depth.gn, terms.iou)
-        return replace(self.combine(terms, sil, weights), depth=depth)
+        prior = None if self.region is None else self.region.term(T_wm)
+        return replace(self.combine(terms, sil, weights, prior), depth=depth)
 
     @staticmethod
     def _ignored(views: LevelViews, depth: DepthTerms | None, scale: float) -> list[NDArray[np.bool_]] | None:
@@ -178,18 +185,21 @@ class SilhouetteObjective:
         hidden = [depth.hidden_mask(k, (c.height, c.width), scale) for k, c in enumerate(views.cameras)]
         return hidden if views.ignore is None else [a | b for a, b in zip(views.ignore, hidden)]
 
-    def combine(self, terms: ViewTerms, sil: Silhouettes, weights: NDArray[np.float64] | None = None) -> Evaluation:
-        """Weighted sums of per-view terms; without ``weights`` they are computed from the fit."""
+    def combine(self, terms: ViewTerms, sil: Silhouettes, weights: NDArray[np.float64] | None = None,
+                prior: PriorTerm | None = None) -> Evaluation:
+        """Weighted sums of per-view terms, plus ``prior``; without ``weights`` they are computed from the fit."""
         if weights is None:
             weights = self.view_weights(terms)
         value = float(weights @ terms.loss)
         grad = np.einsum("i,ij->j", weights, terms.grad)
         gn = np.einsum("i,ijk->jk", weights, terms.gn)
-        return Evaluation(value, grad, gn, terms, weights, sil)
+        if prior is not None:
+            value, grad, gn = value + prior.value, grad + prior.grad, gn + prior.gn
+        return Evaluation(value, grad, gn, terms, weights, sil, prior=prior)
 
     def reweighted(self, ev: Evaluation) -> Evaluation:
         """The same render with weights re-computed from its own fit (IRLS step; no new render)."""
-        return replace(self.combine(ev.terms, ev.silhouettes), depth=ev.depth) if self.robust else ev
+        return replace(self.combine(ev.terms, ev.silhouettes, prior=ev.prior), depth=ev.depth) if self.robust else ev
 
     def view_weights(self, terms: ViewTerms) -> NDArray[np.float64]:
         """Per-view weights for the current fit (:func:`~autoalign.losses.robust_view_weights`; 1 if not robust)."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from autoalign.engine.objective import Level
+from autoalign.engine.seed_region import SEED_RADIUS
 from autoalign.engine.solver import FTOL
 from autoalign.losses.depth import DepthNoise
 from autoalign.losses.region import RegionOptions
@@ -112,6 +113,9 @@ class RefineOptions:
             (:func:`~autoalign.io.bop.with_depth`); ``None``: masks only.
         region: the region (colour) term (:mod:`autoalign.losses.region`), used when the scene
             carries its photos (:func:`~autoalign.io.photos.with_photos`); ``None``: photos ignored.
+        seed_radius: the stated uncertainty of a given seed pose (mm at the model's centre,
+            degrees): a result farther from it is returned only when it fits clearly better than the
+            best pose within it (:mod:`autoalign.engine.seed_region`); ``None``: the seed is only a start.
     """
 
     loss: str = "l2"
@@ -124,3 +128,4 @@ class RefineOptions:
     detail: MeshDetail = MeshDetail()
     depth: DepthNoise | None = DepthNoise()
     region: RegionOptions | None = RegionOptions()
+    seed_radius: tuple[float, float] | None = SEED_RADIUS

@@ -99,7 +99,10 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
         raise AutoalignError("the object is in no view at the given pose: check the --init pose and its obj_id")
     # the rounds converged at the first level: the last one goes on from the second (if the schedule has one)
     last = replace(masks_only, schedule=options.schedule[1:]) if rounds and len(options.schedule) > 1 else masks_only
-    result = refine(targets, pyramid, T, last, progress)
+    if seed is None or isinstance(seed, Click):  # no pose was given: nothing to hold the result near
+        result = refine(targets, pyramid, T, replace(last, seed_radius=None), progress)
+    else:  # held near the person's seed, not near the rounds' last pose
+        result = refine(targets, pyramid, T, last, progress, anchor=T_seed)
     keep = [k for k, t in enumerate(targets.masks) if np.any(t > 0.5)]  # the views refine used
     evidence = PhotoEvidence(evidence.band_px[keep], evidence.agreement[keep], evidence.edge_contrast[keep], rounds + 1)
     # the IoUs the report and the verdict read are with the instance's own masks where it has them

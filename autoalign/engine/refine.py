@@ -36,6 +36,7 @@ from autoalign.engine.options import (  # noqa: F401 - the engine's settings, im
 )
 from autoalign.engine.photo_evidence import PhotoEvidence, refine_with_photos
 from autoalign.engine.schedule import Progress, polish, run_schedule  # noqa: F401 - polish: one pose, no search
+from autoalign.engine.seed_region import CLEARLY_BETTER, STIFFNESS, SeedHold, SeedRegion
 from autoalign.engine.seeding import Click, click_centre, hull_centre, rotation_grid
 from autoalign.engine.solver import Trace
 from autoalign.engine.uncertainty import Uncertainty, pose_uncertainty
@@ -147,6 +148,8 @@ class RefineResult:
             :class:`~autoalign.engine.photo_evidence.PhotoEvidence`). With photos the terms compare
             the silhouettes with the region targets (the photo's posteriors fused with the mask);
             the IoUs are with the instance's masks, or with the targets where it has none.
+        seed_hold: where the masks pulled the pose beyond a given seed's radius, the far pose and
+            which was returned (:class:`~autoalign.engine.seed_region.SeedHold`); ``None`` otherwise.
     """
 
     T_wm: NDArray[np.float64]
@@ -167,6 +170,7 @@ class RefineResult:
     depth: DepthTerms | None = None
     terms: ViewTermsRecord | None = None
     photo: PhotoEvidence | None = None
+    seed_hold: SeedHold | None = None
 
 
 def _final_loss(obj: SilhouetteObjective, T: NDArray[np.float64], level: Level,
@@ -413,8 +417,41 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
     return final, standing, ev, uncertainty, turn_gap
 
 
+def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best: Finalist, ev: Evaluation,
+                    opts: RefineOptions, progress: Progress | None
+                    ) -> tuple[Finalist, Evaluation, Uncertainty | None, SeedHold | None]:
+    """Stage 4b, a seed is evidence: when ``best`` ended beyond ``opts.seed_radius`` of the given
+    pose ``anchor``, the best pose within it (the schedule from ``anchor`` with the region's
+    penalty, :mod:`autoalign.engine.seed_region`), returned instead unless ``best`` fits clearly
+    better (its full-resolution evaluation ``ev``). Returns the finalist kept, its evaluation, its
+    uncertainty (``None``: unchanged) and the hold (``None``: within the radius)."""
+    h = best.hypothesis
+    move = pose_change(anchor, h.T_final, obj.centre_m)
+    if opts.seed_radius is None or (move[0] <= opts.seed_radius[0] and move[1] <= opts.seed_radius[1]):
+        return best, ev, None, None
+    obj.region = SeedRegion(anchor, obj.centre_m, opts.seed_radius, STIFFNESS * len(obj.scene))
+    full = Level(1.0, opts.schedule[-1].sigma, 0)
+    near = []
+    try:  # the whole schedule, which the far pose's pull may take to the region's edge, and the last level alone
+        for levels in (opts.schedule, opts.schedule[-1:]):
+            T, traces = run_schedule(obj, anchor, levels, opts.optimizer, progress, "within the seed's radius")
+            near.append((T, traces, levels))
+    finally:
+        obj.region = None
+    evs = [obj.evaluate(T, full) for T, _, _ in near]
+    k = int(np.argmin([e.value for e in evs]))
+    (T_near, traces, levels), ev_near = near[k], evs[k]
+    near_loss, far_loss = ev_near.value / len(ev_near.weights), ev.value / len(ev.weights)
+    hold = SeedHold(h.T_final, move, far_loss, near_loss, far_loss <= CLEARLY_BETTER * near_loss)
+    if hold.kept_far:
+        return best, ev, None, hold
+    near = Hypothesis(anchor, T_near, near_loss, float(np.mean(ev_near.terms.iou)), Stage.FINAL,
+                      tuple(zip(levels, traces)))
+    return Finalist(near, ev_near.weights), ev_near, final_uncertainty(obj, ev_near, T_near), hold
+
+
 def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: RefineOptions | None = None,
-           progress: Progress | None = None) -> RefineResult:
+           progress: Progress | None = None, anchor: NDArray[np.float64] | None = None) -> RefineResult:
     """Find the world-from-model pose of ``mesh`` whose silhouettes match the masks of ``scene``.
 
     The stages: seed (:func:`_seed`) -> search (:func:`_search`, when there are several starts)
@@ -431,6 +468,8 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
             Without a pose the orientation is searched with ``options.n_rotations`` hypotheses.
         options: see :class:`RefineOptions`.
         progress: called as ``progress(stage, done, total)`` while it works.
+        anchor: the pose ``options.seed_radius`` is measured from (default: a seed pose; the photo
+            rounds pass the person's seed while refining from their own last pose).
     """
     opts = options or RefineOptions()
     if scene.photos is not None and opts.region is not None:
@@ -466,6 +505,14 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
     final, standing, final_ev, uncertainty, turn_gap = _disambiguate(obj, scene, mesh, final,
                                                                      others + dropped, given_pose, opts, progress)
     timings["refine"] = time.perf_counter() - t0
+    hold = None
+    if given_pose or anchor is not None:
+        t0 = time.perf_counter()
+        kept, final_ev, held_unc, hold = _held_near_seed(obj, np.asarray(seed if anchor is None else anchor),
+                                                         final[0], final_ev, opts, progress)
+        if held_unc is not None:
+            final, uncertainty = [kept] + final, held_unc
+        timings["seed"] += time.perf_counter() - t0
 
     t0 = time.perf_counter()
     best = final[0].hypothesis
@@ -480,4 +527,4 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
         iterations=sum(tr.iterations for _, tr in best.path), renders=obj.renders, timings=timings,
         hypotheses=standing.ranked, ambiguous=standing.ambiguous, runner_up=standing.runner_up,
         weights=final[0].weights, history=history, image_ids=list(scene.image_ids), uncertainty=uncertainty,
-        turn_gap=turn_gap, depth=final_ev.depth, terms=final_ev.record())
+        turn_gap=turn_gap, depth=final_ev.depth, terms=final_ev.record(), seed_hold=hold)

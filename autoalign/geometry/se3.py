@@ -11,6 +11,8 @@ Conventions
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -125,3 +127,30 @@ def pose_change(A: ArrayLike, B: ArrayLike, centre_m: ArrayLike) -> tuple[float,
     A, B, c = np.asarray(A, dtype=np.float64), np.asarray(B, dtype=np.float64), np.asarray(centre_m, dtype=np.float64)
     return (float(np.linalg.norm(A[:3, :3] @ c + A[:3, 3] - B[:3, :3] @ c - B[:3, 3])),
             rotation_angle_deg(A[:3, :3], B[:3, :3]))
+
+
+def symmetric_pose_change(A: ArrayLike, B: ArrayLike, centre_m: ArrayLike,
+                          discrete: Sequence[ArrayLike] = (),
+                          continuous: Sequence[tuple[ArrayLike, ArrayLike]] = ()) -> tuple[float, float]:
+    """:func:`pose_change` from ``A`` to the equivalent of ``B`` nearest in rotation under the model's
+    symmetries: ``B @ S`` for ``S`` the identity and each of ``discrete`` (4x4, model frame, as BOP's
+    ``symmetries_discrete``), each turned about the first of ``continuous`` (unit axis, point on it;
+    model frame, mm) by the angle that brings it closest to ``A`` (closed form: the trace of
+    ``A_R^T B_R R_axis(phi)`` is ``alpha + beta cos(phi) + gamma sin(phi)``)."""
+    A, B = np.asarray(A, dtype=np.float64), np.asarray(B, dtype=np.float64)
+    best: tuple[float, float] | None = None
+    for S in [np.eye(4), *(np.asarray(d, dtype=np.float64).reshape(4, 4) for d in discrete)]:
+        T = B @ S
+        if continuous:
+            a = np.asarray(continuous[0][0], dtype=np.float64)
+            a = a / np.linalg.norm(a)
+            o = np.asarray(continuous[0][1], dtype=np.float64)
+            N = A[:3, :3].T @ T[:3, :3]
+            phi = float(np.arctan2(np.trace(N @ hat3(a)), np.trace(N) - a @ N @ a))
+            R = so3_exp(a * phi)
+            T = T @ make_pose(R, o - R @ o)
+        change = pose_change(A, T, centre_m)
+        if best is None or change[1] < best[1]:
+            best = change
+    assert best is not None
+    return best

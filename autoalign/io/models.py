@@ -155,6 +155,16 @@ class ModelSet:
             out.append(a / np.linalg.norm(a))
         return tuple(out)
 
+    def symmetries(self, obj_id: int) -> tuple[list[NDArray[np.float64]], list[tuple[NDArray[np.float64], NDArray[np.float64]]]]:
+        """``obj_id``'s discrete symmetries (4x4, model frame, mm) and continuous ones (unit axis,
+        a point on it; model frame, mm), as ``models_info.json`` lists them."""
+        e = self.info.get(obj_id, {})
+        discrete = [np.asarray(d, dtype=np.float64).reshape(4, 4) for d in e.get("symmetries_discrete", [])]
+        continuous = [(np.asarray(c["axis"], dtype=np.float64) / np.linalg.norm(c["axis"]),
+                       np.asarray(c.get("offset", [0.0, 0.0, 0.0]), dtype=np.float64))
+                      for c in e.get("symmetries_continuous", [])]
+        return discrete, continuous
+
     def symmetric(self, obj_id: int) -> bool:
         """Whether ``models_info.json`` lists symmetries for ``obj_id``."""
         e = self.info.get(obj_id, {})

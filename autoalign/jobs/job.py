@@ -124,7 +124,7 @@ class FolderJob:
     def seed_radius_mm_deg(self) -> tuple[float, float]:
         """The stated uncertainty of the ``init`` seed (``MM,DEG``; default
         :data:`~autoalign.quality.verdict.SEED_RADIUS`): a result farther from it is flagged."""
-        from autoalign.quality.verdict import SEED_RADIUS
+        from autoalign.engine.seed_region import SEED_RADIUS
 
         if self.seed_radius is None:
             return SEED_RADIUS

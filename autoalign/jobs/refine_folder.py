@@ -84,7 +84,8 @@ def _refine_object(job: FolderJob, click: Any, log: RunLog, progress: Stages) ->
     mesh = load_mesh(job.model, units=job.units)
     pyramid = MeshPyramid(mesh)
     seed, seed_record = _seed(job, scene, click)
-    options = RefineOptions(loss=job.loss, optimizer=job.optimizer, robust=job.robust)
+    options = RefineOptions(loss=job.loss, optimizer=job.optimizer, robust=job.robust,
+                            seed_radius=job.seed_radius_mm_deg)
     progress.start("loading the renderer" if seed_record.kind == "init" else "seeding")
     try:
         result = refine(scene, pyramid, seed, options, progress=progress)
@@ -148,7 +149,7 @@ def _object_report(job: FolderJob, scene: Any, mesh: Any, result: Any, seed: Any
     seed_move = None if seed.pose is None else pose_change(seed.pose, result.T_wm, mesh.centre)
     verdict = judge(result.iou_after, result.weights, ids, scene.empty, bool(result.ambiguous),
                     uncertainty=result.uncertainty, turn_gap=result.turn_gap, depth=result.depth, photo=result.photo,
-                    seed_move=seed_move, seed_radius=job.seed_radius_mm_deg)
+                    seed_move=seed_move, seed_radius=job.seed_radius_mm_deg, seed_hold=result.seed_hold)
     if seed_move is not None:
         seed.moved = seed_move
         seed.radius = job.seed_radius_mm_deg

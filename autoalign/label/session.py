@@ -185,12 +185,10 @@ class LabelSession(SessionScene):
 
     def _store_pose(self, index: int, obj_id: int, T_wm: NDArray[np.float64], source: str,
                     judged: Judgement | None = None, click: tuple[int, float, float] | None = None) -> None:
-        """Set the pose (and, after a refinement, its verdict and uncertainty), render its contours, save;
-        placed from a ``click`` (image id, OpenCV u, v), a placement far from it is flagged."""
+        """Set the pose (and its judgement; placed from a ``click``, image id and OpenCV u, v: far from it, flagged)."""
         T_wm = np.asarray(T_wm, dtype=np.float64)
         silhouettes = self._renderer.silhouettes(obj_id, T_wm)  # ray-cast once for the fit and the outlines
-        if click is not None and judged is not None:
-            judged = far_from_click(judged, silhouettes[click[0]], *click)
+        judged = judged if click is None or judged is None else far_from_click(judged, silhouettes[click[0]], *click)
         ious, polys = fit(self.scene_of(index), silhouettes), outlines(silhouettes)
         with self.state.lock:
             inst = self.instances[index]
@@ -220,19 +218,18 @@ class LabelSession(SessionScene):
     # ------------------------------------------------------------------ what a person does
 
     def place(self, obj_id: int, image_id: int, u: float, v: float, progress: Progress | None = None) -> int:
-        """Place ``obj_id`` on the instance clicked at OpenCV pixel ``(u, v)`` of ``image_id``: position
-        from the click's ray and the other views' masks, orientation searched, then refined
-        (:func:`~autoalign.engine.refine.refine`, the photos as evidence where the scene has them);
-        returns the instance. A click next to a mask that missed the part clicked means that mask's
-        instance (:meth:`~autoalign.label.scene.SessionScene.click_target`)."""
+        """Place ``obj_id`` on the instance clicked at OpenCV pixel ``(u, v)`` of ``image_id``: position from
+        the click's ray and the other views' masks, orientation searched, then refined (``engine.refine``,
+        with the photos where the scene has them); returns the instance. A click next to a mask that missed
+        the part clicked means that mask's instance (:meth:`~autoalign.label.scene.SessionScene.click_target`)."""
         self.check_object(obj_id)
-        clicked = (image_id, float(u), float(v))  # where the person clicked, for the distance to the placement
-        index, u, v = self.click_target(image_id, u, v)  # off a mask but next to one: seeded from its mask
-        iu, iv = uv_from_opencv(np.array([u, v], dtype=np.float64))
+        index, *near = self.click_target(image_id, u, v)  # off a mask but next to one: seeded from its mask
+        iu, iv = uv_from_opencv(np.array(near, dtype=np.float64))
         with self._render:
             result = refine(self.scene_of(index), self.models.pyramid(obj_id), Click(image_id, float(iu), float(iv)),
                             self.options, progress=progress)
-            self._store_pose(index, obj_id, result.T_wm, "click", self._judged(index, obj_id, result), clicked)
+            self._store_pose(index, obj_id, result.T_wm, "click", self._judged(index, obj_id, result),
+                             (image_id, float(u), float(v)))  # the person's own click, for the distance
         return index
 
     def refine_from_here(self, index: int, progress: Progress | None = None) -> None:

@@ -37,13 +37,14 @@ from numpy.typing import NDArray
 from autoalign.engine.hypotheses import weak_turn_scores
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult, refine
+from autoalign.engine.seed_region import SEED_RADIUS
 from autoalign.engine.uncertainty import with_outline_shift
-from autoalign.geometry.se3 import pose_change
+from autoalign.geometry.se3 import pose_change, symmetric_pose_change
 from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
 from autoalign.losses.region import RegionOptions
 from autoalign.quality.overlap import view_ious
-from autoalign.quality.verdict import SEED_RADIUS, Verdict, judge
+from autoalign.quality.verdict import Verdict, judge
 from autoalign.rasterizers.pyramid import MeshPyramid
 from autoalign.scene.cameras import corrections_accepted
 from autoalign.scene.joint import JointRefinement, refine_jointly
@@ -76,10 +77,11 @@ def verdict_of(result: RefineResult, empty: tuple[int, ...], models: ModelSet, o
                seed: NDArray[np.float64] | None = None, seed_radius: tuple[float, float] = SEED_RADIUS) -> Verdict:
     """The verdict on an instance's result, with its model's symmetries and, given its seed pose,
     how far it ended from it (:func:`~autoalign.quality.verdict.judge`)."""
-    seed_move = None if seed is None else pose_change(seed, result.T_wm, models.mesh(obj_id).centre)
+    seed_move = None if seed is None else symmetric_pose_change(seed, result.T_wm, models.mesh(obj_id).centre,
+                                                                *models.symmetries(obj_id))
     return judge(result.iou_after, result.weights, result.image_ids, empty, result.ambiguous, models.symmetric(obj_id),
                  result.uncertainty, models.continuous_axes(obj_id), result.turn_gap, result.depth, result.photo,
-                 seed_move, seed_radius)
+                 seed_move, seed_radius, result.seed_hold if seed is not None else None)
 
 
 def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArray[np.float64]],
@@ -89,6 +91,8 @@ def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, N
     an instance without one is searched from the visual hull of its masks)."""
     out = []
     n = len(found.instances)
+    # the engine holds a result within the seed's radius unless it fits clearly better outside
+    options = replace(options or RefineOptions(), seed_radius=seed_radius if judge_seeds else None)
     for k, (inst, scene) in enumerate(zip(found.instances, found.scenes)):
         t0 = time.perf_counter()
         label = f"obj {inst.obj_id} (instance {inst.index}, {k + 1}/{n})"
