@@ -160,6 +160,13 @@ def test_a_known_twist_is_reported_in_model_axes_along_the_ray_and_in_sigmas() -
     none = compare_halves(0, 1, centre_m, 100.0, a, turned, cameras, [10, 11, 12])
     assert not none.same_basin and none.z is None and none.mahalanobis_sq is None and none.record()["z"] is None
 
+    # a symmetric object's halves that differ by its symmetry agree: B half-turned about model x
+    S = make_pose(so3_exp([np.pi, 0.0, 0.0]), np.zeros(3))
+    flipped = HalfLabel([1], B @ S, "ok", [], cov, np.full(3, 0.5), np.full(3, 0.5))
+    assert not compare_halves(0, 1, centre_m, 100.0, a, flipped, cameras, [10, 11, 12]).same_basin
+    sym = compare_halves(0, 1, centre_m, 100.0, a, flipped, cameras, [10, 11, 12], ([S], []))
+    assert sym.rotation_deg == pytest.approx(1.0, abs=1e-6) and sym.same_basin and sym.symmetric
+
 
 # ------------------------------------------------------------------------------------------
 # The synthetic scene

@@ -148,8 +148,8 @@ def _cameras_from_one_side(n: int, rng: np.random.Generator):
 def test_outline_shift_moves_the_pose_as_predicted_and_is_in_the_sigma(k):
     """From one side (10 views in a 15 degree cone), masks moved 1 px in (exact Euclidean erosion
     of open3d-cast masks) push the pose along the viewing ray as the covariance's outline-shift
-    term predicts (within 30%), and a 3 px tight mask's pose is within 3 sigma along the ray and
-    not ok: the sigma is that of the shared shift, not of pixel noise."""
+    term predicts (within 30%), and a mask 2 px tight (twice the prior's sigma) leaves the pose within
+    3 sigma along the ray and not ok: the sigma is that of the shared shift, not of pixel noise."""
     from autoalign.experiments.studies.sam_failures import shift_outline
     from autoalign.quality.verdict import judge
 
@@ -165,7 +165,7 @@ def test_outline_shift_moves_the_pose_as_predicted_and_is_in_the_sigma(k):
 
     ray = exact.T_wm[:3, :3] @ exact.uncertainty.view_dir_m
     predicted = exact.T_wm[:3, :3] @ exact.uncertainty.bias_shift[:3]  # per px outwards
-    for px in (-1.0, -3.0):
+    for px in (-1.0, -2.0):
         tight = Scene(scene.cameras, [shift_outline(m > 0.5, px).astype(np.float32) for m in scene.masks], scene.image_ids)
         r = refine(tight, mesh, exact.T_wm)
         moved = centre(r.T_wm) - centre(exact.T_wm)

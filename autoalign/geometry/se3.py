@@ -129,16 +129,15 @@ def pose_change(A: ArrayLike, B: ArrayLike, centre_m: ArrayLike) -> tuple[float,
             rotation_angle_deg(A[:3, :3], B[:3, :3]))
 
 
-def symmetric_pose_change(A: ArrayLike, B: ArrayLike, centre_m: ArrayLike,
-                          discrete: Sequence[ArrayLike] = (),
-                          continuous: Sequence[tuple[ArrayLike, ArrayLike]] = ()) -> tuple[float, float]:
-    """:func:`pose_change` from ``A`` to the equivalent of ``B`` nearest in rotation under the model's
+def closest_symmetric_pose(A: ArrayLike, B: ArrayLike, discrete: Sequence[ArrayLike] = (),
+                           continuous: Sequence[tuple[ArrayLike, ArrayLike]] = ()) -> NDArray[np.float64]:
+    """The equivalent of pose ``B`` (world from model) nearest in rotation to ``A`` under the model's
     symmetries: ``B @ S`` for ``S`` the identity and each of ``discrete`` (4x4, model frame, as BOP's
     ``symmetries_discrete``), each turned about the first of ``continuous`` (unit axis, point on it;
     model frame, mm) by the angle that brings it closest to ``A`` (closed form: the trace of
     ``A_R^T B_R R_axis(phi)`` is ``alpha + beta cos(phi) + gamma sin(phi)``)."""
     A, B = np.asarray(A, dtype=np.float64), np.asarray(B, dtype=np.float64)
-    best: tuple[float, float] | None = None
+    best, best_angle = B, np.inf
     for S in [np.eye(4), *(np.asarray(d, dtype=np.float64).reshape(4, 4) for d in discrete)]:
         T = B @ S
         if continuous:
@@ -149,8 +148,14 @@ def symmetric_pose_change(A: ArrayLike, B: ArrayLike, centre_m: ArrayLike,
             phi = float(np.arctan2(np.trace(N @ hat3(a)), np.trace(N) - a @ N @ a))
             R = so3_exp(a * phi)
             T = T @ make_pose(R, o - R @ o)
-        change = pose_change(A, T, centre_m)
-        if best is None or change[1] < best[1]:
-            best = change
-    assert best is not None
+        angle = rotation_angle_deg(A[:3, :3], T[:3, :3])
+        if angle < best_angle:
+            best, best_angle = T, angle
     return best
+
+
+def symmetric_pose_change(A: ArrayLike, B: ArrayLike, centre_m: ArrayLike,
+                          discrete: Sequence[ArrayLike] = (),
+                          continuous: Sequence[tuple[ArrayLike, ArrayLike]] = ()) -> tuple[float, float]:
+    """:func:`pose_change` from ``A`` to :func:`closest_symmetric_pose` of ``B``."""
+    return pose_change(A, closest_symmetric_pose(A, B, discrete, continuous), centre_m)

@@ -161,7 +161,7 @@ def run_split_half(prepared: SplitHalfInputs, progress: Progress | None = None) 
     for k, (inst, sc) in enumerate(zip(found.instances, found.scenes)):
         mesh = models.mesh(inst.obj_id)
         compared.append(compare_halves(inst.index, inst.obj_id, mesh.centre, mesh.diameter, halves[0][k], halves[1][k],
-                                       sc.cameras, sc.image_ids, models.symmetric(inst.obj_id)))
+                                       sc.cameras, sc.image_ids, models.symmetries(inst.obj_id)))
     return SplitHalfReport(Path(job.scene), Path(str(job.init)), Path(str(job.models)), prepared.halves, compared,
                            (seconds[0], seconds[1]), list(prepared.log.warnings))
 

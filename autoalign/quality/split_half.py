@@ -16,14 +16,14 @@ reference; w is the same in A's, B's and the midway axes), the frame and units o
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.geometry.se3 import pose_change, so3_exp, so3_log, transform_points
+from autoalign.geometry.se3 import closest_symmetric_pose, pose_change, so3_exp, so3_log, transform_points
 
 if TYPE_CHECKING:
     from autoalign.engine.uncertainty import Uncertainty
@@ -46,7 +46,8 @@ their views disagree on: 0.04-0.05 mm and 0.06-0.13 degrees with right masks, 1.
 5.7 mm and 2.7 degrees for the real LM-O cat of issue 29 (4.5% of its diameter). Two basins differ
 by a flip or a slide of a large part of the object (the watering can of issue 29: 50 mm and 39
 degrees, a quarter of its diameter; the seed radius is 25 mm / 30 degrees). A failed half has no
-pose to compare. A symmetric object's halves may differ by a symmetry (``symmetric`` says so)."""
+pose to compare. A symmetric object's halves are compared modulo its symmetries (B's pose is
+reported as its equivalent nearest to A's)."""
 AXES = ("x", "y", "z", "rx", "ry", "rz")
 """The twist's six axes: shift along and turn about the model's x, y, z."""
 
@@ -244,9 +245,18 @@ def same_basin(a: HalfLabel, b: HalfLabel, translation_mm: float, rotation_deg: 
 
 def compare_halves(index: int, obj_id: int, centre_m: NDArray[np.float64], diameter_mm: float, a: HalfLabel,
                    b: HalfLabel, cameras: Sequence[Camera], image_ids: Sequence[int],
-                   symmetric: bool = False) -> SplitHalfInstance:
+                   symmetries: tuple[Sequence[NDArray[np.float64]], Sequence[tuple[NDArray[np.float64], NDArray[np.float64]]]]
+                   = ((), ())) -> SplitHalfInstance:
     """How the halves' labels ``a`` and ``b`` of instance ``index`` compare (:class:`SplitHalfInstance`);
-    ``cameras`` and ``image_ids``: every view of the instance (both halves), for its median view."""
+    ``cameras`` and ``image_ids``: every view of the instance (both halves), for its median view;
+    ``symmetries``: the model's discrete and continuous ones (:meth:`~autoalign.io.models.ModelSet.symmetries`):
+    B is compared as its equivalent nearest to A (halves that differ by a symmetry agree)."""
+    symmetric = bool(symmetries[0] or symmetries[1])
+    if symmetric:
+        T = closest_symmetric_pose(a.T_wm, b.T_wm, *symmetries)
+        R = (b.T_wm[:3, :3].T @ T[:3, :3]).T  # B's model axes into the equivalent's
+        rot = np.kron(np.eye(2), R)
+        b = replace(b, T_wm=T, covariance=None if b.covariance is None else rot @ b.covariance @ rot.T)
     translation, rotation = pose_change(a.T_wm, b.T_wm, centre_m)
     d = twist_between(a.T_wm, b.T_wm, centre_m)
     c = np.asarray(centre_m, dtype=np.float64)[None]

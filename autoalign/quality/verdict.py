@@ -42,12 +42,8 @@ scenes): at 0.3, 36 of the 50 synthetic instances that replay those failures wer
 alone, each within 0.12 mm / 0.3 deg of the truth (``experiments/studies/sam_failures.py``)."""
 MIN_VIEWS = 3
 """Fewer views with a mask than this cannot fix a 6-DoF pose from silhouettes."""
-LARGE_SIGMA_MM = 3.0
-"""A position sigma above this (mm, along any direction) leaves the label in doubt ... With the
-prior on a shared outline shift the position sigmas of well-seen objects reach 1-2 mm on exact
-masks (a 2 px looser outline everywhere moves an object in a ring of views up to them by 1 mm per
-px); on the 200 SAM-like synthetic instances (``uncertainty_calibration.md``) none, right or wrong,
-had one above 2 mm, and from one viewpoint they are 5-12 mm."""
+LARGE_SIGMA_MM = 2.0
+"""A position sigma above this (mm, along any direction) leaves the label in doubt ..."""
 LARGE_SIGMA_DEG = 2.0
 """... and so does an orientation sigma above this (degrees, about any direction that is not an
 axis of continuous symmetry of the model)."""
