@@ -210,7 +210,8 @@ def _fit_against_the_evidence(med: float, depth: DepthTerms | None, photo: Photo
                        "wrong or the masks are: seed it closer (--init or a click) or mend the masks")
         failed = True
     elif med < CHECK_IOU:
-        reasons.append(f"loose fit: median IoU {med:.2f} < {CHECK_IOU}")
+        reasons.append(f"loose fit: median IoU {med:.2f} < {CHECK_IOU}; compare the outline with the photo in "
+                       "overlay.png: a right pose means loose masks, a wrong one a seed to give again")
     return _Fit(reasons, failed, supported, photo_contradicts)
 
 
@@ -284,7 +285,7 @@ def judge(iou_after: NDArray[np.float64], weights: NDArray[np.float64], image_id
     n_all = len(iou) + len(empty_ids)
     failed = False
     if len(iou) < MIN_VIEWS:
-        reasons.append(f"only {len(iou)} view(s) with a mask (at least {MIN_VIEWS} needed)")
+        reasons.append(f"only {len(iou)} view(s) with a mask (at least {MIN_VIEWS} needed): add masks or views")
         failed = True
     med = float(np.median(iou)) if len(iou) else 0.0
     n_agree, agree_iou = agreeing_views(iou, w) if len(iou) else (0, None)
@@ -301,7 +302,8 @@ def judge(iou_after: NDArray[np.float64], weights: NDArray[np.float64], image_id
     set_aside = sorted(set(low) | set(int(i) for i in empty_ids))
     too_many = n_all > 0 and len(set_aside) > SET_ASIDE_FRACTION * n_all
     if ambiguous and not symmetric:
-        reasons.append("ambiguous: a clearly different pose fits almost as well")
+        reasons.append("ambiguous: a clearly different pose fits almost as well (refine.json's runner_up); "
+                       "look for the detail that tells them apart, or seed it with --init or a click")
     seed_reasons, far = _seed_reasons(seed_move, seed_radius, seed_hold)
     sigma_reasons = [] if uncertainty is None else _sigma_reasons(uncertainty, free_axes_m, turn_gap)
     reasons += seed_reasons + sigma_reasons
