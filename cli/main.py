@@ -192,7 +192,8 @@ def _add_algorithm_arguments(p: argparse.ArgumentParser) -> None:
                           "nearer measurements taken as occluders); off: masks only")
     alg.add_argument("--seed-radius", metavar="MM,DEG",
                      help="how far (mm at the model's centre, degrees) the --init pose may be off: a result "
-                          "farther from it is flagged for a check (default 25,30)")
+                          "farther from it is returned only when it fits at least twice as well as the best pose "
+                          "within it, and is flagged for a check either way (default 25,30)")
     alg.add_argument("--masks", choices=MASK_MODES, default="auto",
                      help="auto (default): the instance masks of mask_visib/; none: withhold every mask, the photos "
                           "(rgb/) place the objects from --init")
