@@ -241,20 +241,12 @@ def run_check(args: argparse.Namespace) -> int:
                      out / "check.png": encode_png(match_figure(report))}
             if comparison is not None:
                 files[out / "compare.png"] = encode_png(label_compare.comparison_figure(report, reference, comparison))
-            _write(files, out)
-            paths = {p.name: str(p) for p in files}
+            paths = _write(files, out)
     except BaseException:
         remove_empty_dirs(created)
         raise
-    if as_json:
-        print(json.dumps({**record, "outputs": paths}))
-    else:
-        print(format_table(report))
-        if comparison is not None:
-            print(format_comparison(comparison))
-        for name, p in paths.items():
-            print(f"wrote {p}")
-    return 0
+    return _emit(record, paths, as_json, [format_table(report)]
+                 + ([format_comparison(comparison)] if comparison is not None else []))
 
 
 def run_split_half(args: argparse.Namespace, scene: Path, labels: Path, models: Path, out: Path | None,
@@ -281,19 +273,11 @@ def run_split_half(args: argparse.Namespace, scene: Path, labels: Path, models: 
         record = {"split_half": report.record()}
         paths: dict[str, str] = {}
         if out is not None:
-            files = {out / "check.json": (json.dumps(record, indent=1) + "\n").encode()}
-            _write(files, out)
-            paths = {p.name: str(p) for p in files}
+            paths = _write({out / "check.json": (json.dumps(record, indent=1) + "\n").encode()}, out)
     except BaseException:
         remove_empty_dirs(created)
         raise
-    if as_json:
-        print(json.dumps({**record, "outputs": paths}))
-    else:
-        print(format_split_half(report))
-        for name, p in paths.items():
-            print(f"wrote {p}")
-    return 0
+    return _emit(record, paths, as_json, [format_split_half(report)])
 
 
 def format_split_half(report: Any) -> str:
@@ -364,8 +348,21 @@ def _prepare_reference(scene: Path, against: Path, models: Path, inputs: Any) ->
     return scene_check.prepare_check(scene, against, models, image_ids=common, labels=ref_labels)
 
 
-def _write(files: dict[Path, bytes], out: Path) -> None:
-    """Write the report files atomically (all or none); a failure names ``--out``."""
+def _emit(record: dict[str, Any], paths: dict[str, str], as_json: bool, tables: list[str]) -> int:
+    """Print the report: ``record`` with the output paths as one JSON object, or the ``tables`` and
+    the files written; the check's exit status (0: it ran)."""
+    if as_json:
+        print(json.dumps({**record, "outputs": paths}))
+    else:
+        print("\n".join(tables))
+        for p in paths.values():
+            print(f"wrote {p}")
+    return 0
+
+
+def _write(files: dict[Path, bytes], out: Path) -> dict[str, str]:
+    """Write the report files atomically (all or none); a failure names ``--out``. Returns their
+    paths by file name."""
     from autoalign.io.atomic_files import write_files_atomic
     from autoalign.runtime.interrupts import Interrupts
 
@@ -375,3 +372,4 @@ def _write(files: dict[Path, bytes], out: Path) -> None:
     except OSError as exc:
         raise AutoalignError(f"--out {out}: cannot write the report ({exc.strerror or exc}); "
                              "free some space or choose another --out") from None
+    return {p.name: str(p) for p in files}
