@@ -431,16 +431,16 @@ def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best:
         return best, ev, None, None
     obj.region = SeedRegion(anchor, obj.centre_m, opts.seed_radius, STIFFNESS * len(obj.scene))
     full = Level(1.0, opts.schedule[-1].sigma, 0)
-    near = []
+    candidates = []
     try:  # the whole schedule, which the far pose's pull may take to the region's edge, and the last level alone
         for levels in (opts.schedule, opts.schedule[-1:]):
             T, traces = run_schedule(obj, anchor, levels, opts.optimizer, progress, "within the seed's radius")
-            near.append((T, traces, levels))
+            candidates.append((T, traces, levels))
     finally:
         obj.region = None
-    evs = [obj.evaluate(T, full) for T, _, _ in near]
+    evs = [obj.evaluate(T, full) for T, _, _ in candidates]
     k = int(np.argmin([e.value for e in evs]))
-    (T_near, traces, levels), ev_near = near[k], evs[k]
+    (T_near, traces, levels), ev_near = candidates[k], evs[k]
     near_loss, far_loss = ev_near.value / len(ev_near.weights), ev.value / len(ev.weights)
     hold = SeedHold(h.T_final, move, far_loss, near_loss, far_loss <= CLEARLY_BETTER * near_loss)
     if hold.kept_far:
@@ -510,8 +510,8 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
         t0 = time.perf_counter()
         kept, final_ev, held_unc, hold = _held_near_seed(obj, np.asarray(seed if anchor is None else anchor),
                                                          final[0], final_ev, opts, progress)
-        if held_unc is not None:
-            final, uncertainty = [kept] + final, held_unc
+        if held_unc is not None:  # the pose within the radius: the far pose's turn gap says nothing of it
+            final, uncertainty, turn_gap = [kept] + final, held_unc, None
         timings["seed"] += time.perf_counter() - t0
 
     t0 = time.perf_counter()

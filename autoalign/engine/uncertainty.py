@@ -14,7 +14,7 @@ At the optimum of the weighted least-squares silhouette loss, with the Gauss-New
 * ``boundary bias`` (added to the sandwich; reported): a mask outline a few pixels too tight or too
   loose in *every* view moves the pose coherently, and no spread of the residuals shows it. With
   ``b_v`` the change of view ``v``'s gradient per pixel of outward boundary shift of its target,
-  the pose moves by ``s = H^-1 sum_v w_v b_v`` per pixel; a prior ``sigma_b`` (px) on that shared
+  the pose moves by ``s = -H^-1 sum_v w_v b_v`` per pixel; a prior ``sigma_b`` (px) on that shared
   shift adds ``sigma_b^2 s s^T``. From one viewpoint ``s`` lies along the viewing ray: apparent
   size is all that fixes distance there, and a 4 px tight mask makes the object look several
   percent farther.
@@ -81,10 +81,16 @@ class Uncertainty:
     sigma_across_mm: float | None = None
 
 
-def _to_model(cov_w: NDArray[np.float64], R_wm: NDArray[np.float64]) -> NDArray[np.float64]:
-    """A world-frame twist covariance in the model's axes (``v_m = R^T v``, ``w_m = R^T w``)."""
+def _into_model(R_wm: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The 6x6 map of a world-frame twist into the model's axes (``v_m = R^T v``, ``w_m = R^T w``)."""
     A = np.zeros((6, 6))
     A[:3, :3] = A[3:, 3:] = R_wm.T
+    return A
+
+
+def _to_model(cov_w: NDArray[np.float64], R_wm: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A world-frame twist covariance in the model's axes."""
+    A = _into_model(R_wm)
     return A @ cov_w @ A.T
 
 
@@ -181,15 +187,13 @@ def uncertainty_of(cov_w: NDArray[np.float64], naive_w: NDArray[np.float64], R_w
     px, ``bias_px``: its sigma) added; ``naive_w`` is the residual-variance estimate, for
     comparison; ``view_dir_w``: the median view's unit direction (world), for the sigmas along
     and across it."""
-    A = np.zeros((6, 6))
-    A[:3, :3] = A[3:, 3:] = R_wm.T
     noise = _to_model(cov_w, R_wm)
     n_mm, n_deg = _sigmas(_to_model(naive_w, R_wm))
     # the turns the views' geometry barely fixes (what a nearly symmetric object can hide), before
     # the outline shift's prior, which inflates every direction it moves and hides the ratio
     weak_turns = [u for t, u in _weak(noise) if t.startswith("turn")]
     u = Uncertainty(noise, *_sigmas(noise), [], weak_turns, n_mm, n_deg)
-    shift = np.zeros(6) if bias_shift_w is None else A @ np.asarray(bias_shift_w, dtype=np.float64)
+    shift = np.zeros(6) if bias_shift_w is None else _into_model(R_wm) @ np.asarray(bias_shift_w, dtype=np.float64)
     d_m = None if view_dir_w is None else R_wm.T @ np.asarray(view_dir_w, dtype=np.float64)
     return with_outline_shift(u, shift, d_m, bias_px)
 

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from autoalign.engine.uncertainty import median_view_direction
 from autoalign.geometry.se3 import closest_symmetric_pose, pose_change, so3_exp, so3_log, transform_points
 
 if TYPE_CHECKING:
@@ -225,9 +226,8 @@ def median_view(centre_w: NDArray[np.float64], cameras: Sequence[Camera],
     mean direction of all ``cameras``: its image id and that direction (world)."""
     dirs = np.array([centre_w - cam.centre for cam in cameras], dtype=np.float64)
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    mean = dirs.sum(axis=0)
-    mean /= max(float(np.linalg.norm(mean)), 1e-12)  # views all around: any of them will do
-    k = int(np.argmax(dirs @ mean))
+    d = median_view_direction(dirs)  # as the reported sigmas along the ray take it
+    k = int(np.argmax(dirs @ d))
     return int(image_ids[k]), dirs[k]
 
 
