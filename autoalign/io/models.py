@@ -149,11 +149,7 @@ class ModelSet:
 
     def continuous_axes(self, obj_id: int) -> tuple[NDArray[np.float64], ...]:
         """The unit model-frame axes of ``obj_id``'s continuous symmetries (``models_info.json``)."""
-        out = []
-        for c in self.info.get(obj_id, {}).get("symmetries_continuous", []):
-            a = np.asarray(c["axis"], dtype=np.float64)
-            out.append(a / np.linalg.norm(a))
-        return tuple(out)
+        return tuple(axis for axis, _ in self.symmetries(obj_id)[1])
 
     def symmetries(self, obj_id: int) -> tuple[list[NDArray[np.float64]], list[tuple[NDArray[np.float64], NDArray[np.float64]]]]:
         """``obj_id``'s discrete symmetries (4x4, model frame, mm) and continuous ones (unit axis,

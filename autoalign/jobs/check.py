@@ -132,7 +132,6 @@ def prepare_split_half(scene_dir: str | os.PathLike[str], labels: str | os.PathL
 
 def run_split_half(prepared: SplitHalfInputs, progress: Progress | None = None) -> SplitHalfReport:
     """Refine both halves of :func:`prepare_split_half`'s scene from the labels and compare them."""
-    from autoalign.engine.options import RefineOptions
     from autoalign.quality.split_half import (
         HalfLabel,
         SplitHalfReport,
@@ -142,7 +141,7 @@ def run_split_half(prepared: SplitHalfInputs, progress: Progress | None = None) 
 
     job, inputs = prepared.job, prepared.inputs
     found, models = inputs.found, inputs.models
-    options = RefineOptions(loss=job.loss, optimizer=job.optimizer, robust=job.robust)
+    options = job.refine_options()
     halves: list[list[HalfLabel]] = []
     seconds = []
     for name, ids in zip("AB", prepared.halves):

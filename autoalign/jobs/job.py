@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 from autoalign.errors import AutoalignError
 
 if TYPE_CHECKING:
+    from autoalign.engine.options import RefineOptions
     from autoalign.jobs.report import RefineReport, SceneReport
 
 OUTPUT_FILES = ("scene_gt.json", "refine.json", "overlay.png", "scene_camera.json")
@@ -123,7 +124,8 @@ class FolderJob:
     @property
     def seed_radius_mm_deg(self) -> tuple[float, float]:
         """The stated uncertainty of the ``init`` seed (``MM,DEG``; default
-        :data:`~autoalign.quality.verdict.SEED_RADIUS`): a result farther from it is flagged."""
+        :data:`~autoalign.engine.seed_region.SEED_RADIUS`): a result farther from it is returned only
+        when it fits clearly better than the best pose within it, and is flagged either way."""
         from autoalign.engine.seed_region import SEED_RADIUS
 
         if self.seed_radius is None:
@@ -135,6 +137,13 @@ class FolderJob:
         if not (mm > 0 and deg > 0):
             raise AutoalignError(f"--seed-radius {self.seed_radius}: both numbers must be positive")
         return mm, deg
+
+    def refine_options(self) -> RefineOptions:
+        """The engine's settings this job asks for: loss, optimiser, robust weights, the seed's radius."""
+        from autoalign.engine.options import RefineOptions
+
+        return RefineOptions(loss=self.loss, optimizer=self.optimizer, robust=self.robust,
+                             seed_radius=self.seed_radius_mm_deg)
 
     @property
     def uses_photos(self) -> bool:

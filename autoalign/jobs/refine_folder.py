@@ -74,7 +74,7 @@ def refine_folder(job: FolderJob, log: RunLog | None = None, progress: Stages | 
 
 def _refine_object(job: FolderJob, click: Any, log: RunLog, progress: Stages) -> FolderOutcome:
     """:func:`refine_folder` with one object (``job.model``)."""
-    from autoalign.engine.refine import RefineOptions, refine
+    from autoalign.engine.refine import refine
     from autoalign.geometry.mesh import load_mesh
     from autoalign.io.evidence import read_evidence
     from autoalign.quality.overlay import render_overlay
@@ -84,8 +84,7 @@ def _refine_object(job: FolderJob, click: Any, log: RunLog, progress: Stages) ->
     mesh = load_mesh(job.model, units=job.units)
     pyramid = MeshPyramid(mesh)
     seed, seed_record = _seed(job, scene, click)
-    options = RefineOptions(loss=job.loss, optimizer=job.optimizer, robust=job.robust,
-                            seed_radius=job.seed_radius_mm_deg)
+    options = job.refine_options()
     progress.start("loading the renderer" if seed_record.kind == "init" else "seeding")
     try:
         result = refine(scene, pyramid, seed, options, progress=progress)

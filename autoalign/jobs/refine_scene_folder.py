@@ -74,7 +74,7 @@ def refine_scene_folder(job: FolderJob, log: RunLog, progress: Stages, t_start: 
     from autoalign.quality.overlay import encode_png
 
     inputs = read_scene_inputs(job, log)
-    options = RefineOptions(loss=job.loss, optimizer=job.optimizer, robust=job.robust)
+    options = job.refine_options()
     progress.start("loading the renderer")
     try:
         refined = refine_scene(inputs.found, inputs.models, inputs.seeds, options, job.refine_cameras,

@@ -300,7 +300,7 @@ class InstanceReport:
             "uncertainty": uncertainty_record(res.uncertainty),
             "seed": "init" if self.seeded else "hull", "moved_from_seed_mm_deg": self.seed_move,
             "seed_radius_mm_deg": self.seed_radius,
-            "seed_hold": None if res.seed_hold is None or not self.seeded else res.seed_hold.to_json(),
+            "seed_hold": None if res.seed_hold is None else res.seed_hold.to_json(),
             "image_ids": [int(i) for i in res.image_ids], "iou_before": res.iou_before, "iou_after": res.iou_after,
             "weights": res.weights, "median_iou_after": float(np.median(res.iou_after)),
             "empty_masks": self.empty,

@@ -81,7 +81,7 @@ def verdict_of(result: RefineResult, empty: tuple[int, ...], models: ModelSet, o
                                                                 *models.symmetries(obj_id))
     return judge(result.iou_after, result.weights, result.image_ids, empty, result.ambiguous, models.symmetric(obj_id),
                  result.uncertainty, models.continuous_axes(obj_id), result.turn_gap, result.depth, result.photo,
-                 seed_move, seed_radius, result.seed_hold if seed is not None else None)
+                 seed_move, seed_radius, result.seed_hold)
 
 
 def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArray[np.float64]],
