@@ -152,3 +152,35 @@ def test_joint_refinement_labels_an_instance_whose_occluders_masks_are_missing(p
     assert e_alone[0] > 4 * e_joint[0], (e_alone, e_joint)
     e_front = err(joint[front], front)
     assert e_front[0] < 0.3 and e_front[1] < 0.3, e_front
+
+
+def test_joint_jackknife_assembles_each_views_blocks(pair):
+    """The joint covariance's jackknife (each view's parts of H gathered into one block over the
+    instances and the camera it touches, then Woodbury from H^-1) equals the leave-one-view-out
+    Newton steps solved densely, with cameras refined (every view touches both poses and its camera)."""
+    from autoalign.engine.uncertainty import jackknife
+    from autoalign.scene.joint import CameraPrior, JointProblem, _one_block
+
+    root, models, truth = pair
+    obj, _ = _objective(root, models)
+    rng = np.random.default_rng(4)
+    centres = obj.centres_m
+    start = [perturb_pose(T, 1.0, 1.0, rng, c) for T, c in zip(truth, centres)]
+    problem = JointProblem(obj, FULL, centres, np.zeros(3), CameraPrior(), True, False, None)
+    x = problem.start(start)
+    point = problem.evaluate(x)
+    parts = [{} for _ in problem.ids]
+    H, _, per_view = problem.system(x, point, parts)
+    H[problem.cams, problem.cams] += problem.prior.system(x.d)[0]
+    dense = []
+    for p in parts:
+        Hv = np.zeros_like(H)
+        for key, block in p.items():
+            Hv[np.ix_(key, key)] += block
+        dense.append(Hv)
+    d = np.array([np.linalg.solve(H - Hv, g) for Hv, g in zip(dense, per_view)])
+    d -= d.mean(axis=0)
+    expected = d.T @ d * (len(d) - 1) / len(d)
+    got = jackknife(np.linalg.inv(H), [_one_block(p) for p in parts], per_view)
+    np.testing.assert_allclose(got[:12, :12], expected[:12, :12], rtol=1e-6, atol=1e-12 * np.abs(expected).max())
+    assert max(len(_one_block(p)[0]) for p in parts) == 18  # a view with both poses and its camera

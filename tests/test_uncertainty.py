@@ -189,3 +189,30 @@ def test_sigmas_along_and_across_the_ray():
     assert out.sigma_ray_mm == pytest.approx(3.0) and out.sigma_across_mm == pytest.approx(1.0)
     shifted = with_outline_shift(u, np.array([0.0, 1.5, 0.0, 0.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), bias_px=2.0)
     assert shifted.sigma_mm[1] == pytest.approx(np.sqrt(1.0 + 9.0))  # 2 px of 1.5 mm each
+
+
+def test_jackknife_is_the_leave_one_view_out_refit():
+    """On a linear least-squares problem one Newton step is the exact refit: the jackknife from
+    H^-1 (Woodbury, one small block per view) equals the spread of the poses refitted with each
+    view left out by numpy's lstsq; with one view that alone fixes a direction, it is far larger
+    than the sandwich (the leverage the sandwich ignores)."""
+    from autoalign.engine.uncertainty import jackknife, sandwich
+
+    rng = np.random.default_rng(3)
+    J = [rng.normal(size=(40, 6)) for _ in range(8)]
+    J[0][:, 5] *= 8.0  # view 0 carries most of what fixes the 6th unknown
+    for j in J[1:]:
+        j[:, 5] *= 0.2
+    r = [rng.normal(size=40) + 0.5 * rng.normal() for _ in J]  # each view with an error of its own
+    A, b = np.concatenate(J), np.concatenate(r)
+    x = np.linalg.lstsq(A, b, rcond=None)[0]
+    refits = np.array([np.linalg.lstsq(np.concatenate(J[:v] + J[v + 1:]), np.concatenate(r[:v] + r[v + 1:]),
+                                       rcond=None)[0] - x for v in range(len(J))])
+    refits -= refits.mean(axis=0)
+    expected = refits.T @ refits * (len(J) - 1) / len(J)
+    H = A.T @ A
+    grads = np.array([j.T @ (j @ x - rr) for j, rr in zip(J, r)])  # each view's gradient at the optimum
+    blocks = [(np.arange(6), j.T @ j) for j in J]
+    got = jackknife(np.linalg.inv(H), blocks, grads)
+    np.testing.assert_allclose(got, expected, rtol=1e-8, atol=1e-12)
+    assert got[5, 5] > 2.0 * sandwich(np.linalg.inv(H), grads)[5, 5]

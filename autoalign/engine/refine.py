@@ -39,6 +39,7 @@ from autoalign.engine.schedule import Progress, polish, run_schedule  # noqa: F4
 from autoalign.engine.seed_region import CLEARLY_BETTER, STIFFNESS, SeedHold, SeedRegion
 from autoalign.engine.seeding import Click, click_centre, hull_centre, rotation_grid
 from autoalign.engine.solver import Trace
+from autoalign.engine.turn_profile import with_turn_profiles
 from autoalign.engine.uncertainty import Uncertainty, pose_uncertainty
 from autoalign.errors import AutoalignError
 from autoalign.geometry.mesh import Mesh
@@ -317,19 +318,23 @@ def _final_state(obj: SilhouetteObjective, best: Hypothesis, weights: NDArray[np
         ev = last_trace.final
     else:
         ev = obj.evaluate(best.T_final, Level(1.0, levels[-1].sigma, 0), weights=weights)
-    return ev, final_uncertainty(obj, ev, best.T_final)
+    return ev, final_uncertainty(obj, ev, best.T_final, levels[-1].sigma)
 
 
-def final_uncertainty(obj: SilhouetteObjective, ev: Evaluation, T_wm: NDArray[np.float64]) -> Uncertainty:
-    """The pose's uncertainty from a full-resolution evaluation at it, with the prior on a shared
-    shift of the masks' outlines (:mod:`autoalign.engine.uncertainty`)."""
+def final_uncertainty(obj: SilhouetteObjective, ev: Evaluation, T_wm: NDArray[np.float64],
+                      sigma_px: float) -> Uncertainty:
+    """The pose's uncertainty from a full-resolution evaluation ``ev`` at it, with the prior on a
+    shared shift of the masks' outlines (:mod:`autoalign.engine.uncertainty`) and each weakly
+    observed turn's variance from its loss profile (:mod:`autoalign.engine.turn_profile`; the
+    silhouettes' blur ``sigma_px``, the schedule's last level's)."""
     views = obj.at_scale(1.0)
     centre_w = transform_points(T_wm, obj.centre_m[None])[0]
     dirs = np.array([centre_w - c.centre for c in views.cameras])
     dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
     bias = boundary_bias_grads(ev.silhouettes, views.targets, views.totals)
-    return pose_uncertainty(ev.gn, ev.terms.grad, ev.weights, ev.value, len(ev.silhouettes.band), T_wm[:3, :3],
-                            bias, dirs)
+    u = pose_uncertainty(ev.gn, ev.terms.grad, ev.weights, ev.value, len(ev.silhouettes.band), T_wm[:3, :3],
+                         bias, dirs, view_gn=ev.terms.gn)
+    return with_turn_profiles(obj, T_wm, u, ev.weights, sigma_px)
 
 
 def _seed(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,
@@ -447,7 +452,7 @@ def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best:
         return best, ev, None, hold
     near = Hypothesis(anchor, T_near, near_loss, float(np.mean(ev_near.terms.iou)), Stage.FINAL,
                       tuple(zip(levels, traces)))
-    return Finalist(near, ev_near.weights), ev_near, final_uncertainty(obj, ev_near, T_near), hold
+    return Finalist(near, ev_near.weights), ev_near, final_uncertainty(obj, ev_near, T_near, opts.schedule[-1].sigma), hold
 
 
 def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: RefineOptions | None = None,

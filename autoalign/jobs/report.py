@@ -109,10 +109,13 @@ def uncertainty_record(u: Uncertainty | None) -> dict[str, Any] | None:
             "median_view_direction": u.view_dir_m,
             "ray": "the median view's direction (camera to object centre) in the model's axes",
             "weakly_observed": list(u.weak), "covariance": u.covariance,
-            "covariance_of": "twist (v mm, w rad) in the model's axes, about the model centre; cluster-robust "
-                             "(one cluster per view) Gauss-Newton sandwich plus the prior on a shift of every "
-                             f"mask's outline ({BOUNDARY_BIAS_PX:g} px)",
+            "covariance_of": "twist (v mm, w rad) in the model's axes, about the model centre; jackknife over "
+                             "views (each left out in turn, one Gauss-Newton step) plus the prior on a shift of "
+                             f"every mask's outline ({BOUNDARY_BIAS_PX:g} px), weakly observed turns raised to "
+                             "their loss profile's interval",
             "outline_shift_per_px": u.bias_shift,
+            "turn_profiles": [{"axis_m": f.axis_m, "sigma_deg": float(np.degrees(np.sqrt(f.variance)))}
+                              for f in u.turn_floors],
             "naive_sigma_mm": u.naive_sigma_mm, "naive_sigma_deg": u.naive_sigma_deg}
 
 

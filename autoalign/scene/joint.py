@@ -10,8 +10,9 @@ table there), for cameras known only up to scale
 ``v`` by ``s (c_i - C_v)`` as that camera sees it, which is the instance twist ``(s (c_i - C_v), 0)``;
 only the objects' fixed size in the images makes it observable. Each view's loss of an instance depends on the twists of that instance, of the instances
 in front of it, and of its camera; the Gauss-Newton blocks of all of them are summed into one
-system. The covariance of each pose is the cluster-robust sandwich with one cluster per view
-(:mod:`autoalign.engine.uncertainty`), marginalised over everything else solved with it.
+system. The covariance of each pose is the jackknife over views of that system (each view left
+out in turn, :func:`~autoalign.engine.uncertainty.jackknife`; its blocks of H are the instances and
+camera it touches), marginalised over everything else solved with it.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from numpy.typing import NDArray
 
 from autoalign.engine.objective import Level
 from autoalign.engine.solver import FTOL, LevenbergMarquardt, Stop, minimise
-from autoalign.engine.uncertainty import Uncertainty, sandwich, uncertainty_of
+from autoalign.engine.uncertainty import Uncertainty, jackknife, uncertainty_of
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import apply_twist, transform_points
 from autoalign.io.instances import InstanceScenes
@@ -183,8 +184,10 @@ class JointProblem:
             g[self.cams] += gp
         return H, g
 
-    def system(self, x: JointState, point: JointPoint) -> tuple[NDArray, NDArray, NDArray]:
-        """The loss's H (n, n), g (n,) and the weighted gradient of each view (V, n)."""
+    def system(self, x: JointState, point: JointPoint,
+               view_H: list[dict[tuple[int, ...], NDArray]] | None = None) -> tuple[NDArray, NDArray, NDArray]:
+        """The loss's H (n, n), g (n,) and the weighted gradient of each view (V, n); with
+        ``view_H`` (one empty dict per view), each view's weighted parts of H, by the unknowns they touch."""
         n, ev, objective = self.n, point.ev, self.objective
         H, g = np.zeros((n, n)), np.zeros(n)
         per_view = np.zeros((len(self.ids), n))
@@ -200,6 +203,9 @@ class JointProblem:
                 H[np.ix_(idx, idx)] += w * Hl
                 g[idx] += w * gl
                 per_view[gv, idx] += w * gl
+                if view_H is not None:
+                    key = tuple(int(i) for i in idx)
+                    view_H[gv][key] = view_H[gv].get(key, 0.0) + w * Hl
         return H, g, per_view
 
     def _chain(self, instances: NDArray[np.int_], centres_w: list[NDArray[np.float64]], C_v: NDArray[np.float64],
@@ -258,17 +264,29 @@ def refine_jointly(found: InstanceScenes, pyramids: list[MeshPyramid], poses: li
 
 
 def _covariances(problem: JointProblem, x: JointState, point: JointPoint) -> tuple[NDArray[np.float64], list[Uncertainty]]:
-    """The cluster-robust covariance of all unknowns (one cluster per view) and each pose's uncertainty."""
-    H, _, per_view = problem.system(x, point)
+    """The views' jackknife covariance of all unknowns (one cluster per view,
+    :func:`~autoalign.engine.uncertainty.jackknife`) and each pose's uncertainty."""
+    parts: list[dict[tuple[int, ...], NDArray]] = [{} for _ in problem.ids]
+    H, _, per_view = problem.system(x, point, parts)
     if problem.with_cameras:
         H[problem.cams, problem.cams] += problem.prior.system(x.d)[0]
     H_inv = np.linalg.pinv(H, rcond=1e-12, hermitian=True)
-    cov = sandwich(H_inv, per_view)
+    cov = jackknife(H_inv, [_one_block(p) for p in parts], per_view)
     n_band = sum(f.n_band for fits in point.ev.fits for f in fits)
     naive = H_inv * (2.0 * point.ev.value / max(n_band - problem.n, 1))
     unc = [uncertainty_of(cov[6 * k:6 * k + 6, 6 * k:6 * k + 6], naive[6 * k:6 * k + 6, 6 * k:6 * k + 6], T[:3, :3])
            for k, T in enumerate(x.poses)]
     return cov, unc
+
+
+def _one_block(parts: dict[tuple[int, ...], NDArray]) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """A view's parts of H (by the unknowns each touches) as one block over all the unknowns they touch."""
+    idx = np.array(sorted({i for key in parts for i in key}), dtype=np.int64)
+    block = np.zeros((len(idx), len(idx)))
+    for key, Hk in parts.items():
+        at = np.searchsorted(idx, np.array(key))
+        block[np.ix_(at, at)] += Hk
+    return idx, block
 
 
 def _misfit(objective: OcclusionObjective, ev: JointEvaluation) -> dict[int, float]:

@@ -38,7 +38,7 @@ from autoalign.engine.hypotheses import weak_turn_scores
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult, refine
 from autoalign.engine.seed_region import SEED_RADIUS
-from autoalign.engine.uncertainty import with_outline_shift
+from autoalign.engine.uncertainty import with_outline_shift, with_turn_floors
 from autoalign.geometry.se3 import pose_change, symmetric_pose_change
 from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
@@ -153,8 +153,8 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
     after = []
     for k, r in enumerate(alone):
         alone_unc = r.result.uncertainty
-        unc = joint.uncertainties[k] if alone_unc is None else with_outline_shift(
-            joint.uncertainties[k], alone_unc.bias_shift, alone_unc.view_dir_m)
+        unc = joint.uncertainties[k] if alone_unc is None else with_turn_floors(with_outline_shift(
+            joint.uncertainties[k], alone_unc.bias_shift, alone_unc.view_dir_m), alone_unc.turn_floors)
         gap = None
         if unc.weak_turn_axes and opts.disambiguation.weak_turns:  # the joint system's weak turns, tried at its pose
             own, scores, _ = weak_turn_scores(pyramids[k].with_faces(opts.detail.coarse), found.scenes[k],

@@ -36,7 +36,7 @@ from autoalign.quality.verdict import judge
 
 ERODE_PX = 4
 STARTS = 3
-MASKS = ("eroded", "eroded + 1 in 3 cut", "eroded + 1 in 3 cut, photos", "none, photos")
+MASKS = ("eroded", "eroded + 1 in 3 cut", "eroded + 1 in 3 cut, photos", "none, photos", "eroded, photos")
 """The evidence of each run: the masks degraded (eroded, eroded with 1 in 3 cut) with or without the
 photos as evidence (the region term), or no masks at all and the photos."""
 
@@ -73,7 +73,7 @@ def run(data: Path, masks_kinds: tuple[str, ...] = MASKS, depths: tuple[bool, ..
             axis = rng.normal(size=3)
             T0 = apply_twist(T, np.array([*(20.0 * c / np.linalg.norm(c)), *(np.radians(10.0) * axis / np.linalg.norm(axis))]), c)
             for masks in masks_kinds:
-                sc = no_masks if masks.startswith("none") else degraded(scene, cut=masks != MASKS[0])
+                sc = no_masks if masks.startswith("none") else degraded(scene, cut="cut" in masks)
                 if masks.endswith("photos") and sc.photos is None:
                     sc = replace(sc, photos=photos)
                 for depth in depths:

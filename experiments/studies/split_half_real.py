@@ -145,7 +145,8 @@ def run(scene: Path, kind: str, tmp: Path, keep: Path) -> list[dict]:
     rec = json.loads((out / "refine.json").read_text())
     labels = labels_in_mask_order(scene, out, tmp / f"labels_{scene.name}_{kind}.json")
     t0 = time.perf_counter()
-    report = split_half_check(scene, labels, scene / "models", instances=[r["instance"] for r in rec["instances"]])
+    report = split_half_check(scene, labels, scene / "models", "off" if "masksonly" in kind else "auto",
+                              instances=[r["instance"] for r in rec["instances"]])
     check_s = time.perf_counter() - t0
     keep.mkdir(parents=True, exist_ok=True)
     write_json_atomic(keep / f"{scene.name}_{kind}_refine.json", rec)
