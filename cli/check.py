@@ -82,13 +82,14 @@ examples:
   autoalign check scenes/000002 --labels labels/000002/scene_gt.json --against scenes/000002/scene_gt.json \\
       --models models/ --out report/
   autoalign check scenes/000002 --labels labels/000002/scene_gt.json --models models/ --split-half --out report/
+  autoalign check scenes/000002 --labels labels/000002/scene_gt.json --models models/ --split-half --instances 0,3
 
 exit status: 0 the check ran (whatever the numbers), 2 a mistake in the command or the input files."""
 
 
 def add_check_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``autoalign check`` on an argparse subparsers object."""
-    from autoalign.cli.common import HelpFormatter, positive_int
+    from autoalign.cli.common import HelpFormatter, index_list, positive_int
     from autoalign.jobs.job import DEPTH_MODES, PHOTO_MODES
 
     p = subparsers.add_parser(
@@ -124,6 +125,11 @@ def add_check_parser(subparsers: Any) -> argparse.ArgumentParser:
                            "positions, both from --labels, and report how far apart the two labels are, in mm, "
                            "degrees and units of their sigmas (see 'output'); the photo check is skipped, and "
                            "--images and --against do not apply")
+    half.add_argument("--instances", metavar="K,K,...", type=index_list, default=None,
+                      help="with --split-half, check only these instances (mask numbers: entry k of an image's "
+                           "labels is mask k); the other masks stay as unmodelled objects, as 'autoalign refine "
+                           "--instances' leaves them. For labels of objects that are not one pose over all the "
+                           "views (moved between takes), which halves would only find disagreeing with themselves")
     half.add_argument("--photos", choices=PHOTO_MODES, default=None,
                       help="with --split-half, the photos as evidence as in 'autoalign refine' (auto: when the scene "
                            "has rgb/; on; off: masks only)")
@@ -201,10 +207,10 @@ def run_check(args: argparse.Namespace) -> int:
     as_json = bool(getattr(args, "json", False))
     if getattr(args, "split_half", False):
         return run_split_half(args, scene, labels, models, out, as_json)
-    for option in ("photos", "depth"):
+    for option in ("photos", "depth", "instances"):
         if getattr(args, option, None) is not None:
-            raise AutoalignError(f"--{option}: only with --split-half, whose halves are refined with that evidence; "
-                                 "add --split-half or drop it")
+            raise AutoalignError(f"--{option}: only with --split-half, whose halves are refined with that evidence "
+                                 "and for those instances; add --split-half or drop it")
     from autoalign.quality import scene_check
 
     # every input file is read and validated before any photo is checked (a bad --against file
@@ -262,7 +268,8 @@ def run_split_half(args: argparse.Namespace, scene: Path, labels: Path, models: 
             raise AutoalignError(f"--{option}: not with --split-half, which refines every view of the scene from "
                                  "--labels; drop one of them")
     prepared = prepare_split_half(scene, labels, models, photos=getattr(args, "photos", None) or "auto",
-                                  depth=getattr(args, "depth", None) or "auto", log=LOG)
+                                  depth=getattr(args, "depth", None) or "auto", log=LOG,
+                                  instances=getattr(args, "instances", None))
     created = prepare_out_dir(out) if out is not None else []
     try:
         bar = ProgressBar(enabled=not getattr(args, "quiet", False))

@@ -66,6 +66,14 @@ positive_int = _int_at_least(1)
 nonnegative_int = _int_at_least(0)
 
 
+def index_list(text: str) -> list[int]:
+    """An argparse type: comma-separated whole numbers of 0 or more (``0,3``), at least one."""
+    parts = [p.strip() for p in text.split(",")]
+    if not any(parts):
+        raise argparse.ArgumentTypeError(f"{text!r}: give whole numbers separated by commas, such as 0,3")
+    return [nonnegative_int(p) for p in parts]
+
+
 def add_units_argument(group: Any) -> None:
     """``--units mm|m`` of the mesh files, the same for every command that reads models."""
     group.add_argument("--units", choices=MESH_UNITS, default=None,

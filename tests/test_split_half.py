@@ -242,6 +242,29 @@ def test_instances_checks_only_those_and_leaves_the_others_masks_unmodelled(synt
         autoalign.check(synthetic.scene, path, synthetic.models, instances=[1])
 
 
+def test_cli_instances_checks_only_those(synthetic: Synthetic, tmp_path: Path,
+                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """``check --split-half --instances 1``: the labels' mask 0 names a model that is not given, so
+    only with the option does the check run, on mask 1 alone; a list that is not one of whole
+    numbers, or the option without --split-half, is a one-line error and exit 2."""
+    from autoalign.cli.main import main
+
+    labels = json.loads(synthetic.off.read_text())
+    for entries in labels.values():
+        entries[0]["obj_id"] = 7
+    path = tmp_path / "labels.json"
+    path.write_text(json.dumps(labels))
+    args = ["check", str(synthetic.scene), "--labels", str(path), "--models", str(synthetic.models), "--quiet"]
+    assert main([*args, "--split-half", "--instances", "1", "--json"]) == 0
+    block = json.loads(capsys.readouterr().out)["split_half"]
+    assert [(i["instance"], i["obj_id"]) for i in block["instances"]] == [(1, 2)] and block["instances"][0]["same_basin"]
+    for bad, words in ((["--split-half", "--instances", "1,x"], "'x' is not a whole number"),
+                       (["--instances", "1"], "--instances: only with --split-half")):
+        assert main([*args, *bad]) == 2
+        captured = capsys.readouterr()
+        assert captured.out == "" and words in captured.err and len(captured.err.strip().splitlines()) == 1, captured.err
+
+
 # ------------------------------------------------------------------------------------------
 # The command
 # ------------------------------------------------------------------------------------------
