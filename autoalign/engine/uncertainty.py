@@ -25,9 +25,9 @@ At the optimum of the weighted least-squares silhouette loss, with the Gauss-New
   size is all that fixes distance there, and a 4 px tight mask makes the object look several
   percent farther.
 
-A weakly observed turn's variance is then raised to what the loss along that turn allows
-(:mod:`autoalign.engine.turn_profile`): a nearly symmetric object's roll is not a parabola far
-from the pose.
+A weakly observed turn's variance is then raised to the spread its loss profile's minimum shows
+over resampled views (:mod:`autoalign.engine.turn_profile`): a nearly symmetric object's roll is
+not a parabola far from the pose.
 
 The twist is ``(v [mm], w [rad])`` in the world frame about the object centre; sigmas are
 reported about and along the model's own axes (its x, y, z), since those name what a person sees
@@ -61,7 +61,8 @@ _AXES = "xyz"
 @dataclass(frozen=True)
 class TurnFloor:
     """The least variance (rad^2) of the turn about the unit model-frame axis ``axis_m`` (through
-    the object's centre) that the loss along it allows (:mod:`autoalign.engine.turn_profile`)."""
+    the object's centre): that of its loss profile's minimum over resampled views
+    (:mod:`autoalign.engine.turn_profile`)."""
 
     axis_m: NDArray[np.float64]
     variance: float

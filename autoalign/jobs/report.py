@@ -112,7 +112,7 @@ def uncertainty_record(u: Uncertainty | None) -> dict[str, Any] | None:
             "covariance_of": "twist (v mm, w rad) in the model's axes, about the model centre; jackknife over "
                              "views (each left out in turn, one Gauss-Newton step) plus the prior on a shift of "
                              f"every mask's outline ({BOUNDARY_BIAS_PX:g} px), weakly observed turns raised to "
-                             "their loss profile's interval",
+                             "the spread of their loss profile's minimum over resampled views",
             "outline_shift_per_px": u.bias_shift,
             "turn_profiles": [{"axis_m": f.axis_m, "sigma_deg": float(np.degrees(np.sqrt(f.variance)))}
                               for f in u.turn_floors],
