@@ -332,8 +332,8 @@ def final_uncertainty(obj: SilhouetteObjective, ev: Evaluation, T_wm: NDArray[np
     dirs = np.array([centre_w - c.centre for c in views.cameras])
     dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
     bias = boundary_bias_grads(ev.silhouettes, views.targets, views.totals)
-    u = pose_uncertainty(ev.gn, ev.terms.grad, ev.weights, ev.value, len(ev.silhouettes.band), T_wm[:3, :3],
-                         bias, dirs, view_gn=ev.terms.gn)
+    u = pose_uncertainty(ev.gn, ev.terms.grad, ev.terms.gn, ev.weights, ev.value, len(ev.silhouettes.band),
+                         T_wm[:3, :3], bias, dirs)
     return with_turn_profiles(obj, T_wm, u, ev.weights, sigma_px)
 
 

@@ -11,10 +11,10 @@ At the optimum of the weighted least-squares silhouette loss, with the Gauss-New
   cluster per view: whatever the correlation of a view's pixels, the views' errors are taken as
   independent. It sees what the views disagree on (a mask tight in one view and loose in another,
   a camera off by a pixel), but not an error every view shares;
-* ``jackknife`` (reported, where the per-view Gauss-Newton matrices are known): the spread of the
-  poses with each view left out (one Newton step each, :func:`jackknife`). The same as the
-  sandwich to first order, but a view that alone fixes a direction (few views, one that sees a
-  detail) counts for what leaving it out would do; on the real LM-O halves from ``--init`` it
+* ``jackknife`` (reported): the spread of the poses with each view left out (one Newton step each,
+  :func:`jackknife`). The same as the sandwich to first order, but a view that alone fixes a
+  direction (few views, one that sees a detail) counts for what leaving it out would do; on the
+  real LM-O halves from ``--init`` it
   covered 60% of the axes within 3 sigma where the sandwich covered 54% (62% with the weak turns'
   profiles, ``experiments/results/split_half_real.md``);
 * ``boundary bias`` (added to the views' spread; reported): a mask outline a few pixels too tight or too
@@ -78,7 +78,7 @@ class Uncertainty:
         sigma_deg: (3,) standard deviation of the orientation about the model's x, y, z (degrees).
         weak: the weakly observed directions, e.g. ``"turn about model z: 12.3 deg"``.
         weak_turn_axes: the unit model-frame axes of the turns the views' geometry barely fixes
-            (from the sandwich alone, before the outline shift's prior), largest first.
+            (from the views' spread alone, before the outline shift's prior), largest first.
         naive_sigma_mm / naive_sigma_deg: the same from the residual-variance estimate (for comparison).
         bias_shift: (6,) the twist (model axes, mm and rad) the pose moves by per pixel of outward
             shift of every mask's outline (see the module doc); zero where it was not measured.
@@ -147,15 +147,17 @@ def _weak(cov_m: NDArray[np.float64], weak_mm: float = WEAK_MM, weak_deg: float 
     return out
 
 
-def pose_uncertainty(H: NDArray[np.float64], view_grads: NDArray[np.float64], weights: NDArray[np.float64],
-                     value: float, n_band: int, R_wm: NDArray[np.float64],
+def pose_uncertainty(H: NDArray[np.float64], view_grads: NDArray[np.float64], view_gn: NDArray[np.float64],
+                     weights: NDArray[np.float64], value: float, n_band: int, R_wm: NDArray[np.float64],
                      bias_grads: NDArray[np.float64] | None = None, view_dirs_w: NDArray[np.float64] | None = None,
-                     bias_px: float = BOUNDARY_BIAS_PX, view_gn: NDArray[np.float64] | None = None) -> Uncertainty:
+                     bias_px: float = BOUNDARY_BIAS_PX) -> Uncertainty:
     """The uncertainty of a converged pose (see the module doc).
 
     Args:
         H: (6, 6) weighted Gauss-Newton matrix at the pose (world twist).
         view_grads: (V, 6) unweighted per-view gradients ``J_v^T r_v``.
+        view_gn: (V, 6, 6) unweighted per-view Gauss-Newton matrices (the views' spread is their
+            jackknife, :func:`jackknife`).
         weights: (V,) the view weights of ``H``.
         value: the weighted loss ``sum_v w_v loss_v``.
         n_band: pixels whose value depends on the pose.
@@ -164,15 +166,12 @@ def pose_uncertainty(H: NDArray[np.float64], view_grads: NDArray[np.float64], we
             target's outline (:func:`~autoalign.losses.silhouette.boundary_bias_grads`); ``None``: not measured.
         view_dirs_w: (V, 3) unit directions from each camera to the object centre (world).
         bias_px: the prior sigma of the shared outline shift (px).
-        view_gn: (V, 6, 6) unweighted per-view Gauss-Newton matrices: with them the views' spread
-            is the jackknife's (:func:`jackknife`), without the sandwich's.
     """
     H_inv = np.linalg.pinv(H, rcond=1e-12, hermitian=True)
     w = np.asarray(weights, dtype=np.float64)[:, None]
     shift_w = np.zeros(6) if bias_grads is None else -H_inv @ (w * bias_grads).sum(axis=0)
     every = np.arange(6)
-    spread = (sandwich(H_inv, view_grads * w) if view_gn is None
-              else jackknife(H_inv, [(every, wv * Hv) for wv, Hv in zip(w[:, 0], view_gn)], view_grads * w))
+    spread = jackknife(H_inv, [(every, wv * Hv) for wv, Hv in zip(w[:, 0], view_gn)], view_grads * w)
     return uncertainty_of(spread, H_inv * (2.0 * value / max(n_band - 6, 1)), R_wm,
                           shift_w, median_view_direction(view_dirs_w, w[:, 0]), bias_px)
 
