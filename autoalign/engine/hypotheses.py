@@ -46,9 +46,9 @@ def turns(T_wm: NDArray[np.float64], axis_m: NDArray[np.float64], centre_m: NDAr
     return np.stack([T_wm @ _turn_about(so3_exp(a * np.radians(t)), centre_m) for t in angles_deg])
 
 
-def weak_turn_scores(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.float64],
-                     axes_m: list[NDArray[np.float64]], centre_m: NDArray[np.float64],
-                     angles_deg: tuple[float, ...]) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
+def turn_scores(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.float64],
+                axes_m: list[NDArray[np.float64]], centre_m: NDArray[np.float64],
+                angles_deg: tuple[float, ...]) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
     """The robust hard-IoU score (:func:`score_poses` at 1/4 resolution) of ``T_wm`` and of its
     turns about each model axis of ``axes_m`` through ``centre_m`` by ``angles_deg``: its score,
     the turns' scores and the turned poses (K, 4, 4)."""

@@ -19,7 +19,7 @@ from autoalign.engine.hypotheses import (
     flips,
     orbit,
     poses_at,
-    weak_turn_scores,
+    turn_scores,
 )
 from autoalign.engine.objective import (
     Evaluation,
@@ -35,6 +35,7 @@ from autoalign.engine.options import (  # noqa: F401 - the engine's settings, im
     SearchOptions,
 )
 from autoalign.engine.photo_evidence import PhotoEvidence, refine_with_photos
+from autoalign.engine.refit_spread import refit_ratio, spread_factor
 from autoalign.engine.schedule import Progress, polish, run_schedule  # noqa: F401 - polish: one pose, no search
 from autoalign.engine.seed_region import CLEARLY_BETTER, STIFFNESS, SeedHold, SeedRegion
 from autoalign.engine.seeding import Click, click_centre, hull_centre, rotation_grid
@@ -64,6 +65,7 @@ class Stage(enum.Enum):
     DROPPED = "level"  # left behind after the polish level of scale Hypothesis.step
     ORBIT = "orbit"  # a turn of the runner-up's orbit, not yet polished
     WEAK_TURN = "weak turn"  # a turn about a weakly observed axis, not yet polished
+    NEAR_TURN = "near turn"  # a small turn about a principal axis (out of a local minimum), not yet polished
     FINAL = "final"  # polished through the last level
 
 
@@ -310,7 +312,7 @@ def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple
 
 
 def _final_state(obj: SilhouetteObjective, best: Hypothesis, weights: NDArray[np.float64],
-                 levels: tuple[Level, ...]) -> tuple[Evaluation, Uncertainty]:
+                 levels: tuple[Level, ...], optimizer: str) -> tuple[Evaluation, Uncertainty]:
     """The full-resolution evaluation at the best pose (the optimiser's last one when it has it)
     and the pose's uncertainty from it."""
     last_level, last_trace = best.path[-1] if best.path else (None, None)
@@ -318,23 +320,26 @@ def _final_state(obj: SilhouetteObjective, best: Hypothesis, weights: NDArray[np
         ev = last_trace.final
     else:
         ev = obj.evaluate(best.T_final, Level(1.0, levels[-1].sigma, 0), weights=weights)
-    return ev, final_uncertainty(obj, ev, best.T_final, levels[-1].sigma)
+    return ev, final_uncertainty(obj, ev, best.T_final, levels[-1], optimizer)
 
 
 def final_uncertainty(obj: SilhouetteObjective, ev: Evaluation, T_wm: NDArray[np.float64],
-                      sigma_px: float) -> Uncertainty:
-    """The pose's uncertainty from a full-resolution evaluation ``ev`` at it, with the prior on a
-    shared shift of the masks' outlines (:mod:`autoalign.engine.uncertainty`) and each weakly
-    observed turn's variance from its loss profile (:mod:`autoalign.engine.turn_profile`; the
-    silhouettes' blur ``sigma_px``, the schedule's last level's)."""
+                      last: Level, optimizer: str) -> Uncertainty:
+    """The pose's uncertainty from a full-resolution evaluation ``ev`` at it: the views' spread
+    scaled where polishes with views left out move the pose farther than its Newton steps
+    (:mod:`autoalign.engine.refit_spread`, with ``optimizer`` and the schedule's ``last`` level),
+    with the prior on a shared shift of the masks' outlines (:mod:`autoalign.engine.uncertainty`)
+    and each weakly observed turn's variance from its loss profile
+    (:mod:`autoalign.engine.turn_profile`; ``last``'s blur)."""
     views = obj.at_scale(1.0)
     centre_w = transform_points(T_wm, obj.centre_m[None])[0]
     dirs = np.array([centre_w - c.centre for c in views.cameras])
     dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
     bias = boundary_bias_grads(ev.silhouettes, views.targets, views.totals)
+    factor = spread_factor(refit_ratio(obj, T_wm, ev, last, optimizer))
     u = pose_uncertainty(ev.gn, ev.terms.grad, ev.terms.gn, ev.weights, ev.value, len(ev.silhouettes.band),
-                         T_wm[:3, :3], bias, dirs)
-    return with_turn_profiles(obj, T_wm, u, ev.weights, sigma_px)
+                         T_wm[:3, :3], bias, dirs, spread_factor=factor)
+    return with_turn_profiles(obj, T_wm, u, ev.weights, last.sigma)
 
 
 def _seed(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,
@@ -386,6 +391,9 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
     * **Orbits.** When the runner-up is competitive and a 1/n turn away, the rest of that turn's
       orbit is scored by full-resolution hard IoU (a gear whose key only shows at full
       resolution) and a clearly better one is polished.
+    * **Near turns.** The best's small turns about the mesh's principal axes are scored at 1/4
+      resolution and a clearly better one is polished: a local minimum a few tens of degrees from
+      the right one (a plain gear half a tooth off) that descent cannot leave.
     * **Weak turns.** From a given pose, the best's turns about its weakly observed axes are
       scored at 1/4 resolution and a clearly better one is polished; how much worse the best
       turn fits is returned (``turn_gap``; ``None`` when none were tried).
@@ -406,19 +414,27 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
                 final = _with_candidate(obj, final, best, cands[int(np.argmax(ious))], Stage.ORBIT, levels[-1], opts,
                                         progress)
                 standing = _rank(final, others, mesh.centre, opts)
+    if opts.disambiguation.near_turns:
+        best = standing.ranked[0]
+        own, scores, cands = turn_scores(obj.pyramid.with_faces(opts.detail.coarse), scene, best.T_final,
+                                         list(mesh.principal_axes), mesh.centre, opts.disambiguation.near_turns)
+        k = int(np.argmax(scores))
+        if scores[k] > own + opts.disambiguation.near_margin:
+            final = _with_candidate(obj, final, best, cands[k], Stage.NEAR_TURN, levels[-1], opts, progress)
+            standing = _rank(final, others, mesh.centre, opts)
     best = final[0]
-    ev, uncertainty = _final_state(obj, best.hypothesis, best.weights, levels)
+    ev, uncertainty = _final_state(obj, best.hypothesis, best.weights, levels, opts.optimizer)
     turn_gap = None
     if given_pose and opts.disambiguation.weak_turns and uncertainty.weak_turn_axes:
-        own, scores, cands = weak_turn_scores(obj.pyramid.with_faces(opts.detail.coarse), scene, best.hypothesis.T_final,
-                                              uncertainty.weak_turn_axes, mesh.centre, opts.disambiguation.weak_turns)
+        own, scores, cands = turn_scores(obj.pyramid.with_faces(opts.detail.coarse), scene, best.hypothesis.T_final,
+                                         uncertainty.weak_turn_axes, mesh.centre, opts.disambiguation.weak_turns)
         k = int(np.argmax(scores))
         turn_gap = own - float(scores[k])
         if scores[k] > own + opts.disambiguation.margin:
             final = _with_candidate(obj, final, best.hypothesis, cands[k], Stage.WEAK_TURN, levels[-1], opts, progress)
             standing = _rank(final, others, mesh.centre, opts)
             if final[0] is not best:
-                ev, uncertainty = _final_state(obj, final[0].hypothesis, final[0].weights, levels)
+                ev, uncertainty = _final_state(obj, final[0].hypothesis, final[0].weights, levels, opts.optimizer)
     return final, standing, ev, uncertainty, turn_gap
 
 
@@ -452,7 +468,8 @@ def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best:
         return best, ev, None, hold
     near = Hypothesis(anchor, T_near, near_loss, float(np.mean(ev_near.terms.iou)), Stage.FINAL,
                       tuple(zip(levels, traces)))
-    return Finalist(near, ev_near.weights), ev_near, final_uncertainty(obj, ev_near, T_near, opts.schedule[-1].sigma), hold
+    uncertainty = final_uncertainty(obj, ev_near, T_near, opts.schedule[-1], opts.optimizer)
+    return Finalist(near, ev_near.weights), ev_near, uncertainty, hold
 
 
 def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: RefineOptions | None = None,

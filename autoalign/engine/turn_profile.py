@@ -38,7 +38,7 @@ PROFILE_DEG = (0.75, 1.5, 3.0, 6.0, 12.0, 24.0)
 """The turns (degrees, each both ways) the loss is evaluated at: doubling from the weak-turn limit's
 sigma (:data:`~autoalign.engine.uncertainty.WEAK_DEG` = 1 deg; a parabola through three samples
 finds a minimum between them to a fraction of their spacing) to where another
-solution, not a sigma, begins (the weak-turn search, :func:`~autoalign.engine.hypotheses.weak_turn_scores`,
+solution, not a sigma, begins (the weak-turn search, :func:`~autoalign.engine.hypotheses.turn_scores`,
 tries 30 deg and beyond)."""
 
 

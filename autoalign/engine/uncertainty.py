@@ -48,13 +48,18 @@ WEAK_MM = 1.0
 WEAK_RATIO = 5.0
 """... or either whose sigma is this many times that of the best observed direction of its kind
 (a flashlight's roll about its axis: 0.3-0.4 degrees against 0.03 about the other axes)."""
-BOUNDARY_BIAS_PX = 1.0
-"""The prior sigma (px, at the images' resolution) of a shift every mask's outline shares. Measured:
-the SAM masks of the real LM-O scenes that fit (IoU >= 0.8) are shifted, per object over its views,
-by -1.8 to +0.35 px (RMS 0.8 px, from ``quality.json``'s areas). On the 200 synthetic instances of
-``experiments/results/uncertainty_calibration.md`` (per-view outline errors of up to 2 px), 1 px
-puts 94% of the per-axis errors within 3 sigma with a median |error| / sigma of 0.80 (a Gaussian's:
-99.7%, 0.67); 2 px 96% and 0.49 (inflated); none, 86% and 1.40."""
+BOUNDARY_BIAS_PX = 1.2
+"""The prior sigma (px, at the images' resolution) of a shift every mask's outline shares. Measured
+on the real SAM masks of the LM-O dev scenes (``python -m autoalign.experiments.studies.sam_mask_rates``):
+per view, the median distance of the mask's outline outside the labels' ray-cast silhouette (masks
+on the object only, occlusion edges left out); per object, the median over its views is the shift
+its masks share: RMS 1.2 px over 16 objects, from -3 to +1 px. (An earlier estimate from the masks'
+areas, 0.8 px, counted only masks with IoU >= 0.8, which leaves out the tight masks of small
+objects: a 3 px shift costs a 60 px wide ape 0.2 of IoU.) On the 200 synthetic instances of
+``experiments/results/uncertainty_calibration.md`` (per-view outline errors of up to 2 px) the
+prior's size was weighed at the sandwich: 0 / 1 / 1.5 / 2 px put 86% / 94% / 95% / 96% of the
+per-axis errors within 3 sigma with medians |error| / sigma of 1.40 / 0.80 / 0.61 / 0.49 (a
+Gaussian's: 99.7%, 0.67)."""
 _AXES = "xyz"
 
 
@@ -88,6 +93,9 @@ class Uncertainty:
         sigma_across_mm: the largest position sigma across it (mm).
         turn_floors: the weakly observed turns whose variance their loss profile raised (included
             in ``covariance``).
+        spread_factor: the factor the views' spread was scaled by, where polishes with views left
+            out moved the pose farther than its Newton steps (:mod:`autoalign.engine.refit_spread`;
+            1: not scaled).
     """
 
     covariance: NDArray[np.float64]
@@ -102,6 +110,7 @@ class Uncertainty:
     sigma_ray_mm: float | None = None
     sigma_across_mm: float | None = None
     turn_floors: list[TurnFloor] = field(default_factory=list)
+    spread_factor: float = 1.0
 
 
 def _into_model(R_wm: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -150,7 +159,7 @@ def _weak(cov_m: NDArray[np.float64], weak_mm: float = WEAK_MM, weak_deg: float 
 def pose_uncertainty(H: NDArray[np.float64], view_grads: NDArray[np.float64], view_gn: NDArray[np.float64],
                      weights: NDArray[np.float64], value: float, n_band: int, R_wm: NDArray[np.float64],
                      bias_grads: NDArray[np.float64] | None = None, view_dirs_w: NDArray[np.float64] | None = None,
-                     bias_px: float = BOUNDARY_BIAS_PX) -> Uncertainty:
+                     bias_px: float = BOUNDARY_BIAS_PX, spread_factor: float = 1.0) -> Uncertainty:
     """The uncertainty of a converged pose (see the module doc).
 
     Args:
@@ -166,14 +175,16 @@ def pose_uncertainty(H: NDArray[np.float64], view_grads: NDArray[np.float64], vi
             target's outline (:func:`~autoalign.losses.silhouette.boundary_bias_grads`); ``None``: not measured.
         view_dirs_w: (V, 3) unit directions from each camera to the object centre (world).
         bias_px: the prior sigma of the shared outline shift (px).
+        spread_factor: the views' spread is scaled by it (:mod:`autoalign.engine.refit_spread`).
     """
     H_inv = np.linalg.pinv(H, rcond=1e-12, hermitian=True)
     w = np.asarray(weights, dtype=np.float64)[:, None]
     shift_w = np.zeros(6) if bias_grads is None else -H_inv @ (w * bias_grads).sum(axis=0)
     every = np.arange(6)
     spread = jackknife(H_inv, [(every, wv * Hv) for wv, Hv in zip(w[:, 0], view_gn)], view_grads * w)
-    return uncertainty_of(spread, H_inv * (2.0 * value / max(n_band - 6, 1)), R_wm,
-                          shift_w, median_view_direction(view_dirs_w, w[:, 0]), bias_px)
+    u = uncertainty_of(spread_factor * spread, H_inv * (2.0 * value / max(n_band - 6, 1)), R_wm,
+                       shift_w, median_view_direction(view_dirs_w, w[:, 0]), bias_px)
+    return replace(u, spread_factor=float(spread_factor))
 
 
 def median_view_direction(view_dirs_w: NDArray[np.float64] | None,
@@ -270,6 +281,15 @@ def with_covariance(u: Uncertainty, cov_m: NDArray[np.float64]) -> Uncertainty:
     along, across = _ray_sigmas(cov_m, u.view_dir_m) if u.view_dir_m is not None else (None, None)
     return replace(u, covariance=cov_m, sigma_mm=s_mm, sigma_deg=s_deg, weak=[t for t, _ in _weak(cov_m)],
                    sigma_ray_mm=along, sigma_across_mm=across)
+
+
+def with_spread_factor(u: Uncertainty, factor: float) -> Uncertainty:
+    """``u``, whose covariance is the views' spread alone (no outline-shift prior yet), with it
+    scaled by ``factor`` (:mod:`autoalign.engine.refit_spread`) and its weakly observed turns
+    found again."""
+    cov = factor * u.covariance
+    return replace(with_covariance(u, cov), weak_turn_axes=[v for t, v in _weak(cov) if t.startswith("turn")],
+                   spread_factor=float(factor))
 
 
 def with_turn_floors(u: Uncertainty, floors: list[TurnFloor]) -> Uncertainty:

@@ -110,9 +110,11 @@ def uncertainty_record(u: Uncertainty | None) -> dict[str, Any] | None:
             "ray": "the median view's direction (camera to object centre) in the model's axes",
             "weakly_observed": list(u.weak), "covariance": u.covariance,
             "covariance_of": "twist (v mm, w rad) in the model's axes, about the model centre; jackknife over "
-                             "views (each left out in turn, one Gauss-Newton step) plus the prior on a shift of "
-                             f"every mask's outline ({BOUNDARY_BIAS_PX:g} px), weakly observed turns raised to "
-                             "the spread of their loss profile's minimum over resampled views",
+                             "views (each left out in turn, one Gauss-Newton step), scaled by views_spread_factor "
+                             "where polishes with a fifth of the views left out moved farther, plus the prior on a "
+                             f"shift of every mask's outline ({BOUNDARY_BIAS_PX:g} px), weakly observed turns "
+                             "raised to the spread of their loss profile's minimum over resampled views",
+            "views_spread_factor": u.spread_factor,
             "outline_shift_per_px": u.bias_shift,
             "turn_profiles": [{"axis_m": f.axis_m, "sigma_deg": float(np.degrees(np.sqrt(f.variance)))}
                               for f in u.turn_floors],

@@ -34,11 +34,11 @@ from typing import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.engine.hypotheses import weak_turn_scores
+from autoalign.engine.hypotheses import turn_scores
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult, refine
 from autoalign.engine.seed_region import SEED_RADIUS
-from autoalign.engine.uncertainty import with_outline_shift, with_turn_floors
+from autoalign.engine.uncertainty import with_outline_shift, with_spread_factor, with_turn_floors
 from autoalign.geometry.se3 import pose_change, symmetric_pose_change
 from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
@@ -154,12 +154,13 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
     for k, r in enumerate(alone):
         alone_unc = r.result.uncertainty
         unc = joint.uncertainties[k] if alone_unc is None else with_turn_floors(with_outline_shift(
-            joint.uncertainties[k], alone_unc.bias_shift, alone_unc.view_dir_m), alone_unc.turn_floors)
+            with_spread_factor(joint.uncertainties[k], alone_unc.spread_factor), alone_unc.bias_shift,
+            alone_unc.view_dir_m), alone_unc.turn_floors)
         gap = None
         if unc.weak_turn_axes and opts.disambiguation.weak_turns:  # the joint system's weak turns, tried at its pose
-            own, scores, _ = weak_turn_scores(pyramids[k].with_faces(opts.detail.coarse), found.scenes[k],
-                                              joint.poses[k], unc.weak_turn_axes, pyramids[k].mesh.centre,
-                                              opts.disambiguation.weak_turns)
+            own, scores, _ = turn_scores(pyramids[k].with_faces(opts.detail.coarse), found.scenes[k],
+                                         joint.poses[k], unc.weak_turn_axes, pyramids[k].mesh.centre,
+                                         opts.disambiguation.weak_turns)
             gap = own - float(scores.max())
         depth = None if joint.evaluation.depth is None else joint.evaluation.depth[k]
         iou = joint.evaluation.hard_iou(k)

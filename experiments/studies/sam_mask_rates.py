@@ -3,6 +3,11 @@ visible silhouette (the dataset's labels ray-cast with open3d, every annotated o
 that its SAM mask covers, and the share of the mask that lies off it. The synthetic scenes of the
 photo study (:mod:`autoalign.experiments.studies.photo_evidence`) cut their masks at these rates.
 
+Also how far each mask's outline lies outside the silhouette's (px, the median over its outline
+pixels; masks on the object only, IoU >= 0.5), and per object the median over its views: the shift
+every mask of an object shares, which the covariance's prior
+(:data:`~autoalign.engine.uncertainty.BOUNDARY_BIAS_PX`) stands for.
+
 ``python -m autoalign.experiments.studies.sam_mask_rates [--data ../shared/real/lmo_dev]``
 """
 
@@ -13,7 +18,9 @@ import json
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from autoalign.experiments import RESULTS
 from autoalign.experiments.result_files import write_results
@@ -25,9 +32,37 @@ from autoalign.geometry.se3 import invert, make_pose
 from autoalign.io.bop import read_cameras, read_mask
 
 
+ON_OBJECT_IOU = 0.5
+"""A mask whose IoU with the silhouette is below this is on another object, or misses most of
+this one: its outline's offset is not a shift of this object's outline."""
+OCCLUSION_PX = 2
+"""Outline pixels this close to another object's visible pixels (or the image's border) are left
+out: where an object hides this one, the two outlines meet and either mask may own the edge."""
+_NEAR = np.ones((2 * OCCLUSION_PX + 1, 2 * OCCLUSION_PX + 1), np.uint8)
+
+
+def outline_offset(mask: NDArray[np.bool_], visible: NDArray[np.bool_], others: NDArray[np.bool_]) -> float:
+    """The median signed distance (px, > 0: outside) of ``mask``'s outline from the outline of the
+    visible silhouette ``visible``, over ``mask``'s outline pixels away from ``others`` (the other
+    objects' visible pixels) and the image's border; NaN for fewer than 20 such pixels. Exact
+    Euclidean distances between pixel centres, the outline half a pixel beyond its last pixel: a
+    mask equal to the silhouette gives 0, one grown by a pixel 1."""
+    vis = visible.astype(np.uint8)
+    d_out = cv2.distanceTransform(1 - vis, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    d_in = cv2.distanceTransform(vis, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    signed = np.where(visible, 1.0 - d_in, d_out)  # at the mask's last pixel: where its outline lies
+    m = mask.astype(np.uint8)
+    edge = (m - cv2.erode(m, np.ones((3, 3), np.uint8))) > 0
+    edge &= cv2.dilate(others.astype(np.uint8), _NEAR) == 0
+    b = OCCLUSION_PX
+    edge[:b], edge[-b:], edge[:, :b], edge[:, -b:] = False, False, False, False
+    return float(np.median(signed[edge])) if edge.sum() >= 20 else float("nan")
+
+
 def scene_rates(scene: Path) -> list[dict]:
     """One row per (image, instance) with a label: ``coverage`` (mask within the visible
-    silhouette / silhouette), ``off`` (mask outside it / mask; NaN without a mask)."""
+    silhouette / silhouette), ``off`` (mask outside it / mask; NaN without a mask), ``outline_px``
+    (:func:`outline_offset`; NaN without a mask on the object)."""
     gt = json.loads((scene / "scene_gt.json").read_text())
     cams = read_cameras(scene)
     meshes: dict[int, object] = {}
@@ -50,10 +85,36 @@ def scene_rates(scene: Path) -> list[dict]:
             area = int(vis.sum())
             if area < 50:
                 continue
+            iou = (mask & vis).sum() / max((mask | vis).sum(), 1)
+            others = np.any([v for j, v in enumerate(visible) if j != k], axis=0) if len(visible) > 1 else np.zeros_like(vis)
             rows.append({"scene": scene.name, "image": int(im), "obj_id": o, "area_px": area,
                          "coverage": float((mask & vis).sum() / area),
-                         "off": float((mask & ~vis).sum() / mask.sum()) if mask.any() else float("nan")})
+                         "off": float((mask & ~vis).sum() / mask.sum()) if mask.any() else float("nan"),
+                         "outline_px": outline_offset(mask, vis, others) if iou >= ON_OBJECT_IOU else float("nan")})
     return rows
+
+
+def shared_shift_table(rows: list[dict]) -> list[str]:
+    """Per scene and object, the median of its views' outline offsets (the shift its masks share)
+    and their spread, and over all of them the RMS and range."""
+    lines = ["", "How far the masks' outlines lie outside the silhouettes' (px; per view the median over the mask's "
+             f"outline pixels, those within {OCCLUSION_PX} px of another object or the border left out; masks with "
+             f"IoU >= {ON_OBJECT_IOU:g} only). Per object, the median over its views is the shift its masks share.", "",
+             "| scene | object | views | shared shift px (median) | views' quartiles px |", "|---|---|---|---|---|"]
+    shared = []
+    for scene in sorted({r["scene"] for r in rows}):
+        for o in sorted({r["obj_id"] for r in rows if r["scene"] == scene}):
+            v = np.array([r["outline_px"] for r in rows if r["scene"] == scene and r["obj_id"] == o])
+            v = v[np.isfinite(v)]
+            if len(v) < 3:
+                continue
+            shared.append(float(np.median(v)))
+            q1, q3 = np.percentile(v, [25, 75])
+            lines.append(f"| {scene} | {o} | {len(v)} | {shared[-1]:+.2f} | {q1:+.2f} .. {q3:+.2f} |")
+    s = np.array(shared)
+    lines += ["", f"Shared shift over the {len(s)} (scene, object) pairs: RMS {np.sqrt(np.mean(s ** 2)):.2f} px, "
+              f"from {s.min():+.2f} to {s.max():+.2f} px."]
+    return lines
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -85,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
         f = f[np.isfinite(f)]
         lines.append(f"| {o} | {len(c)} | {np.median(c):.2f} | {np.mean(c < 0.7):.0%} | "
                      f"{np.median(f) if len(f) else float('nan'):.2f} | {np.mean(f > 0.5) if len(f) else float('nan'):.0%} |")
+    lines += shared_shift_table(rows)
     write_results("sam_mask_rates", rows, lines, a.out)
     print("\n".join(lines))
     return 0

@@ -1,0 +1,76 @@
+"""How far the views really move the pose: the jackknife's Newton steps checked against refits.
+
+The views' spread (:func:`~autoalign.engine.uncertainty.jackknife`) takes one Newton step per view
+left out, with the other views' robust weights held. On real masks that can be far too narrow: on
+the real LM-O ape (15 views, SAM masks of IoU 0.3-0.8) a polish with one view left out moved the
+pose 6-16 times farther than its Newton step (with the weights recomputed, as every polish does,
+the pose slides where the masks disagree), and the two halves of its views ended 5.4 mm apart with
+sigmas of 0.2-0.5 mm. Without the robust weights the steps and the polishes agreed to within 1.5x.
+
+So the views are split into :data:`GROUPS` interleaved groups; the pose is polished at
+:data:`REFIT_SCALE` of the images' resolution with every view, then from there with each group left
+out; each move is set against the Newton step of the same deletion, both measured by the weighted
+Gauss-Newton matrix ``H`` (the information they carry). Where the polishes moved farther, the
+ratio of the summed squares is the factor the views' spread (a variance) is scaled by
+(:attr:`~autoalign.engine.uncertainty.Uncertainty.spread_factor`); never below 1, since a polish
+that stops within its tolerance moves by nothing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.engine.objective import Evaluation, Level, SilhouetteObjective
+from autoalign.engine.schedule import run_schedule
+from autoalign.geometry.se3 import so3_log
+
+GROUPS = 5
+"""Interleaved groups of views left out in turn: five polishes (each without a fifth of the views).
+A scene with fewer than two views per group is not checked."""
+REFIT_SCALE = 0.5
+"""The polishes' resolution (of the images'): a quarter of a full-resolution polish's cost. On the
+LM-O ape's halves the ratio at 1/2 was 19-55 against 73-150 at full resolution; both put the
+halves' disagreement within 3 combined sigmas on 5-6 of its 6 axes (1-2 before)."""
+
+
+def _move(T_from: NDArray[np.float64], T_to: NDArray[np.float64], centre_m: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The world twist ``(v [mm], w [rad])`` about the object's centre from ``T_from`` to ``T_to``
+    (the frame of the Gauss-Newton matrix)."""
+    c0 = T_from[:3, :3] @ centre_m + T_from[:3, 3]
+    c1 = T_to[:3, :3] @ centre_m + T_to[:3, 3]
+    return np.r_[c1 - c0, so3_log(T_to[:3, :3] @ T_from[:3, :3].T)]
+
+
+def refit_ratio(obj: SilhouetteObjective, T_wm: NDArray[np.float64], ev: Evaluation, last: Level,
+                optimizer: str) -> float | None:
+    """``sum_g a_g^T H a_g / sum_g l_g^T H l_g`` over the groups ``g`` (module doc): ``a_g`` the
+    polish's move with group ``g`` left out, ``l_g`` its Newton step ``(H - H_g)^-1 g_g`` from the
+    full-resolution evaluation ``ev`` at ``T_wm`` (its weights held); the polishes at
+    :data:`REFIT_SCALE` with ``last``'s blur and iterations. ``None`` with too few views."""
+    n = len(obj.scene)
+    if n < 2 * GROUPS:
+        return None
+    level = replace(last, scale=REFIT_SCALE, max_views=None)
+    T0, _ = run_schedule(obj, T_wm, (level,), optimizer)
+    w = ev.weights
+    H = np.einsum("v,vij->ij", w, ev.terms.gn)
+    actual = linear = 0.0
+    for g in range(GROUPS):
+        out = np.arange(n) % GROUPS == g
+        sub = SilhouetteObjective(obj.pyramid, obj.scene.subset(list(np.flatnonzero(~out))), obj.loss_name,
+                                  obj.robust, obj.detail, obj.depth)
+        Tg, _ = run_schedule(sub, T0, (level,), optimizer)
+        a = _move(T0, Tg, obj.centre_m)
+        H_g = np.einsum("v,vij->ij", w[out], ev.terms.gn[out])
+        step = np.linalg.lstsq(H - H_g, (w[out, None] * ev.terms.grad[out]).sum(axis=0), rcond=1e-12)[0]
+        actual += float(a @ H @ a)
+        linear += float(step @ H @ step)
+    return actual / linear if linear > 0.0 else None
+
+
+def spread_factor(ratio: float | None) -> float:
+    """The factor the views' spread is scaled by: the refits' ratio where it is above 1, else 1."""
+    return 1.0 if ratio is None else max(1.0, float(ratio))
