@@ -150,24 +150,22 @@ def table(rows: list[dict], scenes: int) -> list[str]:
 
 
 def _eroded_copy(data: Path, out: Path) -> Path:
-    """``data``'s cameras, photos and models with every ``mask_visib`` eroded as the depth study's
-    (:func:`~autoalign.experiments.studies.rgbd_depth.degraded`) and no ``depth/``: the folder a
-    user would give ``autoalign refine``."""
+    """``data``'s cameras, photos and models with every ``mask_visib``
+    :func:`~autoalign.experiments.studies.rgbd_depth.eroded` and no ``depth/``: the folder a user
+    would give ``autoalign refine``."""
     import shutil
 
     import cv2
 
-    from autoalign.experiments.studies.rgbd_depth import ERODE_PX
+    from autoalign.experiments.studies.rgbd_depth import eroded
 
-    kernel = np.ones((2 * ERODE_PX + 1, 2 * ERODE_PX + 1), np.uint8)
     for name in ("scene_camera.json", "scene_gt.json"):
         shutil.copy(data / name, out / name)
     for name in ("rgb", "models"):
         shutil.copytree(data / name, out / name)
     (out / "mask_visib").mkdir()
     for f in sorted((data / "mask_visib").glob("*.png")):
-        m = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) > 127
-        cv2.imwrite(str(out / "mask_visib" / f.name), cv2.erode(m.astype(np.uint8), kernel) * 255)
+        cv2.imwrite(str(out / "mask_visib" / f.name), eroded(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) > 127) * 255)
     return out
 
 
