@@ -383,6 +383,21 @@ def _with_candidate(obj: SilhouetteObjective, final: list[Finalist], parent: Hyp
     return sorted(final + polished, key=lambda f: f.hypothesis.rank())
 
 
+def _with_best_turn(obj: SilhouetteObjective, scene: Scene, final: list[Finalist], parent: Hypothesis,
+                    axes_m: list[NDArray[np.float64]], angles_deg: tuple[float, ...], margin: float, stage: Stage,
+                    opts: RefineOptions, progress: Progress | None) -> tuple[list[Finalist], float]:
+    """``parent``'s turns about ``axes_m`` by ``angles_deg`` scored by hard IoU at 1/4 resolution
+    (:func:`~autoalign.engine.hypotheses.turn_scores`); the best, if it beats ``parent`` by more than
+    ``margin``, polished at the last level and added to ``final`` (best first). Returns the finalists
+    and how much better ``parent`` scored than its best turn (negative: the turn was better)."""
+    own, scores, cands = turn_scores(obj.pyramid.with_faces(opts.detail.coarse), scene, parent.T_final,
+                                     axes_m, obj.centre_m, angles_deg)
+    k = int(np.argmax(scores))
+    if scores[k] > own + margin:
+        final = _with_candidate(obj, final, parent, cands[k], stage, opts.schedule[-1], opts, progress)
+    return final, own - float(scores[k])
+
+
 def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: list[Finalist],
                   others: list[Hypothesis], given_pose: bool, opts: RefineOptions,
                   progress: Progress | None) -> tuple[list[Finalist], Standing, Evaluation, Uncertainty, float | None]:
@@ -415,23 +430,18 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
                                         progress)
                 standing = _rank(final, others, mesh.centre, opts)
     if opts.disambiguation.near_turns:
-        best = standing.ranked[0]
-        own, scores, cands = turn_scores(obj.pyramid.with_faces(opts.detail.coarse), scene, best.T_final,
-                                         list(mesh.principal_axes), mesh.centre, opts.disambiguation.near_turns)
-        k = int(np.argmax(scores))
-        if scores[k] > own + opts.disambiguation.near_margin:
-            final = _with_candidate(obj, final, best, cands[k], Stage.NEAR_TURN, levels[-1], opts, progress)
-            standing = _rank(final, others, mesh.centre, opts)
+        final, _ = _with_best_turn(obj, scene, final, standing.ranked[0], list(mesh.principal_axes),
+                                   opts.disambiguation.near_turns, opts.disambiguation.near_margin, Stage.NEAR_TURN,
+                                   opts, progress)
+        standing = _rank(final, others, mesh.centre, opts)
     best = final[0]
     ev, uncertainty = _final_state(obj, best.hypothesis, best.weights, levels, opts.optimizer)
     turn_gap = None
     if given_pose and opts.disambiguation.weak_turns and uncertainty.weak_turn_axes:
-        own, scores, cands = turn_scores(obj.pyramid.with_faces(opts.detail.coarse), scene, best.hypothesis.T_final,
-                                         uncertainty.weak_turn_axes, mesh.centre, opts.disambiguation.weak_turns)
-        k = int(np.argmax(scores))
-        turn_gap = own - float(scores[k])
-        if scores[k] > own + opts.disambiguation.margin:
-            final = _with_candidate(obj, final, best.hypothesis, cands[k], Stage.WEAK_TURN, levels[-1], opts, progress)
+        final, turn_gap = _with_best_turn(obj, scene, final, best.hypothesis, uncertainty.weak_turn_axes,
+                                          opts.disambiguation.weak_turns, opts.disambiguation.margin, Stage.WEAK_TURN,
+                                          opts, progress)
+        if turn_gap < -opts.disambiguation.margin:
             standing = _rank(final, others, mesh.centre, opts)
             if final[0] is not best:
                 ev, uncertainty = _final_state(obj, final[0].hypothesis, final[0].weights, levels, opts.optimizer)

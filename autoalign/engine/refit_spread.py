@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from autoalign.engine.objective import Evaluation, Level, SilhouetteObjective
 from autoalign.engine.schedule import run_schedule
+from autoalign.engine.uncertainty import deletion_step
 from autoalign.geometry.se3 import so3_log
 
 GROUPS = 5
@@ -47,7 +48,8 @@ def _move(T_from: NDArray[np.float64], T_to: NDArray[np.float64], centre_m: NDAr
 def refit_ratio(obj: SilhouetteObjective, T_wm: NDArray[np.float64], ev: Evaluation, last: Level,
                 optimizer: str) -> float | None:
     """``sum_g a_g^T H a_g / sum_g l_g^T H l_g`` over the groups ``g`` (module doc): ``a_g`` the
-    polish's move with group ``g`` left out, ``l_g`` its Newton step ``(H - H_g)^-1 g_g`` from the
+    polish's move with group ``g`` left out, ``l_g`` its Newton step ``(H - H_g)^-1 g_g``
+    (:func:`~autoalign.engine.uncertainty.deletion_step`, as the jackknife's) from the
     full-resolution evaluation ``ev`` at ``T_wm`` (its weights held); the polishes at
     :data:`REFIT_SCALE` with ``last``'s blur and iterations. ``None`` with too few views."""
     n = len(obj.scene)
@@ -56,7 +58,9 @@ def refit_ratio(obj: SilhouetteObjective, T_wm: NDArray[np.float64], ev: Evaluat
     level = replace(last, scale=REFIT_SCALE, max_views=None)
     T0, _ = run_schedule(obj, T_wm, (level,), optimizer)
     w = ev.weights
-    H = np.einsum("v,vij->ij", w, ev.terms.gn)
+    H = ev.gn
+    H_inv = np.linalg.pinv(H, rcond=1e-12, hermitian=True)
+    every = np.arange(6)
     actual = linear = 0.0
     for g in range(GROUPS):
         out = np.arange(n) % GROUPS == g
@@ -64,8 +68,8 @@ def refit_ratio(obj: SilhouetteObjective, T_wm: NDArray[np.float64], ev: Evaluat
                                   obj.robust, obj.detail, obj.depth)
         Tg, _ = run_schedule(sub, T0, (level,), optimizer)
         a = _move(T0, Tg, obj.centre_m)
-        H_g = np.einsum("v,vij->ij", w[out], ev.terms.gn[out])
-        step = np.linalg.lstsq(H - H_g, (w[out, None] * ev.terms.grad[out]).sum(axis=0), rcond=1e-12)[0]
+        step = deletion_step(H_inv, every, np.einsum("v,vij->ij", w[out], ev.terms.gn[out]),
+                             (w[out, None] * ev.terms.grad[out]).sum(axis=0))
         actual += float(a @ H @ a)
         linear += float(step @ H @ step)
     return actual / linear if linear > 0.0 else None

@@ -156,6 +156,11 @@ def _weak(cov_m: NDArray[np.float64], weak_mm: float = WEAK_MM, weak_deg: float 
     return out
 
 
+def _weak_turn_axes(spread_m: NDArray[np.float64]) -> list[NDArray[np.float64]]:
+    """The unit model-frame axes of the weakly observed turns of a views' spread (model frame)."""
+    return [u for t, u in _weak(spread_m) if t.startswith("turn")]
+
+
 def pose_uncertainty(H: NDArray[np.float64], view_grads: NDArray[np.float64], view_gn: NDArray[np.float64],
                      weights: NDArray[np.float64], value: float, n_band: int, R_wm: NDArray[np.float64],
                      bias_grads: NDArray[np.float64] | None = None, view_dirs_w: NDArray[np.float64] | None = None,
@@ -220,11 +225,19 @@ def jackknife(H_inv: NDArray[np.float64], cluster_H: list[tuple[NDArray[np.int64
     d = np.zeros((V, H_inv.shape[0]))
     for row, v in enumerate(used):
         idx, S = cluster_H[v]
-        A, B, g = H_inv[:, idx], H_inv[np.ix_(idx, idx)], cluster_grads[v, idx]
-        inner = np.linalg.lstsq(np.eye(len(idx)) - B @ S, B @ g, rcond=1e-9)[0]
-        d[row] = A @ (g + S @ inner)
+        d[row] = deletion_step(H_inv, idx, S, cluster_grads[v, idx])
     d -= d.mean(axis=0)
     return d.T @ d * ((V - 1) / V)
+
+
+def deletion_step(H_inv: NDArray[np.float64], idx: NDArray[np.int64], S: NDArray[np.float64],
+                  g: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The Newton step ``(H - H_d)^-1 g_d`` (n,) of the optimum when a part of the data is deleted:
+    its weighted part of ``H`` is the block ``S`` (k, k) over the unknowns ``idx`` (k,), its weighted
+    gradient ``g`` (k,) there; ``(H - H_d)^-1`` from ``H_inv`` by the Woodbury identity (a k x k solve)."""
+    A, B = H_inv[:, idx], H_inv[np.ix_(idx, idx)]
+    inner = np.linalg.lstsq(np.eye(len(idx)) - B @ S, B @ g, rcond=1e-9)[0]
+    return A @ (g + S @ inner)
 
 
 def sandwich(H_inv: NDArray[np.float64], cluster_grads: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -256,8 +269,7 @@ def uncertainty_of(cov_w: NDArray[np.float64], naive_w: NDArray[np.float64], R_w
     n_mm, n_deg = _sigmas(_to_model(naive_w, R_wm))
     # the turns the views' geometry barely fixes (what a nearly symmetric object can hide), before
     # the outline shift's prior, which inflates every direction it moves and hides the ratio
-    weak_turns = [u for t, u in _weak(noise) if t.startswith("turn")]
-    u = Uncertainty(noise, *_sigmas(noise), [], weak_turns, n_mm, n_deg)
+    u = Uncertainty(noise, *_sigmas(noise), [], _weak_turn_axes(noise), n_mm, n_deg)
     shift = np.zeros(6) if bias_shift_w is None else _into_model(R_wm) @ np.asarray(bias_shift_w, dtype=np.float64)
     d_m = None if view_dir_w is None else R_wm.T @ np.asarray(view_dir_w, dtype=np.float64)
     return with_outline_shift(u, shift, d_m, bias_px)
@@ -288,8 +300,7 @@ def with_spread_factor(u: Uncertainty, factor: float) -> Uncertainty:
     scaled by ``factor`` (:mod:`autoalign.engine.refit_spread`) and its weakly observed turns
     found again."""
     cov = factor * u.covariance
-    return replace(with_covariance(u, cov), weak_turn_axes=[v for t, v in _weak(cov) if t.startswith("turn")],
-                   spread_factor=float(factor))
+    return replace(with_covariance(u, cov), weak_turn_axes=_weak_turn_axes(cov), spread_factor=float(factor))
 
 
 def with_turn_floors(u: Uncertainty, floors: list[TurnFloor]) -> Uncertainty:
