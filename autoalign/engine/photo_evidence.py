@@ -22,10 +22,12 @@ from numpy.typing import NDArray
 from autoalign.engine.options import RefineOptions
 from autoalign.engine.schedule import polish
 from autoalign.engine.seeding import Click
+from autoalign.engine.uncertainty import with_outline_disagreement
 from autoalign.errors import AutoalignError
 from autoalign.geometry.se3 import pose_change
 from autoalign.io.bop import Scene
 from autoalign.losses.region import RegionOptions, region_target
+from autoalign.quality.outline import shared_outline_offset
 from autoalign.quality.overlap import view_ious
 from autoalign.rasterizers.pyramid import MeshPyramid
 
@@ -107,7 +109,12 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
     evidence = PhotoEvidence(evidence.band_px[keep], evidence.agreement[keep], evidence.edge_contrast[keep], rounds + 1)
     # the IoUs the report and the verdict read are with the instance's own masks where it has them
     compared = scene.subset(keep) if has_mask else targets.subset(keep)
-    iou_after = view_ious(rast.hard_masks(result.T_wm, compared.cameras), compared) if has_mask else result.iou_after
+    iou_after, unc = result.iou_after, result.uncertainty
+    if has_mask:
+        silhouettes = rast.hard_masks(result.T_wm, compared.cameras)
+        iou_after = view_ious(silhouettes, compared)
+        if unc is not None:  # the masks against the colours: how far apart they put the outline
+            unc = with_outline_disagreement(unc, shared_outline_offset(silhouettes, compared))
     return replace(result, T_init=T_seed, iou_before=view_ious(rast.hard_masks(T_seed, compared.cameras), compared),
-                   iou_after=iou_after,
+                   iou_after=iou_after, uncertainty=unc,
                    iterations=result.iterations + iterations, renders=result.renders + renders, photo=evidence)

@@ -24,6 +24,13 @@ At the optimum of the weighted least-squares silhouette loss, with the Gauss-New
   shift adds ``sigma_b^2 s s^T``. From one viewpoint ``s`` lies along the viewing ray: apparent
   size is all that fixes distance there, and a 4 px tight mask makes the object look several
   percent farther.
+* ``outline disagreement`` (with the photos; reported): where the masks' outlines lie ``d`` px
+  outside the silhouettes of a pose fitted with the photos' colours too, the two kinds of
+  evidence disagree by ``d`` about where the outline is, and the pose lies between them; the
+  shared shift's variance becomes ``sigma_b^2 + d^2`` (:func:`with_outline_disagreement`). On the
+  real YCB-Video frames with masks eroded by 4 px (``experiments/results/few_viewpoints.md``)
+  ``d`` is 3-5 px, and the mug, whose colour runs on into a red brick, ends 18 mm along the ray
+  at 1.3 sigma (3.5 with the prior alone); on LM-O's SAM masks ``d`` is 0 to 1 px.
 
 A weakly observed turn's variance is then raised to the spread its loss profile's minimum shows
 over resampled views (:mod:`autoalign.engine.turn_profile`): a nearly symmetric object's roll is
@@ -96,6 +103,8 @@ class Uncertainty:
         spread_factor: the factor the views' spread was scaled by, where polishes with views left
             out moved the pose farther than its Newton steps (:mod:`autoalign.engine.refit_spread`;
             1: not scaled).
+        outline_disagreement_px: how far the masks' outlines lie outside the silhouettes of a pose
+            fitted with the photos too (:func:`with_outline_disagreement`); ``None``: not measured.
     """
 
     covariance: NDArray[np.float64]
@@ -111,6 +120,7 @@ class Uncertainty:
     sigma_across_mm: float | None = None
     turn_floors: list[TurnFloor] = field(default_factory=list)
     spread_factor: float = 1.0
+    outline_disagreement_px: float | None = None
 
 
 def _into_model(R_wm: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -284,6 +294,21 @@ def with_outline_shift(u: Uncertainty, shift_m: NDArray[np.float64], view_dir_m:
     d_m = None if view_dir_m is None else np.asarray(view_dir_m, dtype=np.float64) / np.linalg.norm(view_dir_m)
     return with_covariance(replace(u, bias_shift=shift, view_dir_m=d_m),
                            u.covariance + bias_px ** 2 * np.outer(shift, shift))
+
+
+def with_outline_disagreement(u: Uncertainty, offset_px: float) -> Uncertainty:
+    """``u`` (with the outline prior) with the measured disagreement about where the outline lies
+    added to that prior: ``offset_px`` is the shift the masks' outlines share outside the
+    silhouettes of a pose fitted with the photos as well
+    (:func:`~autoalign.quality.outline.shared_outline_offset`). The masks and the colours then
+    disagree by that much, and the pose lies somewhere between the two: which one is right, the
+    fit cannot tell (a mask eroded by 4 px against a photo whose colour runs on into a neighbour of
+    the same colour), so the shared shift's variance becomes ``BOUNDARY_BIAS_PX^2 + offset_px^2``.
+    NaN (nothing to measure) leaves ``u`` as it is."""
+    if not np.isfinite(offset_px):
+        return u
+    cov = u.covariance + float(offset_px) ** 2 * np.outer(u.bias_shift, u.bias_shift)
+    return replace(with_covariance(u, cov), outline_disagreement_px=float(offset_px))
 
 
 def with_covariance(u: Uncertainty, cov_m: NDArray[np.float64]) -> Uncertainty:

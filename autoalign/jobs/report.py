@@ -112,10 +112,15 @@ def uncertainty_record(u: Uncertainty | None) -> dict[str, Any] | None:
             "covariance_of": "twist (v mm, w rad) in the model's axes, about the model centre; jackknife over "
                              "views (each left out in turn, one Gauss-Newton step), scaled by views_spread_factor "
                              "where polishes with a fifth of the views left out moved farther, plus the prior on a "
-                             f"shift of every mask's outline ({BOUNDARY_BIAS_PX:g} px), weakly observed turns "
+                             f"shift of every mask's outline ({BOUNDARY_BIAS_PX:g} px, and with the photos "
+                             "outline_disagreement_px on top: sqrt of the sum of squares), weakly observed turns "
                              "raised to the spread of their loss profile's minimum over resampled views",
             "views_spread_factor": u.spread_factor,
             "outline_shift_per_px": u.bias_shift,
+            "outline_disagreement_px": u.outline_disagreement_px,
+            "outline_disagreement": "how far the masks' outlines lie outside the silhouettes at this pose, fitted "
+                                    "with the photos too (px, median over the views whose mask is on the object; "
+                                    "null: not measured)",
             "turn_profiles": [{"axis_m": f.axis_m, "sigma_deg": float(np.degrees(np.sqrt(f.variance)))}
                               for f in u.turn_floors],
             "naive_sigma_mm": u.naive_sigma_mm, "naive_sigma_deg": u.naive_sigma_deg}

@@ -38,11 +38,13 @@ from autoalign.engine.hypotheses import turn_scores
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult, refine
 from autoalign.engine.seed_region import SEED_RADIUS
-from autoalign.engine.uncertainty import with_outline_shift, with_spread_factor, with_turn_floors
+from autoalign.engine.uncertainty import (with_outline_disagreement, with_outline_shift, with_spread_factor,
+                                         with_turn_floors)
 from autoalign.geometry.se3 import pose_change, symmetric_pose_change
 from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
 from autoalign.losses.region import RegionOptions
+from autoalign.quality.outline import shared_outline_offset
 from autoalign.quality.overlap import view_ious
 from autoalign.quality.verdict import Verdict, judge
 from autoalign.rasterizers.pyramid import MeshPyramid
@@ -166,8 +168,10 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
         iou = joint.evaluation.hard_iou(k)
         own_scene = given.scenes[k]
         if photo[k] is not None and own_scene.has_masks:  # with its own masks
-            iou = view_ious(pyramids[k].fine(opts.detail).hard_masks(joint.poses[k], found.scenes[k].cameras),
-                            replace(own_scene, cameras=found.scenes[k].cameras))
+            own = replace(own_scene, cameras=found.scenes[k].cameras)
+            silhouettes = pyramids[k].fine(opts.detail).hard_masks(joint.poses[k], own.cameras)
+            iou = view_ious(silhouettes, own)
+            unc = with_outline_disagreement(unc, shared_outline_offset(silhouettes, own))
         evidence = r.result.photo if photo[k] is None else replace(photo[k], rounds=r.result.photo.rounds)
         after.append(replace(r.result, T_wm=joint.poses[k], iou_after=iou, weights=joint.evaluation.weights[k],
                              uncertainty=unc, turn_gap=gap, depth=depth, terms=joint.evaluation.record(k),

@@ -18,9 +18,7 @@ import json
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
-from numpy.typing import NDArray
 
 from autoalign.experiments import RESULTS
 from autoalign.experiments.result_files import write_results
@@ -30,33 +28,7 @@ from autoalign.geometry.camera import Camera
 from autoalign.geometry.mesh import load_mesh
 from autoalign.geometry.se3 import invert, make_pose
 from autoalign.io.bop import read_cameras, read_mask
-
-
-ON_OBJECT_IOU = 0.5
-"""A mask whose IoU with the silhouette is below this is on another object, or misses most of
-this one: its outline's offset is not a shift of this object's outline."""
-OCCLUSION_PX = 2
-"""Outline pixels this close to another object's visible pixels (or the image's border) are left
-out: where an object hides this one, the two outlines meet and either mask may own the edge."""
-_NEAR = np.ones((2 * OCCLUSION_PX + 1, 2 * OCCLUSION_PX + 1), np.uint8)
-
-
-def outline_offset(mask: NDArray[np.bool_], visible: NDArray[np.bool_], others: NDArray[np.bool_]) -> float:
-    """The median signed distance (px, > 0: outside) of ``mask``'s outline from the outline of the
-    visible silhouette ``visible``, over ``mask``'s outline pixels away from ``others`` (the other
-    objects' visible pixels) and the image's border; NaN for fewer than 20 such pixels. Exact
-    Euclidean distances between pixel centres, the outline half a pixel beyond its last pixel: a
-    mask equal to the silhouette gives 0, one grown by a pixel 1."""
-    vis = visible.astype(np.uint8)
-    d_out = cv2.distanceTransform(1 - vis, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    d_in = cv2.distanceTransform(vis, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    signed = np.where(visible, 1.0 - d_in, d_out)  # at the mask's last pixel: where its outline lies
-    m = mask.astype(np.uint8)
-    edge = (m - cv2.erode(m, np.ones((3, 3), np.uint8))) > 0
-    edge &= cv2.dilate(others.astype(np.uint8), _NEAR) == 0
-    b = OCCLUSION_PX
-    edge[:b], edge[-b:], edge[:, :b], edge[:, -b:] = False, False, False, False
-    return float(np.median(signed[edge])) if edge.sum() >= 20 else float("nan")
+from autoalign.quality.outline import OCCLUSION_PX, ON_OBJECT_IOU, outline_offset
 
 
 def scene_rates(scene: Path) -> list[dict]:

@@ -1,0 +1,125 @@
+"""The masks' outline offset from a silhouette (``autoalign.quality.outline``), and the prior it widens."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from autoalign.engine.uncertainty import BOUNDARY_BIAS_PX, uncertainty_of, with_outline_disagreement
+from autoalign.geometry.camera import Camera
+from autoalign.io.bop import Scene
+from autoalign.experiments.studies.shared_data import YCBV_RGBD
+from autoalign.quality.outline import outline_offset, shared_outline_offset
+
+SHAPE = (240, 320)
+
+
+def disk(radius: int, centre: tuple[int, int] = (160, 120)) -> np.ndarray:
+    """A filled disk drawn by OpenCV (its own rasterisation, not ours)."""
+    img = np.zeros(SHAPE, np.uint8)
+    cv2.circle(img, centre, radius, 1, thickness=-1)
+    return img.astype(bool)
+
+
+@pytest.mark.parametrize("grown", [-4, -1, 0, 2, 5])
+def test_offset_of_concentric_disks_is_the_difference_of_their_radii(grown):
+    assert outline_offset(disk(40 + grown), disk(40)) == pytest.approx(grown, abs=0.5)
+
+
+def test_outline_pixels_next_to_another_object_do_not_count():
+    """Half the mask is grown by 6 px where another object's mask lies against it: those outline
+    pixels are left out, and the rest says 0."""
+    mask, sil = disk(40), disk(40)
+    mask[:, 160:] |= disk(46)[:, 160:]
+    others = np.zeros(SHAPE, bool)
+    others[:, 160:] = disk(60)[:, 160:] & ~disk(46)[:, 160:]
+    assert outline_offset(mask, sil) > 1.0
+    assert outline_offset(mask, sil, others) == pytest.approx(0.0, abs=0.5)
+
+
+def _scene(masks: list[np.ndarray], ignore: list[np.ndarray] | None = None) -> Scene:
+    cam = Camera.from_opencv(np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]]), np.eye(3), np.zeros(3),
+                             SHAPE[1], SHAPE[0])
+    return Scene([cam] * len(masks), [m.astype(np.float32) for m in masks], list(range(len(masks))), ignore=ignore)
+
+
+def test_shared_offset_is_the_median_over_the_views_on_the_object():
+    """Three masks 3 px tight, one 1 px loose, one on another object (IoU 0): the shared offset is
+    the tight ones' -3; the mask elsewhere is left out, not read as a huge shift."""
+    sil = disk(40)
+    masks = [disk(37), disk(37), disk(37), disk(41), disk(30, (40, 40))]
+    assert shared_outline_offset([sil] * 5, _scene(masks)) == pytest.approx(-3.0, abs=0.5)
+    assert np.isnan(shared_outline_offset([sil], _scene([disk(30, (40, 40))])))
+
+
+def test_disagreement_widens_the_outline_prior_along_its_shift():
+    """The shared shift's variance becomes prior^2 + offset^2 along the twist it moves the pose by,
+    and nothing else changes."""
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(6, 6))
+    cov = A @ A.T * 1e-3
+    shift_w = np.array([0.5, -0.2, 2.0, 0.0, 0.001, 0.0])
+    u = uncertainty_of(cov, cov, np.eye(3), shift_w, np.array([0.0, 0.0, 1.0]))
+    v = with_outline_disagreement(u, -4.0)
+    assert v.outline_disagreement_px == -4.0
+    np.testing.assert_allclose(v.covariance - u.covariance, 16.0 * np.outer(shift_w, shift_w), atol=1e-12)
+    np.testing.assert_allclose(v.covariance - cov, (BOUNDARY_BIAS_PX ** 2 + 16.0) * np.outer(shift_w, shift_w),
+                               atol=1e-12)
+    assert v.sigma_ray_mm ** 2 == pytest.approx(u.sigma_ray_mm ** 2 + 16.0 * 2.0 ** 2)
+    assert with_outline_disagreement(u, float("nan")) is u
+
+
+@pytest.mark.skipif(not YCBV_RGBD.is_dir(), reason=f"no real RGB-D scene at {YCBV_RGBD}")
+def test_few_viewpoints_masks_tight_against_the_photos_widen_the_sigma_along_the_ray(tmp_path):
+    """``autoalign refine --models`` on the YCB-Video frames (one viewpoint, the camera moves 5 mm)
+    with the depth left out and every mask eroded by 4 px, from starts 20 mm along each ray: the
+    masks lie 3-5 px inside the silhouettes fitted with the photos, refine.json says so, and every
+    label more than 3 mm / 2 deg off is not ``ok`` and within 3 sigma along its viewing ray (the mug,
+    whose colour runs on into the red brick, ends some 18 mm off: 3.5 sigma under the 1.2 px prior)."""
+    import json
+    import shutil
+    import subprocess
+    import sys
+
+    from autoalign.experiments.studies.metrics import Symmetries, pose_errors
+    from autoalign.geometry.se3 import apply_twist, make_pose, transform_points
+    from autoalign.io.models import ModelSet
+
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    for part in ("scene_camera.json", "scene_gt.json", "rgb", "mask_visib"):
+        (shutil.copytree if (YCBV_RGBD / part).is_dir() else shutil.copy)(YCBV_RGBD / part, scene / part)
+    for p in (scene / "mask_visib").glob("*.png"):
+        cv2.imwrite(str(p), cv2.erode(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE), np.ones((9, 9), np.uint8)))
+    models = ModelSet.read(YCBV_RGBD / "models")
+    gt = json.loads((YCBV_RGBD / "scene_gt.json").read_text())["1"]  # world = camera of image 1
+    truth, coarse = [], []
+    for e in gt:
+        T = make_pose(np.reshape(e["cam_R_m2c"], (3, 3)), np.asarray(e["cam_t_m2c"], dtype=np.float64))
+        c = transform_points(T, models.mesh(e["obj_id"]).centre[None])[0]
+        start = apply_twist(T, np.array([*(20.0 * c / np.linalg.norm(c)), *np.radians([4.0, -3.0, 3.0])]), c)
+        truth.append(T)
+        coarse.append({"obj_id": e["obj_id"], "cam_R_m2c": start[:3, :3].ravel().tolist(),
+                       "cam_t_m2c": start[:3, 3].tolist()})
+    (tmp_path / "init.json").write_text(json.dumps({"1": coarse}))
+    p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", str(scene), "--models",
+                        str(YCBV_RGBD / "models"), "--init", str(tmp_path / "init.json"), "--out", str(tmp_path / "out"),
+                        "--quiet"], capture_output=True, text=True, timeout=900)
+    assert p.returncode in (0, 3), p.stderr
+    report = json.loads((tmp_path / "out" / "refine.json").read_text())
+    far = 0
+    for inst in report["instances"]:
+        k, u = inst["instance"], inst["uncertainty"]
+        # the fit between the two: the masks 2 px or more inside it, never more than the 5 px they were eroded
+        assert -5.5 < u["outline_disagreement_px"] <= -2.0, (inst["obj_id"], u["outline_disagreement_px"])
+        centre = models.mesh(inst["obj_id"]).centre
+        T = np.asarray(inst["pose"]["T_wm"])
+        c = transform_points(truth[k], centre[None])[0]
+        along = float((transform_points(T, centre[None])[0] - c) @ c / np.linalg.norm(c))
+        e = pose_errors(T, truth[k], centre, None, Symmetries.from_info(models.info[inst["obj_id"]]))
+        if e.pos_err_mm > 3.0 or e.rot_err_deg > 2.0:
+            far += 1
+            assert inst["verdict"] != "ok", (inst["obj_id"], e)
+            assert abs(along) <= 3.0 * u["sigma_along_ray_mm"], (inst["obj_id"], along, u["sigma_along_ray_mm"])
+    assert far >= 1  # the mug, at least: the case the disagreement is for (not a test that cannot fail)
