@@ -481,7 +481,8 @@ def test_the_readme_counts_the_tests_that_need_the_shared_folder(tmp_path: Path)
     (tmp_path / "skip_marks.py").write_text(SKIP_MARKS_PLUGIN)
     env = {**environment(), "AUTOALIGN_SHARED": str(tmp_path / "absent"),
            "PYTHONPATH": os.pathsep.join([str(tmp_path), *filter(None, [os.environ.get("PYTHONPATH")])])}
-    run = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "skip_marks", *map(str, files)],
+    run = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-n", "0", "-p", "skip_marks",
+                          *map(str, files)],
                          cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
     counted: dict[str, int] = {}
