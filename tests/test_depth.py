@@ -189,42 +189,24 @@ def test_the_command_uses_the_scenes_depth_unless_told_off(tmp_path) -> None:
 
 
 @pytest.mark.skipif(not YCBV_RGBD.is_dir(), reason=f"no real RGB-D scene at {YCBV_RGBD}")
-def test_every_instance_of_a_scene_and_the_joint_stage_use_the_depth(tmp_path) -> None:
+def test_every_instance_of_a_scene_and_the_joint_stage_use_the_depth(tmp_path, refine_models_command) -> None:
     """``autoalign refine --models`` on the YCB-Video frames with eroded masks, every instance from a
     start 20 mm along its viewing ray: with depth the gelatin box and the foam brick end within 3 mm
     of the dataset's labels after the joint stage, and ``refine.json`` gives each instance's depth."""
-    import shutil
-    import subprocess
-    import sys
+    from autoalign.experiments.studies.rgbd_depth import eroded_folder, starts_along_rays
+    from autoalign.io.models import ModelSet
 
-    scene = tmp_path / "scene"
-    scene.mkdir()
-    for part in ("scene_camera.json", "scene_gt.json", "depth", "mask_visib"):
-        (shutil.copytree if (YCBV_RGBD / part).is_dir() else shutil.copy)(YCBV_RGBD / part, scene / part)
-    for p in (scene / "mask_visib").glob("*.png"):
-        cv2.imwrite(str(p), cv2.erode(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE), np.ones((9, 9), np.uint8)))
-    gt = json.loads((YCBV_RGBD / "scene_gt.json").read_text())["1"]
-    truth, coarse = [], []
-    for e in gt:
-        T = make_pose(np.reshape(e["cam_R_m2c"], (3, 3)), np.asarray(e["cam_t_m2c"], dtype=np.float64))
-        c = transform_points(T, load_mesh(YCBV_RGBD / "models" / f"obj_{e['obj_id']:06d}.ply").centre[None])[0]
-        start = apply_twist(T, np.array([*(20.0 * c / np.linalg.norm(c)), 0.0, 0.0, 0.0]), c)
-        truth.append(c)
-        coarse.append({"obj_id": e["obj_id"], "cam_R_m2c": start[:3, :3].ravel().tolist(),
-                       "cam_t_m2c": start[:3, 3].tolist()})
-    (tmp_path / "init.json").write_text(json.dumps({"1": coarse}))
-    p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", str(scene), "--models",
-                        str(YCBV_RGBD / "models"), "--init", str(tmp_path / "init.json"), "--out", str(tmp_path / "out"),
-                        "--quiet"], capture_output=True, text=True, timeout=900)
-    assert p.returncode in (0, 3), p.stderr
-    report = json.loads((tmp_path / "out" / "refine.json").read_text())
+    scene = eroded_folder(YCBV_RGBD, tmp_path / "scene", ("scene_camera.json", "scene_gt.json", "depth"))
+    models = ModelSet.read(YCBV_RGBD / "models")
+    labels, coarse = starts_along_rays(YCBV_RGBD, models, 20.0, np.zeros(3))
+    truth = [transform_points(T, models.mesh(e["obj_id"]).centre[None])[0] for T, e in zip(labels, coarse)]
+    report = refine_models_command(scene, YCBV_RGBD / "models", coarse)
     for inst in report["instances"]:
         k, obj = inst["instance"], inst["obj_id"]
         assert inst["depth"] is not None and min(inst["depth"]["used_px"]) > 300, inst["depth"]
         assert len(inst["terms"]["depth_share"]) == len(inst["image_ids"])
         if obj in (8, 21):
-            mesh = load_mesh(YCBV_RGBD / "models" / f"obj_{obj:06d}.ply")
-            found = transform_points(np.asarray(inst["pose"]["T_wm"]), mesh.centre[None])[0]
+            found = transform_points(np.asarray(inst["pose"]["T_wm"]), models.mesh(obj).centre[None])[0]
             assert np.linalg.norm(found - truth[k]) < 3.0, (obj, np.linalg.norm(found - truth[k]))
             assert inst["verdict"] != "failed", inst["reasons"]
 

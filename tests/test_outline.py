@@ -71,43 +71,21 @@ def test_disagreement_widens_the_outline_prior_along_its_shift():
 
 
 @pytest.mark.skipif(not YCBV_RGBD.is_dir(), reason=f"no real RGB-D scene at {YCBV_RGBD}")
-def test_few_viewpoints_masks_tight_against_the_photos_widen_the_sigma_along_the_ray(tmp_path):
+def test_few_viewpoints_masks_tight_against_the_photos_widen_the_sigma_along_the_ray(tmp_path, refine_models_command):
     """``autoalign refine --models`` on the YCB-Video frames (one viewpoint, the camera moves 5 mm)
     with the depth left out and every mask eroded by 4 px, from starts 20 mm along each ray: the
     masks lie 3-5 px inside the silhouettes fitted with the photos, refine.json says so, and every
     label more than 3 mm / 2 deg off is not ``ok`` and within 3 sigma along its viewing ray (the mug,
     whose colour runs on into the red brick, ends some 18 mm off: 3.5 sigma under the 1.2 px prior)."""
-    import json
-    import shutil
-    import subprocess
-    import sys
-
     from autoalign.experiments.studies.metrics import Symmetries, pose_errors
-    from autoalign.geometry.se3 import apply_twist, make_pose, transform_points
+    from autoalign.experiments.studies.rgbd_depth import eroded_folder, starts_along_rays
+    from autoalign.geometry.se3 import transform_points
     from autoalign.io.models import ModelSet
 
-    scene = tmp_path / "scene"
-    scene.mkdir()
-    for part in ("scene_camera.json", "scene_gt.json", "rgb", "mask_visib"):
-        (shutil.copytree if (YCBV_RGBD / part).is_dir() else shutil.copy)(YCBV_RGBD / part, scene / part)
-    for p in (scene / "mask_visib").glob("*.png"):
-        cv2.imwrite(str(p), cv2.erode(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE), np.ones((9, 9), np.uint8)))
+    scene = eroded_folder(YCBV_RGBD, tmp_path / "scene", ("scene_camera.json", "scene_gt.json", "rgb"))
     models = ModelSet.read(YCBV_RGBD / "models")
-    gt = json.loads((YCBV_RGBD / "scene_gt.json").read_text())["1"]  # world = camera of image 1
-    truth, coarse = [], []
-    for e in gt:
-        T = make_pose(np.reshape(e["cam_R_m2c"], (3, 3)), np.asarray(e["cam_t_m2c"], dtype=np.float64))
-        c = transform_points(T, models.mesh(e["obj_id"]).centre[None])[0]
-        start = apply_twist(T, np.array([*(20.0 * c / np.linalg.norm(c)), *np.radians([4.0, -3.0, 3.0])]), c)
-        truth.append(T)
-        coarse.append({"obj_id": e["obj_id"], "cam_R_m2c": start[:3, :3].ravel().tolist(),
-                       "cam_t_m2c": start[:3, 3].tolist()})
-    (tmp_path / "init.json").write_text(json.dumps({"1": coarse}))
-    p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", str(scene), "--models",
-                        str(YCBV_RGBD / "models"), "--init", str(tmp_path / "init.json"), "--out", str(tmp_path / "out"),
-                        "--quiet"], capture_output=True, text=True, timeout=900)
-    assert p.returncode in (0, 3), p.stderr
-    report = json.loads((tmp_path / "out" / "refine.json").read_text())
+    truth, coarse = starts_along_rays(YCBV_RGBD, models, 20.0, np.radians([4.0, -3.0, 3.0]))
+    report = refine_models_command(scene, YCBV_RGBD / "models", coarse)
     far = 0
     for inst in report["instances"]:
         k, u = inst["instance"], inst["uncertainty"]

@@ -46,6 +46,39 @@ def eroded(mask: np.ndarray) -> np.ndarray:
     return cv2.erode((np.asarray(mask) > 0.5).astype(np.uint8), np.ones((2 * ERODE_PX + 1, 2 * ERODE_PX + 1), np.uint8))
 
 
+def eroded_folder(data: Path, out: Path, parts: tuple[str, ...]) -> Path:
+    """``out`` made a copy of ``parts`` of the BOP scene folder ``data`` (files such as
+    ``scene_camera.json``, folders such as ``rgb``) with its ``mask_visib`` masks :func:`eroded`:
+    the folder a user with tight masks would give ``autoalign refine``."""
+    import shutil
+
+    out.mkdir(parents=True, exist_ok=True)
+    for name in parts:
+        (shutil.copytree if (data / name).is_dir() else shutil.copy)(data / name, out / name)
+    (out / "mask_visib").mkdir()
+    for f in sorted((data / "mask_visib").glob("*.png")):
+        cv2.imwrite(str(out / "mask_visib" / f.name), eroded(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) > 127) * 255)
+    return out
+
+
+def starts_along_rays(data: Path, models: ModelSet, along_mm: float, turn_rad: np.ndarray,
+                      image: str = "1") -> tuple[list[np.ndarray], list[dict]]:
+    """The labels of ``image`` in ``data``'s ``scene_gt.json`` (camera frame of that image, the
+    world of a scene whose camera there is the identity) and coarse starts from them: each object's
+    centre moved ``along_mm`` along its viewing ray and turned by the twist ``turn_rad`` (3,) about
+    it; returns the labels' poses and the starts as ``scene_gt`` entries (``--init``)."""
+    gt = json.loads((data / "scene_gt.json").read_text())[image]
+    truth, coarse = [], []
+    for e in gt:
+        T = make_pose(np.reshape(e["cam_R_m2c"], (3, 3)), np.asarray(e["cam_t_m2c"], dtype=np.float64))
+        c = transform_points(T, models.mesh(int(e["obj_id"])).centre[None])[0]
+        start = apply_twist(T, np.r_[along_mm * c / np.linalg.norm(c), np.asarray(turn_rad, dtype=np.float64)], c)
+        truth.append(T)
+        coarse.append({"obj_id": e["obj_id"], "cam_R_m2c": start[:3, :3].ravel().tolist(),
+                       "cam_t_m2c": start[:3, 3].tolist()})
+    return truth, coarse
+
+
 def degraded(scene: Scene, cut: bool) -> Scene:
     """The scene's masks :func:`eroded`; with ``cut``, every third one also loses the object's
     right half (from the median column of its pixels)."""

@@ -149,33 +149,13 @@ def table(rows: list[dict], scenes: int) -> list[str]:
     return lines
 
 
-def _eroded_copy(data: Path, out: Path) -> Path:
-    """``data``'s cameras, photos and models with every ``mask_visib``
-    :func:`~autoalign.experiments.studies.rgbd_depth.eroded` and no ``depth/``: the folder a user
-    would give ``autoalign refine``."""
-    import shutil
-
-    import cv2
-
-    from autoalign.experiments.studies.rgbd_depth import eroded
-
-    for name in ("scene_camera.json", "scene_gt.json"):
-        shutil.copy(data / name, out / name)
-    for name in ("rgb", "models"):
-        shutil.copytree(data / name, out / name)
-    (out / "mask_visib").mkdir()
-    for f in sorted((data / "mask_visib").glob("*.png")):
-        cv2.imwrite(str(out / "mask_visib" / f.name), eroded(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) > 127) * 255)
-    return out
-
-
 def few_viewpoints(data: Path) -> list[dict]:
     """The YCB-Video frames without depth, masks eroded (see the module doc), every object refined
     with the others as ``autoalign refine --models`` does (occlusion-aware: the foam brick hides a
     fifth of the mug): one row per object, evidence and start."""
     from dataclasses import replace
 
-    from autoalign.experiments.studies.rgbd_depth import STARTS
+    from autoalign.experiments.studies.rgbd_depth import STARTS, eroded_folder
     from autoalign.geometry.se3 import apply_twist, make_pose, pose_change, transform_points
     from autoalign.io.evidence import instance_scenes_with_photos
 
@@ -186,7 +166,7 @@ def few_viewpoints(data: Path) -> list[dict]:
     starts: list[dict[int, np.ndarray]] = [{} for _ in range(STARTS)]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        folder = _eroded_copy(data, Path(tmp))
+        folder = eroded_folder(data, Path(tmp), ("scene_camera.json", "scene_gt.json", "rgb", "models"))
         models = ModelSet.read(folder / "models")
         found = read_instance_scenes(folder, read_instances(folder))
         for k, T in truth.items():  # the depth study's starts: 20 mm along the ray, 10 deg about a random axis

@@ -1,0 +1,28 @@
+"""Fixtures shared by test files."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+
+@pytest.fixture
+def refine_models_command(tmp_path: Path) -> Callable[[Path, Path, list[dict]], dict[str, Any]]:
+    """Runs ``autoalign refine SCENE --models MODELS --init INIT`` (the coarse ``scene_gt`` entries
+    of image 1) as a user would, asserts it exited 0 or 3 (labels written, some flagged), and
+    returns its ``refine.json``."""
+    def run(scene: Path, models: Path, coarse: list[dict]) -> dict[str, Any]:
+        init, out = tmp_path / "init.json", tmp_path / "out"
+        init.write_text(json.dumps({"1": coarse}))
+        p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", str(scene), "--models", str(models),
+                            "--init", str(init), "--out", str(out), "--quiet"], capture_output=True, text=True,
+                           timeout=900)
+        assert p.returncode in (0, 3), p.stderr
+        return json.loads((out / "refine.json").read_text())
+    return run
