@@ -9,7 +9,7 @@ sigmas of 0.2-0.5 mm. Without the robust weights the steps and the polishes agre
 
 So the views are split into :data:`GROUPS` interleaved groups; the pose is polished at
 :data:`REFIT_SCALE` of the images' resolution with every view, then from there with each group left
-out; each move is set against the Newton step of the same deletion, both measured by the weighted
+out (run to their move, :data:`REFIT_FTOL`); each move is set against the Newton step of the same deletion, both measured by the weighted
 Gauss-Newton matrix ``H`` (the information they carry). Where the polishes moved farther, the
 ratio of the summed squares is the factor the views' spread (a variance) is scaled by
 (:attr:`~autoalign.engine.uncertainty.Uncertainty.spread_factor`); never below 1, since a polish
@@ -31,10 +31,21 @@ from autoalign.geometry.se3 import so3_log
 GROUPS = 5
 """Interleaved groups of views left out in turn: five polishes (each without a fifth of the views).
 A scene with fewer than two views per group is not checked."""
-REFIT_SCALE = 0.5
-"""The polishes' resolution (of the images'): a quarter of a full-resolution polish's cost. On the
-LM-O ape's halves the ratio at 1/2 was 19-55 against 73-150 at full resolution; both put the
-halves' disagreement within 3 combined sigmas on 5-6 of its 6 axes (1-2 before)."""
+REFIT_SCALE = 0.25
+"""The polishes' resolution (of the images'). On the LM-O ape's halves the ratio at 1/2 was 19-55
+against 73-150 at full resolution; both put the halves' disagreement within 3 combined sigmas on
+5-6 of its 6 axes (1-2 before). With the polishes run to their move (:data:`REFIT_FTOL`), 1/4
+gave factors like 1/2's on the LM-O halves of ``lmo_im0115_0389`` (4-130 against 1.3-50) at 0.6 of
+its cost."""
+REFIT_FTOL = 1e-4
+"""The polishes' ``ftol`` (:class:`~autoalign.engine.objective.Level`). A refit measures a move, and
+with a fifth of the views left out the optimum moves by a step whose predicted gain is a small
+fraction of the loss: at the level's own ``ftol`` (2e-3 at 1/2 resolution) Levenberg-Marquardt
+stopped before its first or second step, and the factor stayed 1 for 5 of the 8 halves of
+``lmo_im0115_0389`` (a glue half whose SAM masks are on another object in 78% of its views among
+them, 0.25 mm along the ray against halves 5.3 mm apart)."""
+REFIT_ITERS = 6
+"""At most this many iterations per polish (the cost's bound)."""
 
 
 def _move(T_from: NDArray[np.float64], T_to: NDArray[np.float64], centre_m: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -55,7 +66,7 @@ def refit_ratio(obj: SilhouetteObjective, T_wm: NDArray[np.float64], ev: Evaluat
     n = len(obj.scene)
     if n < 2 * GROUPS:
         return None
-    level = replace(last, scale=REFIT_SCALE, max_views=None)
+    level = replace(last, scale=REFIT_SCALE, max_views=None, ftol=REFIT_FTOL, max_iters=REFIT_ITERS)
     T0, _ = run_schedule(obj, T_wm, (level,), optimizer)
     w = ev.weights
     H = ev.gn
