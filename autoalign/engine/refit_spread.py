@@ -9,8 +9,9 @@ sigmas of 0.2-0.5 mm. Without the robust weights the steps and the polishes agre
 
 So the views are split into :data:`GROUPS` interleaved groups; the pose is polished at
 :data:`REFIT_SCALE` of the images' resolution with every view, then from there with each group left
-out (run to their move, :data:`REFIT_FTOL`); each move is set against the Newton step of the same deletion, both measured by the weighted
-Gauss-Newton matrix ``H`` (the information they carry). Where the polishes moved farther, the
+out, each polish run to its move (:data:`REFIT_FTOL`); each move is set against the Newton step of
+the same deletion, both measured by the weighted Gauss-Newton matrix ``H`` (the information they
+carry). Where the polishes moved farther, the
 ratio of the summed squares is the factor the views' spread (a variance) is scaled by
 (:attr:`~autoalign.engine.uncertainty.Uncertainty.spread_factor`); never below 1, since a polish
 that stops within its tolerance moves by nothing.
