@@ -211,9 +211,13 @@ def test_near_turns_leave_a_local_minimum_half_a_tooth_off(tmp_path) -> None:
     obj = found.instances[k].obj_id
     mesh, sym = models.mesh(obj), Symmetries.from_info(models.info[obj])
     seed = read_init_poses(tmp_path / "init_gt.json", found)[k]
-    stuck = autoalign.refine(found.scenes[k], mesh, seed, RefineOptions(disambiguation=DisambiguationOptions(near_turns=())))
+    # the weak turns (30-180 deg about a turn the views barely see) can find the teeth too, where the
+    # refits widen that turn's sigma past the weak limit: left out of both runs, so that the near
+    # turns are what is tested
+    stuck = autoalign.refine(found.scenes[k], mesh, seed,
+                             RefineOptions(disambiguation=DisambiguationOptions(near_turns=(), weak_turns=())))
     assert pose_errors(stuck.T_wm, truth[k], mesh.centre, None, sym).rot_err_deg > 10.0
-    res = autoalign.refine(found.scenes[k], mesh, seed)
+    res = autoalign.refine(found.scenes[k], mesh, seed, RefineOptions(disambiguation=DisambiguationOptions(weak_turns=())))
     e = pose_errors(res.T_wm, truth[k], mesh.centre, None, sym)
     assert e.pos_err_mm < 1.0 and e.rot_err_deg < 1.0, (e.pos_err_mm, e.rot_err_deg)
 
