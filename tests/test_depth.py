@@ -15,6 +15,7 @@ import pytest
 from autoalign.engine.refine import RefineOptions, refine
 from autoalign.experiments.scenes.procedural_models import procedural_models
 from autoalign.experiments.scenes.synthetic import default_K, make_scene, ring_cameras
+from autoalign.experiments.studies.rgbd_depth import eroded_folder, start_along_ray, starts_along_rays
 from autoalign.experiments.studies.shared_data import YCBV_RGBD
 from autoalign.geometry.mesh import load_mesh, mesh_from_trimesh
 from autoalign.geometry.se3 import (
@@ -131,7 +132,7 @@ def test_real_sensor_depth_pins_objects_the_masks_leave_far_along_the_ray() -> N
         T = make_pose(np.reshape(entry["cam_R_m2c"], (3, 3)), np.asarray(entry["cam_t_m2c"], dtype=np.float64))
         c = transform_points(T, mesh.centre[None])[0]
         axis = rng.normal(size=3)
-        start = apply_twist(T, np.array([*(20.0 * c / np.linalg.norm(c)), *(np.radians(10.0) * axis / np.linalg.norm(axis))]), c)
+        start = start_along_ray(T, mesh.centre, 20.0, np.radians(10.0) * axis / np.linalg.norm(axis))
         found = {}
         for name, opts in (("depth", RefineOptions()), ("masks", RefineOptions(depth=None))):
             res = refine(scene, mesh, start, opts)
@@ -160,7 +161,7 @@ def test_the_command_uses_the_scenes_depth_unless_told_off(tmp_path) -> None:
     T = make_pose(np.reshape(gt[k]["cam_R_m2c"], (3, 3)), np.asarray(gt[k]["cam_t_m2c"], dtype=np.float64))
     mesh = load_mesh(YCBV_RGBD / "models" / "obj_000021.ply")
     c = transform_points(T, mesh.centre[None])[0]
-    start = apply_twist(T, np.array([*(20.0 * c / np.linalg.norm(c)), *np.radians([6.0, -5.0, 5.0])]), c)
+    start = start_along_ray(T, mesh.centre, 20.0, np.radians([6.0, -5.0, 5.0]))
     init = tmp_path / "init.json"
     coarse = [dict(e) for e in gt]  # the instance's entry moved, at its index
     coarse[k].update(cam_R_m2c=start[:3, :3].ravel().tolist(), cam_t_m2c=start[:3, 3].tolist())
@@ -193,7 +194,6 @@ def test_every_instance_of_a_scene_and_the_joint_stage_use_the_depth(tmp_path, r
     """``autoalign refine --models`` on the YCB-Video frames with eroded masks, every instance from a
     start 20 mm along its viewing ray: with depth the gelatin box and the foam brick end within 3 mm
     of the dataset's labels after the joint stage, and ``refine.json`` gives each instance's depth."""
-    from autoalign.experiments.studies.rgbd_depth import eroded_folder, starts_along_rays
     from autoalign.io.models import ModelSet
 
     scene = eroded_folder(YCBV_RGBD, tmp_path / "scene", ("scene_camera.json", "scene_gt.json", "depth"))

@@ -217,7 +217,8 @@ def test_near_turns_leave_a_local_minimum_half_a_tooth_off(tmp_path) -> None:
     stuck = autoalign.refine(found.scenes[k], mesh, seed,
                              RefineOptions(disambiguation=DisambiguationOptions(near_turns=(), weak_turns=())))
     assert pose_errors(stuck.T_wm, truth[k], mesh.centre, None, sym).rot_err_deg > 10.0
-    res = autoalign.refine(found.scenes[k], mesh, seed, RefineOptions(disambiguation=DisambiguationOptions(weak_turns=())))
+    res = autoalign.refine(found.scenes[k], mesh, seed,
+                           RefineOptions(disambiguation=DisambiguationOptions(weak_turns=())))
     e = pose_errors(res.T_wm, truth[k], mesh.centre, None, sym)
     assert e.pos_err_mm < 1.0 and e.rot_err_deg < 1.0, (e.pos_err_mm, e.rot_err_deg)
 

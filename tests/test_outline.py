@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from autoalign.engine.uncertainty import BOUNDARY_BIAS_PX, uncertainty_of, with_outline_disagreement
+from autoalign.experiments.studies.shared_data import YCBV_RGBD
 from autoalign.geometry.camera import Camera
 from autoalign.io.bop import Scene
-from autoalign.experiments.studies.shared_data import YCBV_RGBD
 from autoalign.quality.outline import outline_offset, shared_outline_offset
 
 SHAPE = (240, 320)

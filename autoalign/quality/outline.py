@@ -30,7 +30,8 @@ MIN_OUTLINE_PX = 20
 _NEAR = np.ones((2 * OCCLUSION_PX + 1, 2 * OCCLUSION_PX + 1), np.uint8)
 
 
-def outline_offset(mask: NDArray[np.bool_], visible: NDArray[np.bool_], others: NDArray[np.bool_] | None = None) -> float:
+def outline_offset(mask: NDArray[np.bool_], visible: NDArray[np.bool_],
+                   others: NDArray[np.bool_] | None = None) -> float:
     """The median signed distance (px, > 0: outside) of ``mask``'s outline from the outline of the
     visible silhouette ``visible``, over ``mask``'s outline pixels away from ``others`` (the other
     objects' pixels; ``None``: none) and the image's border; NaN for fewer than

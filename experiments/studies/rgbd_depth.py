@@ -61,6 +61,14 @@ def eroded_folder(data: Path, out: Path, parts: tuple[str, ...]) -> Path:
     return out
 
 
+def start_along_ray(T: np.ndarray, centre_m: np.ndarray, along_mm: float, turn_rad: np.ndarray) -> np.ndarray:
+    """The pose ``T`` (camera frame of the image the start is for) with the object's centre
+    (``centre_m``, model frame) moved ``along_mm`` along its viewing ray and turned by the twist
+    ``turn_rad`` (3,) about it: the coarse starts of the YCB-Video studies and tests."""
+    c = transform_points(T, np.asarray(centre_m, dtype=np.float64)[None])[0]
+    return apply_twist(T, np.r_[along_mm * c / np.linalg.norm(c), np.asarray(turn_rad, dtype=np.float64)], c)
+
+
 def starts_along_rays(data: Path, models: ModelSet, along_mm: float, turn_rad: np.ndarray,
                       image: str = "1") -> tuple[list[np.ndarray], list[dict]]:
     """The labels of ``image`` in ``data``'s ``scene_gt.json`` (camera frame of that image, the
@@ -71,8 +79,7 @@ def starts_along_rays(data: Path, models: ModelSet, along_mm: float, turn_rad: n
     truth, coarse = [], []
     for e in gt:
         T = make_pose(np.reshape(e["cam_R_m2c"], (3, 3)), np.asarray(e["cam_t_m2c"], dtype=np.float64))
-        c = transform_points(T, models.mesh(int(e["obj_id"])).centre[None])[0]
-        start = apply_twist(T, np.r_[along_mm * c / np.linalg.norm(c), np.asarray(turn_rad, dtype=np.float64)], c)
+        start = start_along_ray(T, models.mesh(int(e["obj_id"])).centre, along_mm, turn_rad)
         truth.append(T)
         coarse.append({"obj_id": e["obj_id"], "cam_R_m2c": start[:3, :3].ravel().tolist(),
                        "cam_t_m2c": start[:3, 3].tolist()})
@@ -108,7 +115,7 @@ def run(data: Path, masks_kinds: tuple[str, ...] = MASKS, depths: tuple[bool, ..
         no_masks = read_evidence(data, modalities=("photos", "depth"))
         for start in range(STARTS):
             axis = rng.normal(size=3)
-            T0 = apply_twist(T, np.array([*(20.0 * c / np.linalg.norm(c)), *(np.radians(10.0) * axis / np.linalg.norm(axis))]), c)
+            T0 = start_along_ray(T, mesh.centre, 20.0, np.radians(10.0) * axis / np.linalg.norm(axis))
             for masks in masks_kinds:
                 sc = no_masks if masks.startswith("none") else degraded(scene, cut="cut" in masks)
                 if masks.endswith("photos") and sc.photos is None:

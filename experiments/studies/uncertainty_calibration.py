@@ -155,8 +155,8 @@ def few_viewpoints(data: Path) -> list[dict]:
     fifth of the mug): one row per object, evidence and start."""
     from dataclasses import replace
 
-    from autoalign.experiments.studies.rgbd_depth import STARTS, eroded_folder
-    from autoalign.geometry.se3 import apply_twist, make_pose, pose_change, transform_points
+    from autoalign.experiments.studies.rgbd_depth import STARTS, eroded_folder, start_along_ray
+    from autoalign.geometry.se3 import make_pose, pose_change, transform_points
     from autoalign.io.evidence import instance_scenes_with_photos
 
     gt = json.loads((data / "scene_gt.json").read_text())["1"]  # world = camera of image 1
@@ -170,11 +170,10 @@ def few_viewpoints(data: Path) -> list[dict]:
         models = ModelSet.read(folder / "models")
         found = read_instance_scenes(folder, read_instances(folder))
         for k, T in truth.items():  # the depth study's starts: 20 mm along the ray, 10 deg about a random axis
-            c = transform_points(T, models.mesh(int(gt[k]["obj_id"])).centre[None])[0]
+            centre = models.mesh(int(gt[k]["obj_id"])).centre
             for s in range(STARTS):
                 axis = rng.normal(size=3)
-                starts[s][k] = apply_twist(T, np.r_[20.0 * c / np.linalg.norm(c),
-                                                    np.radians(10.0) * axis / np.linalg.norm(axis)], c)
+                starts[s][k] = start_along_ray(T, centre, 20.0, np.radians(10.0) * axis / np.linalg.norm(axis))
         for evidence in FEW_VIEWPOINT_EVIDENCE:
             scenes = instance_scenes_with_photos(found) if evidence.endswith("photos") else found
             for s, seeds in enumerate(starts):
