@@ -67,6 +67,8 @@ objects: a 3 px shift costs a 60 px wide ape 0.2 of IoU.) On the 200 synthetic i
 prior's size was weighed at the sandwich: 0 / 1 / 1.5 / 2 px put 86% / 94% / 95% / 96% of the
 per-axis errors within 3 sigma with medians |error| / sigma of 1.40 / 0.80 / 0.61 / 0.49 (a
 Gaussian's: 99.7%, 0.67)."""
+SAME_AXIS = 0.95
+"""Two unit axes whose dot product's magnitude is at least this name the same turn."""
 _AXES = "xyz"
 
 
@@ -90,7 +92,9 @@ class Uncertainty:
         sigma_deg: (3,) standard deviation of the orientation about the model's x, y, z (degrees).
         weak: the weakly observed directions, e.g. ``"turn about model z: 12.3 deg"``.
         weak_turn_axes: the unit model-frame axes of the turns the views' geometry barely fixes
-            (from the views' spread alone, before the outline shift's prior), largest first.
+            (from the views' spread alone, before the outline shift's prior), largest first, and
+            those of ``turn_floors`` (the joint stage's pose keeps the floors its instance's
+            profiles found alone, whose turns its own spread may see better).
         naive_sigma_mm / naive_sigma_deg: the same from the residual-variance estimate (for comparison).
         bias_shift: (6,) the twist (model axes, mm and rad) the pose moves by per pixel of outward
             shift of every mask's outline (see the module doc); zero where it was not measured.
@@ -105,6 +109,9 @@ class Uncertainty:
             1: not scaled).
         outline_disagreement_px: how far the masks' outlines lie outside the silhouettes of a pose
             fitted with the photos too (:func:`with_outline_disagreement`); ``None``: not measured.
+        spread: (6, 6) what the views show of the pose: their spread (scaled by ``spread_factor``)
+            with the turns' profiles (``turn_floors``), without the outline-shift prior; the
+            weakly observed turns are found in it. ``None``: ``covariance`` is all there is.
     """
 
     covariance: NDArray[np.float64]
@@ -121,6 +128,7 @@ class Uncertainty:
     turn_floors: list[TurnFloor] = field(default_factory=list)
     spread_factor: float = 1.0
     outline_disagreement_px: float | None = None
+    spread: NDArray[np.float64] | None = None
 
 
 def _into_model(R_wm: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -279,7 +287,7 @@ def uncertainty_of(cov_w: NDArray[np.float64], naive_w: NDArray[np.float64], R_w
     n_mm, n_deg = _sigmas(_to_model(naive_w, R_wm))
     # the turns the views' geometry barely fixes (what a nearly symmetric object can hide), before
     # the outline shift's prior, which inflates every direction it moves and hides the ratio
-    u = Uncertainty(noise, *_sigmas(noise), [], _weak_turn_axes(noise), n_mm, n_deg)
+    u = Uncertainty(noise, *_sigmas(noise), [], _weak_turn_axes(noise), n_mm, n_deg, spread=noise)
     shift = np.zeros(6) if bias_shift_w is None else _into_model(R_wm) @ np.asarray(bias_shift_w, dtype=np.float64)
     d_m = None if view_dir_w is None else R_wm.T @ np.asarray(view_dir_w, dtype=np.float64)
     return with_outline_shift(u, shift, d_m, bias_px)
@@ -325,16 +333,24 @@ def with_spread_factor(u: Uncertainty, factor: float) -> Uncertainty:
     scaled by ``factor`` (:mod:`autoalign.engine.refit_spread`) and its weakly observed turns
     found again."""
     cov = factor * u.covariance
-    return replace(with_covariance(u, cov), weak_turn_axes=_weak_turn_axes(cov), spread_factor=float(factor))
+    return replace(with_covariance(u, cov), weak_turn_axes=_weak_turn_axes(cov), spread_factor=float(factor),
+                   spread=cov)
 
 
 def with_turn_floors(u: Uncertainty, floors: list[TurnFloor]) -> Uncertainty:
     """``u`` with the variance of each floor's turn raised to at least the floor's, along that turn
-    alone (``u.turn_floors`` records them)."""
+    alone, in its covariance and its spread (``u.turn_floors`` records them), and each floor's turn
+    among the weakly observed ones."""
+    if not floors:
+        return u
     cov = u.covariance.copy()
+    spread = None if u.spread is None else u.spread.copy()
+    axes = list(u.weak_turn_axes)
     for f in floors:
         e = np.r_[np.zeros(3), f.axis_m]
-        var = float(e @ cov @ e)
-        if f.variance > var:
-            cov += (f.variance - var) * np.outer(e, e)
-    return replace(with_covariance(u, cov), turn_floors=list(floors)) if floors else u
+        for C in (cov, spread):
+            if C is not None and f.variance > float(e @ C @ e):
+                C += (f.variance - float(e @ C @ e)) * np.outer(e, e)
+        if all(abs(float(f.axis_m @ a)) < SAME_AXIS for a in axes):
+            axes.append(f.axis_m)
+    return replace(with_covariance(u, cov), turn_floors=list(floors), weak_turn_axes=axes, spread=spread)

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.seed_region import SEED_RADIUS, SeedHold
-from autoalign.engine.uncertainty import Uncertainty, direction_name
+from autoalign.engine.uncertainty import SAME_AXIS, Uncertainty, direction_name
 from autoalign.losses.depth import INLIER_SIGMAS, DepthTerms
 
 FAILED_IOU = 0.5
@@ -71,7 +71,8 @@ NEAR_SYMMETRY_GAP = 0.02
 """A weakly observed turn names the object nearly symmetric (a reason to check) unless turning the
 pose about it clearly worsens the fit: by this much mean hard IoU at 1/4 resolution ..."""
 NEAR_SYMMETRY_DEG = 1.0
-"""... and its sigma is below this (degrees): a turn the views see so weakly that the descent can stop
+"""... and its sigma in the views' spread (with its profile; the shared-outline prior left out) is
+below this (degrees): a turn the views see so weakly that the descent can stop
 several degrees off in it, in a small dip of the loss that the turns of 30-180 degrees do not test
 (a pen, 9 deg off in roll with a sigma of 1.0 deg, ``ok`` before this rule). On the SAM-like synthetic
 scenes with systematic mask errors (``experiments/results/uncertainty_calibration.md``) it flags
@@ -85,7 +86,10 @@ AGREEING_SHARE = 0.3
 """When the masks' median IoU fails the pose, but at least this share of the views (and at least
 ``MIN_VIEWS``) agree with it and fit it well (median IoU >= ``CHECK_IOU``), the masks that disagree
 are taken as partial or on another object, not as evidence against the pose: `check`, not `failed`.
-Real segmenters miss parts or take the wrong object in 32% of LM-O's views (sam_mask_rates.md)."""
+Real segmenters miss parts or take the wrong object in 32% of LM-O's views (sam_mask_rates.md).
+A loose median (below ``CHECK_IOU``) is no reason to check when most views (at least
+``1 - SET_ASIDE_FRACTION`` of them) agree and fit the pose well: the median then counts the masks
+the fit sets aside, which are reasons of their own."""
 
 
 def low_weight_ids(image_ids: list[int], weights: NDArray[np.float64], iou_after: NDArray[np.float64]) -> list[int]:
@@ -140,18 +144,23 @@ def largest_sigmas(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.float
 
 
 def nearly_symmetric(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.float64], ...] = (),
-                     turn_gap: float | None = None) -> bool:
+                     turn_gap: float | None = None, symmetric: bool = False) -> bool:
     """Whether a turn that is not about an axis of continuous symmetry is weakly observed, and
     either its sigma is at least ``NEAR_SYMMETRY_DEG`` or turning the pose about such an axis
     (``turn_gap``, :class:`~autoalign.engine.refine.RefineResult`) does not clearly worsen the fit,
-    or was not tried."""
+    or was not tried. For a model with declared symmetries (``symmetric``) the turn gap says
+    nothing: one of its turns may be a symmetry (a hexagonal bar's 60 degrees about its axis).
+    The sigma is what the views show (:attr:`~autoalign.engine.uncertainty.Uncertainty.spread`,
+    where the weak turns are found), without the prior on a shared outline shift: that prior
+    counts in the verdict's large-sigma rule, but it says nothing of a dip in the loss along the
+    turn that the descent may stop in."""
     free = [np.asarray(a, dtype=np.float64) / np.linalg.norm(a) for a in free_axes_m]
-    weak = [a for a in uncertainty.weak_turn_axes if all(abs(float(a @ f)) < 0.95 for f in free)]
+    weak = [a for a in uncertainty.weak_turn_axes if all(abs(float(a @ f)) < SAME_AXIS for f in free)]
     if not weak:
         return False
-    C = uncertainty.covariance[3:, 3:]
+    C = (uncertainty.covariance if uncertainty.spread is None else uncertainty.spread)[3:, 3:]
     loose = any(np.degrees(np.sqrt(max(float(a @ C @ a), 0.0))) >= NEAR_SYMMETRY_DEG for a in weak)
-    return loose or turn_gap is None or turn_gap < NEAR_SYMMETRY_GAP
+    return loose or (not symmetric and (turn_gap is None or turn_gap < NEAR_SYMMETRY_GAP))
 
 
 @dataclass
@@ -209,6 +218,12 @@ def _fit_against_the_evidence(med: float, depth: DepthTerms | None, photo: Photo
         reasons.append(f"silhouettes do not match the masks: median IoU {med:.2f} < {FAILED_IOU}; the pose is "
                        "wrong or the masks are: seed it closer (--init or a click) or mend the masks")
         failed = True
+    elif (med < CHECK_IOU and agreeing[2] is not None and agreeing[0] >= MIN_VIEWS
+          and agreeing[0] >= (1.0 - SET_ASIDE_FRACTION) * agreeing[1] and agreeing[2] >= CHECK_IOU):
+        # the median counts the masks the fit sets aside: the views whose masks agree decide the fit
+        reasons.append(f"the masks cover the silhouette loosely (median IoU {med:.2f}), but the {agreeing[0]} of "
+                       f"{agreeing[1]} views whose masks agree with the pose fit it well (median IoU {agreeing[2]:.2f})")
+        supported = True
     elif med < CHECK_IOU:
         reasons.append(f"loose fit: median IoU {med:.2f} < {CHECK_IOU}; compare the outline with the photo in "
                        "overlay.png: a right pose means loose masks, a wrong one a seed to give again")
@@ -233,14 +248,14 @@ def _seed_reasons(seed_move: tuple[float, float] | None, seed_radius: tuple[floa
 
 
 def _sigma_reasons(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.float64], ...],
-                   turn_gap: float | None) -> list[str]:
+                   turn_gap: float | None, symmetric: bool) -> list[str]:
     """Why the pose is not well determined (large sigmas, or a nearly symmetric object); none if it is."""
     s_mm, s_deg = largest_sigmas(uncertainty, free_axes_m)
     if s_mm > LARGE_SIGMA_MM or s_deg > LARGE_SIGMA_DEG:
         return [f"weakly observed: sigma up to {s_mm:.2g} mm / {s_deg:.2g} deg"
                 + (f" ({'; '.join(uncertainty.weak)})" if uncertainty.weak else "")
                 + ": views from other directions or measured depth would fix it"]
-    if nearly_symmetric(uncertainty, free_axes_m, turn_gap):
+    if nearly_symmetric(uncertainty, free_axes_m, turn_gap, symmetric):
         # the turn the views barely see is where a nearly symmetric object goes wrong: by several
         # degrees in 1 of 50 SAM-like synthetic instances, with a sigma far smaller
         C = uncertainty.covariance[3:, 3:]
@@ -265,7 +280,8 @@ def judge(iou_after: NDArray[np.float64], weights: NDArray[np.float64], image_id
         image_ids: the N views' image ids.
         empty_ids: image ids whose mask was empty (treated as missing).
         ambiguous: another, clearly different pose fits almost as well.
-        symmetric: the model's symmetries explain such a runner-up (not a reason to check).
+        symmetric: the model has declared symmetries, which explain such a runner-up and a small
+            ``turn_gap`` (neither is then a reason to check).
         uncertainty: the pose's covariance (:mod:`autoalign.engine.uncertainty`); large sigmas are a reason.
         free_axes_m: the model's axes of continuous symmetry, about which any turn is as good.
         turn_gap: how much better the pose fits than its turns about weakly observed axes (see
@@ -305,7 +321,7 @@ def judge(iou_after: NDArray[np.float64], weights: NDArray[np.float64], image_id
         reasons.append("ambiguous: a clearly different pose fits almost as well (refine.json's runner_up); "
                        "look for the detail that tells them apart, or seed it with --init or a click")
     seed_reasons, far = _seed_reasons(seed_move, seed_radius, seed_hold)
-    sigma_reasons = [] if uncertainty is None else _sigma_reasons(uncertainty, free_axes_m, turn_gap)
+    sigma_reasons = [] if uncertainty is None else _sigma_reasons(uncertainty, free_axes_m, turn_gap, symmetric)
     reasons += seed_reasons + sigma_reasons
     uncertain = bool(sigma_reasons)
     if failed:

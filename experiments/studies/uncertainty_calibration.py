@@ -40,7 +40,7 @@ from autoalign.experiments.studies.sam_failures import SystematicErrors, make_sa
 from autoalign.geometry.se3 import so3_log
 from autoalign.io.instances import read_init_poses, read_instance_scenes, read_instances
 from autoalign.io.models import ModelSet
-from autoalign.quality.verdict import LARGE_SIGMA_DEG, LARGE_SIGMA_MM, largest_sigmas
+from autoalign.quality.verdict import LARGE_SIGMA_DEG, LARGE_SIGMA_MM, agreeing_views, largest_sigmas
 from autoalign.scene.refine import refine_scene
 
 SYSTEMATIC = SystematicErrors(outline_px=2.0, camera_px=0.5)
@@ -82,6 +82,8 @@ def run_scene(root: Path, k: int) -> list[dict]:
         ray = u.view_dir_m
         err = axis_errors(r.result.T_wm, T_gt, mesh.centre)
         big_mm, big_deg = largest_sigmas(u, models.continuous_axes(i))
+        iou = np.asarray(r.result.iou_after, dtype=np.float64)
+        n_agree, agree_iou = agreeing_views(iou, r.result.weights)
         rows.append({"scene": k, "obj": names[r.instance.index], "err_mm": e.pos_err_mm, "err_deg": e.rot_err_deg,
                      "largest_sigma_mm": big_mm, "largest_sigma_deg": big_deg,
                      "axis_err": err.tolist(), "free": free.tolist(),
@@ -89,6 +91,9 @@ def run_scene(root: Path, k: int) -> list[dict]:
                      "sigma_naive": np.r_[u.naive_sigma_mm, u.naive_sigma_deg].tolist(),
                      "err_ray_mm": None if ray is None else float(abs(err[:3] @ ray)),
                      "sigma_ray_mm": u.sigma_ray_mm, "verdict": r.verdict.status, "reasons": r.verdict.reasons,
+                     "median_iou": float(np.median(iou)), "agreeing_views": [n_agree, len(iou), agree_iou],
+                     "weak_turn_deg": [float(np.degrees(np.sqrt(max(float(a @ u.covariance[3:, 3:] @ a), 0.0))))
+                                       for a in u.weak_turn_axes], "turn_gap": r.result.turn_gap,
                      "failures": dict(counts)})
     return rows
 
