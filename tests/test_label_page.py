@@ -284,9 +284,14 @@ def test_restart_two_tabs_binding_and_paths(labelled, tmp_path):
                                       "s.instances.every(i => i.pose_revision === 11))", polling=200)
                 wait_drawn(tab, 0, 10)
                 wait_drawn(tab, 1, 10)
+            # a change to one instance leaves the other's row as it was: a click on a button that a
+            # redraw replaced under it is lost (tab B's accept was, once, while tab A's arrived)
+            tab_b.wait_for_function("state.instances.every(i => i.pose_revision === 11)", polling=200)  # the page's own
+            tab_b.evaluate("window.kept = document.querySelector('.instance[data-index=\"1\"] button[data-act=\"accept\"]')")
             tab_a.click('.instance[data-index="0"] button[data-act="accept"]')
-            tab_b.click('.instance[data-index="1"] button[data-act="accept"]')
             tab_b.wait_for_selector('.instance[data-index="0"][data-decision="accepted"]')
+            assert tab_b.evaluate("window.kept.isConnected")
+            tab_b.click('.instance[data-index="1"] button[data-act="accept"]')
             tab_a.wait_for_selector('.instance[data-index="1"][data-decision="accepted"]')
             saved = json.loads((out / "session.json").read_text())
             assert server.stop(signal.SIGKILL) == -signal.SIGKILL  # pulled the plug: no chance to save anything

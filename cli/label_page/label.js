@@ -10,6 +10,7 @@ let revision = -1;
 let selected = null;          // instance number
 let activeView = null;        // image id whose camera axes the keys use
 const drawn = {};             // instance -> pose_revision drawn
+const rowHtml = {};           // instance -> the HTML of its row in the list, as last written
 let clickedAt = null;         // {instance, t0} of the last click, to time click -> outlines on screen
 let shownJob = 0;
 let pressedAt = null;         // where the last click began: pointer events have sub-pixel positions, clicks not
@@ -103,7 +104,7 @@ function renderInstances() {
     div.dataset.verdict = inst.verdict || "";
     const suggested = inst.suggested_obj_id != null && !inst.obj_id ? ` (scene says obj ${inst.suggested_obj_id})` : "";
     const placed = inst.obj_id != null && inst.T_wm;
-    div.innerHTML = `<div class="row"><strong>instance ${inst.index}</strong>` +
+    const html = `<div class="row"><strong>instance ${inst.index}</strong>` +
       (placed ? `obj ${inst.obj_id}` : `not placed${suggested}`) +
       `<span class="badge decision ${inst.decision}">${inst.decision}</span>` +
       (inst.verdict ? `<span class="badge verdict ${inst.verdict}">${inst.verdict}</span>` : "") +
@@ -118,17 +119,23 @@ function renderInstances() {
         `<button data-act="accept">accept</button><button data-act="reject">reject</button>` +
         `<label><input type="checkbox" data-act="symmetric"${inst.symmetric ? " checked" : ""}> symmetric</label></div>`
         : "");
-    for (const b of div.querySelectorAll("[data-act]")) {
-      b.disabled = state.job.running && b.dataset.act === "refine";
-      b.addEventListener("click", (e) => { e.stopPropagation(); act(inst.index, b.dataset.act, b); });
+    // Rewritten only when its content changed: every change of the session (another instance, another
+    // tab, a job's progress) redraws the list, and a click whose button is replaced under it is lost.
+    if (rowHtml[inst.index] !== html) {
+      rowHtml[inst.index] = html;
+      div.innerHTML = html;
+      for (const b of div.querySelectorAll("[data-act]")) {
+        b.addEventListener("click", (e) => { e.stopPropagation(); act(inst.index, b.dataset.act, b); });
+      }
+      for (const a of div.querySelectorAll("a[data-view]")) {
+        a.addEventListener("click", (e) => {
+          e.preventDefault(); e.stopPropagation();
+          const v = document.querySelector(`.view[data-image-id="${a.dataset.view}"]`);
+          v.scrollIntoView({block: "center"}); setActive(+a.dataset.view);
+        });
+      }
     }
-    for (const a of div.querySelectorAll("a[data-view]")) {
-      a.addEventListener("click", (e) => {
-        e.preventDefault(); e.stopPropagation();
-        const v = document.querySelector(`.view[data-image-id="${a.dataset.view}"]`);
-        v.scrollIntoView({block: "center"}); setActive(+a.dataset.view);
-      });
-    }
+    for (const b of div.querySelectorAll("[data-act]")) b.disabled = state.job.running && b.dataset.act === "refine";
   }
 }
 
