@@ -293,6 +293,9 @@ def test_restart_two_tabs_binding_and_paths(labelled, tmp_path):
             assert tab_b.evaluate("window.kept.isConnected")
             tab_b.click('.instance[data-index="1"] button[data-act="accept"]')
             tab_a.wait_for_selector('.instance[data-index="1"][data-decision="accepted"]')
+            tab_a.check('.instance[data-index="1"] input[data-act="symmetric"]')  # the other tab follows
+            tab_b.wait_for_function("document.querySelector('.instance[data-index=\"1\"] input[data-act=\"symmetric\"]')"
+                                    ".checked", polling=200)
             saved = json.loads((out / "session.json").read_text())
             assert server.stop(signal.SIGKILL) == -signal.SIGKILL  # pulled the plug: no chance to save anything
             tab_a.wait_for_function("document.querySelector('#status').textContent.startsWith('lost the server')")

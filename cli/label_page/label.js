@@ -136,6 +136,8 @@ function renderInstances() {
       }
     }
     for (const b of div.querySelectorAll("[data-act]")) b.disabled = state.job.running && b.dataset.act === "refine";
+    const sym = div.querySelector('input[data-act="symmetric"]');
+    if (sym) sym.checked = !!inst.symmetric;   // the server's, also where a toggle was refused
   }
 }
 
