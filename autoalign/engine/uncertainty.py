@@ -149,6 +149,13 @@ def _sigmas(cov: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.f
     return d[:3], np.degrees(d[3:])
 
 
+def turn_sigma_deg(cov_m: NDArray[np.float64], axis_m: NDArray[np.float64]) -> float:
+    """The sigma (degrees) of the turn about the unit model-frame axis ``axis_m`` in the (6, 6)
+    model-frame covariance ``cov_m`` (twist ``(v [mm], w [rad])``)."""
+    a = np.asarray(axis_m, dtype=np.float64)
+    return float(np.degrees(np.sqrt(max(float(a @ cov_m[3:, 3:] @ a), 0.0))))
+
+
 def direction_name(u: NDArray[np.float64]) -> str:
     """A unit model-frame direction by its nearest model axis (``model z``) or its components."""
     k = int(np.argmax(np.abs(u)))
@@ -349,8 +356,9 @@ def with_turn_floors(u: Uncertainty, floors: list[TurnFloor]) -> Uncertainty:
     for f in floors:
         e = np.r_[np.zeros(3), f.axis_m]
         for C in (cov, spread):
-            if C is not None and f.variance > float(e @ C @ e):
-                C += (f.variance - float(e @ C @ e)) * np.outer(e, e)
+            var = None if C is None else float(e @ C @ e)
+            if var is not None and f.variance > var:
+                C += (f.variance - var) * np.outer(e, e)
         if all(abs(float(f.axis_m @ a)) < SAME_AXIS for a in axes):
             axes.append(f.axis_m)
     return replace(with_covariance(u, cov), turn_floors=list(floors), weak_turn_axes=axes, spread=spread)

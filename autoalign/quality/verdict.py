@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.seed_region import SEED_RADIUS, SeedHold
-from autoalign.engine.uncertainty import SAME_AXIS, Uncertainty, direction_name
+from autoalign.engine.uncertainty import SAME_AXIS, Uncertainty, direction_name, turn_sigma_deg
 from autoalign.losses.depth import INLIER_SIGMAS, DepthTerms
 
 FAILED_IOU = 0.5
@@ -158,8 +158,8 @@ def nearly_symmetric(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.flo
     weak = [a for a in uncertainty.weak_turn_axes if all(abs(float(a @ f)) < SAME_AXIS for f in free)]
     if not weak:
         return False
-    C = (uncertainty.covariance if uncertainty.spread is None else uncertainty.spread)[3:, 3:]
-    loose = any(np.degrees(np.sqrt(max(float(a @ C @ a), 0.0))) >= NEAR_SYMMETRY_DEG for a in weak)
+    seen = uncertainty.covariance if uncertainty.spread is None else uncertainty.spread
+    loose = any(turn_sigma_deg(seen, a) >= NEAR_SYMMETRY_DEG for a in weak)
     return loose or (not symmetric and (turn_gap is None or turn_gap < NEAR_SYMMETRY_GAP))
 
 
@@ -222,7 +222,8 @@ def _fit_against_the_evidence(med: float, depth: DepthTerms | None, photo: Photo
           and agreeing[0] >= (1.0 - SET_ASIDE_FRACTION) * agreeing[1] and agreeing[2] >= CHECK_IOU):
         # the median counts the masks the fit sets aside: the views whose masks agree decide the fit
         reasons.append(f"the masks cover the silhouette loosely (median IoU {med:.2f}), but the {agreeing[0]} of "
-                       f"{agreeing[1]} views whose masks agree with the pose fit it well (median IoU {agreeing[2]:.2f})")
+                       f"{agreeing[1]} views whose masks agree with the pose fit it well "
+                       f"(median IoU {agreeing[2]:.2f})")
         supported = True
     elif med < CHECK_IOU:
         reasons.append(f"loose fit: median IoU {med:.2f} < {CHECK_IOU}; compare the outline with the photo in "
@@ -258,9 +259,8 @@ def _sigma_reasons(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.float
     if nearly_symmetric(uncertainty, free_axes_m, turn_gap, symmetric):
         # the turn the views barely see is where a nearly symmetric object goes wrong: by several
         # degrees in 1 of 50 SAM-like synthetic instances, with a sigma far smaller
-        C = uncertainty.covariance[3:, 3:]
-        turns = "; ".join(f"the turn about {direction_name(a)} ({np.degrees(np.sqrt(max(float(a @ C @ a), 0.0))):.2g} "
-                          "deg)" for a in uncertainty.weak_turn_axes)
+        turns = "; ".join(f"the turn about {direction_name(a)} ({turn_sigma_deg(uncertainty.covariance, a):.2g} deg)"
+                          for a in uncertainty.weak_turn_axes)
         return [f"nearly symmetric: {turns} is weakly observed; check that the object's distinguishing "
                 "detail (a handle, a label, a notch) sits where the photo shows it"]
     return []

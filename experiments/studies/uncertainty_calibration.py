@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from autoalign.engine.refine import RefineOptions
-from autoalign.engine.uncertainty import BOUNDARY_BIAS_PX
+from autoalign.engine.uncertainty import BOUNDARY_BIAS_PX, turn_sigma_deg
 from autoalign.experiments import RESULTS
 from autoalign.experiments.result_files import write_results
 from autoalign.experiments.studies.metrics import Symmetries, closest_equivalent, pose_errors
@@ -92,8 +92,8 @@ def run_scene(root: Path, k: int) -> list[dict]:
                      "err_ray_mm": None if ray is None else float(abs(err[:3] @ ray)),
                      "sigma_ray_mm": u.sigma_ray_mm, "verdict": r.verdict.status, "reasons": r.verdict.reasons,
                      "median_iou": float(np.median(iou)), "agreeing_views": [n_agree, len(iou), agree_iou],
-                     "weak_turn_deg": [float(np.degrees(np.sqrt(max(float(a @ u.covariance[3:, 3:] @ a), 0.0))))
-                                       for a in u.weak_turn_axes], "turn_gap": r.result.turn_gap,
+                     "weak_turn_deg": [turn_sigma_deg(u.covariance, a) for a in u.weak_turn_axes],
+                     "turn_gap": r.result.turn_gap,
                      "failures": dict(counts)})
     return rows
 
