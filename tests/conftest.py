@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 from collections.abc import Callable
@@ -10,6 +11,15 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """The Ctrl-C tests send SIGINT to the commands they start, as a terminal does to its foreground
+    job. A shell starts a background job (``pytest &``, ``nohup``) with SIGINT ignored, and an ignored
+    signal stays ignored across exec, so those commands would never see it; Python's own handler,
+    which exec resets to the default, restores a terminal's conditions for them."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture
