@@ -70,9 +70,7 @@ def spread_about_pose(minima_deg: NDArray[np.float64]) -> float:
 
     About the pose, not about the draws' mean: the sigma is that of the pose's error, and where the
     draws lean to one side (the evidence at the profile's resolution puts the turn off the pose, or
-    a few views pull that way), the lean is part of it. On the synthetic calibration scenes a pen
-    15.9 deg off in roll had draws 2.9 deg off the pose on average, on its error's side: a standard
-    deviation of 5.2 deg, 5.9 about the pose."""
+    a few views pull that way), the lean is part of it (docs/results.md, "Sixth round")."""
     return float(np.sqrt(np.mean(np.square(minima_deg))))
 
 
