@@ -9,10 +9,10 @@ sigma of 2. So each weakly observed turn's loss is profiled: the pose turned by 
 resolution, :data:`PROFILE_SCALE`), each view's loss kept.
 Then the views are resampled (:data:`DRAWS` bootstrap draws of as many views, with replacement,
 seeded) and the turn that minimises each draw's summed profile is found (a parabola through the
-lowest sample and its neighbours); the spread of those turns about the pose (:func:`spread_about_pose`)
-is the turn's sigma as the views' disagreement gives it, far from the pose too: where a few views
-decide it and disagree, the draws' minima jump between dips; where those views agree, they stay put.
-The covariance's variance of that turn is raised to it when it is larger, along that turn alone.
+lowest sample and its neighbours); the spread (standard deviation) of those turns is the turn's
+sigma as the views' disagreement gives it, far from the pose too: where a few views decide it and
+disagree, the draws' minima jump between dips; where those views agree, they stay put. The
+covariance's variance of that turn is raised to it when it is larger, along that turn alone.
 """
 
 from __future__ import annotations
@@ -65,15 +65,6 @@ def bootstrap_minima(angles_deg: NDArray[np.float64], view_losses: NDArray[np.fl
     return np.array([profile_minimum(angles_deg, t) for t in counts @ view_losses])
 
 
-def spread_about_pose(minima_deg: NDArray[np.float64]) -> float:
-    """The root-mean-square (degrees) of the draws' minimising turns about the pose's (0 deg).
-
-    About the pose, not about the draws' mean: the sigma is that of the pose's error, and where the
-    draws lean to one side (the evidence at the profile's resolution puts the turn off the pose, or
-    a few views pull that way), the lean is part of it (docs/results.md, "Sixth round")."""
-    return float(np.sqrt(np.mean(np.square(minima_deg))))
-
-
 def with_turn_profiles(obj: SilhouetteObjective, T_wm: NDArray[np.float64], u: Uncertainty,
                        weights: NDArray[np.float64], sigma_px: float) -> Uncertainty:
     """``u`` with the variance of each weakly observed turn (:attr:`Uncertainty.weak_turn_axes`)
@@ -93,5 +84,5 @@ def with_turn_profiles(obj: SilhouetteObjective, T_wm: NDArray[np.float64], u: U
         turned = [weights * obj.evaluate(T, level, weights=weights, with_derivatives=False).terms.loss for T in poses]
         losses = np.stack(turned[:len(side)] + [own] + turned[len(side):], axis=1)  # (V, K) in angle order
         minima = bootstrap_minima(angles, losses, DRAWS, rng)
-        floors.append(TurnFloor(a_m, float(np.radians(spread_about_pose(minima))) ** 2))
+        floors.append(TurnFloor(a_m, float(np.radians(np.std(minima))) ** 2))
     return with_turn_floors(u, floors)
