@@ -355,9 +355,9 @@ def with_turn_floors(u: Uncertainty, floors: list[TurnFloor]) -> Uncertainty:
     axes = list(u.weak_turn_axes)
     for f in floors:
         e = np.r_[np.zeros(3), f.axis_m]
-        for C in (cov, spread):
-            var = None if C is None else float(e @ C @ e)
-            if var is not None and f.variance > var:
+        for C in (c for c in (cov, spread) if c is not None):
+            var = float(e @ C @ e)
+            if f.variance > var:
                 C += (f.variance - var) * np.outer(e, e)
         if all(abs(float(f.axis_m @ a)) < SAME_AXIS for a in axes):
             axes.append(f.axis_m)

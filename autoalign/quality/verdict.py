@@ -179,6 +179,13 @@ def agreeing_views(iou: NDArray[np.float64], weights: NDArray[np.float64]) -> tu
     return int(agree.sum()), (float(np.median(iou[agree])) if agree.any() else None)
 
 
+def _views_fit_well(agreeing: tuple[int, int, float | None], share: float) -> bool:
+    """Whether the views whose masks agree (``agreeing``: their count, all views, their median IoU)
+    are at least ``MIN_VIEWS`` and ``share`` of all, and fit the pose well (median IoU >= ``CHECK_IOU``)."""
+    n, total, iou = agreeing
+    return iou is not None and n >= MIN_VIEWS and n >= share * total and iou >= CHECK_IOU
+
+
 def _fit_against_the_evidence(med: float, depth: DepthTerms | None, photo: PhotoEvidence | None,
                               agreeing: tuple[int, int, float | None] = (0, 0, None)) -> _Fit:
     """The fit's reasons: the median mask IoU ``med`` read against the depth, the photo and the views
@@ -208,8 +215,7 @@ def _fit_against_the_evidence(med: float, depth: DepthTerms | None, photo: Photo
         # the masks are the weakest evidence: against a photo that does not contradict it, a look, not a failure
         reasons.append(f"silhouettes do not match the masks (median IoU {med:.2f} < {FAILED_IOU}), and the photo "
                        f"neither confirms nor contradicts the pose (median edge contrast {contrast:.2f})")
-    elif (med < FAILED_IOU and agreeing[2] is not None and agreeing[0] >= MIN_VIEWS
-          and agreeing[0] >= AGREEING_SHARE * agreeing[1] and agreeing[2] >= CHECK_IOU):
+    elif med < FAILED_IOU and _views_fit_well(agreeing, AGREEING_SHARE):
         # partial masks or masks on another object in most views: the rest still fit the pose well
         reasons.append(f"most masks disagree with the pose (median IoU {med:.2f}), but {agreeing[0]} of {agreeing[1]} "
                        f"views fit it well (median IoU {agreeing[2]:.2f}): look at the down-weighted views; their "
@@ -218,8 +224,7 @@ def _fit_against_the_evidence(med: float, depth: DepthTerms | None, photo: Photo
         reasons.append(f"silhouettes do not match the masks: median IoU {med:.2f} < {FAILED_IOU}; the pose is "
                        "wrong or the masks are: seed it closer (--init or a click) or mend the masks")
         failed = True
-    elif (med < CHECK_IOU and agreeing[2] is not None and agreeing[0] >= MIN_VIEWS
-          and agreeing[0] >= (1.0 - SET_ASIDE_FRACTION) * agreeing[1] and agreeing[2] >= CHECK_IOU):
+    elif med < CHECK_IOU and _views_fit_well(agreeing, 1.0 - SET_ASIDE_FRACTION):
         # the median counts the masks the fit sets aside: the views whose masks agree decide the fit
         reasons.append(f"the masks cover the silhouette loosely (median IoU {med:.2f}), but the {agreeing[0]} of "
                        f"{agreeing[1]} views whose masks agree with the pose fit it well "
