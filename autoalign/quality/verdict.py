@@ -173,23 +173,38 @@ class _Fit:
     photo_contradicts: bool
 
 
-def agreeing_views(iou: NDArray[np.float64], weights: NDArray[np.float64]) -> tuple[int, float | None]:
-    """How many views agree with the pose (robust weight >= ``AGREEING_WEIGHT``) and their median IoU."""
+@dataclass(frozen=True)
+class AgreeingViews:
+    """The views whose masks agree with the pose (robust weight >= ``AGREEING_WEIGHT``).
+
+    Attributes:
+        count: how many.
+        total: all the views with a mask.
+        median_iou: their median hard IoU; ``None``: there are none.
+    """
+
+    count: int = 0
+    total: int = 0
+    median_iou: float | None = None
+
+    def fit_well(self, share: float) -> bool:
+        """Whether they are at least ``MIN_VIEWS`` and ``share`` of all, and fit the pose well
+        (median IoU >= ``CHECK_IOU``)."""
+        return (self.median_iou is not None and self.count >= MIN_VIEWS and self.count >= share * self.total
+                and self.median_iou >= CHECK_IOU)
+
+
+def agreeing_views(iou: NDArray[np.float64], weights: NDArray[np.float64]) -> AgreeingViews:
+    """The views (per-view hard IoU ``iou`` and robust ``weights``) whose masks agree with the pose."""
+    iou = np.asarray(iou, dtype=np.float64)
     agree = np.asarray(weights, dtype=np.float64) >= AGREEING_WEIGHT
-    return int(agree.sum()), (float(np.median(iou[agree])) if agree.any() else None)
-
-
-def _views_fit_well(agreeing: tuple[int, int, float | None], share: float) -> bool:
-    """Whether the views whose masks agree (``agreeing``: their count, all views, their median IoU)
-    are at least ``MIN_VIEWS`` and ``share`` of all, and fit the pose well (median IoU >= ``CHECK_IOU``)."""
-    n, total, iou = agreeing
-    return iou is not None and n >= MIN_VIEWS and n >= share * total and iou >= CHECK_IOU
+    return AgreeingViews(int(agree.sum()), len(iou), float(np.median(iou[agree])) if agree.any() else None)
 
 
 def _fit_against_the_evidence(med: float, depth: DepthTerms | None, photo: PhotoEvidence | None,
-                              agreeing: tuple[int, int, float | None] = (0, 0, None)) -> _Fit:
+                              agreeing: AgreeingViews = AgreeingViews()) -> _Fit:
     """The fit's reasons: the median mask IoU ``med`` read against the depth, the photo and the views
-    whose masks agree (``agreeing``: their count, all views, their median IoU; see the module doc)."""
+    whose masks agree (see the module doc)."""
     reasons: list[str] = []
     failed = False
     agree = depth_agreement(depth)
@@ -215,20 +230,20 @@ def _fit_against_the_evidence(med: float, depth: DepthTerms | None, photo: Photo
         # the masks are the weakest evidence: against a photo that does not contradict it, a look, not a failure
         reasons.append(f"silhouettes do not match the masks (median IoU {med:.2f} < {FAILED_IOU}), and the photo "
                        f"neither confirms nor contradicts the pose (median edge contrast {contrast:.2f})")
-    elif med < FAILED_IOU and _views_fit_well(agreeing, AGREEING_SHARE):
+    elif med < FAILED_IOU and agreeing.fit_well(AGREEING_SHARE):
         # partial masks or masks on another object in most views: the rest still fit the pose well
-        reasons.append(f"most masks disagree with the pose (median IoU {med:.2f}), but {agreeing[0]} of {agreeing[1]} "
-                       f"views fit it well (median IoU {agreeing[2]:.2f}): look at the down-weighted views; their "
-                       "masks may cover part of the object or another one")
+        reasons.append(f"most masks disagree with the pose (median IoU {med:.2f}), but {agreeing.count} of "
+                       f"{agreeing.total} views fit it well (median IoU {agreeing.median_iou:.2f}): look at the "
+                       "down-weighted views; their masks may cover part of the object or another one")
     elif med < FAILED_IOU:
         reasons.append(f"silhouettes do not match the masks: median IoU {med:.2f} < {FAILED_IOU}; the pose is "
                        "wrong or the masks are: seed it closer (--init or a click) or mend the masks")
         failed = True
-    elif med < CHECK_IOU and _views_fit_well(agreeing, 1.0 - SET_ASIDE_FRACTION):
+    elif med < CHECK_IOU and agreeing.fit_well(1.0 - SET_ASIDE_FRACTION):
         # the median counts the masks the fit sets aside: the views whose masks agree decide the fit
-        reasons.append(f"the masks cover the silhouette loosely (median IoU {med:.2f}), but the {agreeing[0]} of "
-                       f"{agreeing[1]} views whose masks agree with the pose fit it well "
-                       f"(median IoU {agreeing[2]:.2f})")
+        reasons.append(f"the masks cover the silhouette loosely (median IoU {med:.2f}), but the {agreeing.count} of "
+                       f"{agreeing.total} views whose masks agree with the pose fit it well "
+                       f"(median IoU {agreeing.median_iou:.2f})")
         supported = True
     elif med < CHECK_IOU:
         reasons.append(f"loose fit: median IoU {med:.2f} < {CHECK_IOU}; compare the outline with the photo in "
@@ -309,8 +324,7 @@ def judge(iou_after: NDArray[np.float64], weights: NDArray[np.float64], image_id
         reasons.append(f"only {len(iou)} view(s) with a mask (at least {MIN_VIEWS} needed): add masks or views")
         failed = True
     med = float(np.median(iou)) if len(iou) else 0.0
-    n_agree, agree_iou = agreeing_views(iou, w) if len(iou) else (0, None)
-    fit = _fit_against_the_evidence(med, depth, photo, (n_agree, len(iou), agree_iou))
+    fit = _fit_against_the_evidence(med, depth, photo, agreeing_views(iou, w))
     reasons += fit.reasons
     failed = failed or fit.failed
     supported, photo_contradicts = fit.supported, fit.photo_contradicts

@@ -83,7 +83,8 @@ def run_scene(root: Path, k: int) -> list[dict]:
         err = axis_errors(r.result.T_wm, T_gt, mesh.centre)
         big_mm, big_deg = largest_sigmas(u, models.continuous_axes(i))
         iou = np.asarray(r.result.iou_after, dtype=np.float64)
-        n_agree, agree_iou = agreeing_views(iou, r.result.weights)
+        agreeing = agreeing_views(iou, r.result.weights)
+        seen = u.covariance if u.spread is None else u.spread
         rows.append({"scene": k, "obj": names[r.instance.index], "err_mm": e.pos_err_mm, "err_deg": e.rot_err_deg,
                      "largest_sigma_mm": big_mm, "largest_sigma_deg": big_deg,
                      "axis_err": err.tolist(), "free": free.tolist(),
@@ -91,8 +92,11 @@ def run_scene(root: Path, k: int) -> list[dict]:
                      "sigma_naive": np.r_[u.naive_sigma_mm, u.naive_sigma_deg].tolist(),
                      "err_ray_mm": None if ray is None else float(abs(err[:3] @ ray)),
                      "sigma_ray_mm": u.sigma_ray_mm, "verdict": r.verdict.status, "reasons": r.verdict.reasons,
-                     "median_iou": float(np.median(iou)), "agreeing_views": [n_agree, len(iou), agree_iou],
+                     "median_iou": float(np.median(iou)),
+                     "agreeing_views": [agreeing.count, agreeing.total, agreeing.median_iou],
+                     # the reported sigma of each weak turn, and the views' (what "nearly symmetric" reads)
                      "weak_turn_deg": [turn_sigma_deg(u.covariance, a) for a in u.weak_turn_axes],
+                     "weak_turn_spread_deg": [turn_sigma_deg(seen, a) for a in u.weak_turn_axes],
                      "turn_gap": r.result.turn_gap,
                      "failures": dict(counts)})
     return rows
