@@ -7,7 +7,7 @@ import pytest
 
 from autoalign.engine.hypotheses import turns
 from autoalign.engine.refine import refine
-from autoalign.engine.turn_profile import bootstrap_minima, profile_minimum
+from autoalign.engine.turn_profile import bootstrap_minima, profile_minimum, shared_shift_minima, view_draws
 from autoalign.experiments.scenes.procedural_models import procedural_models
 from autoalign.experiments.scenes.synthetic import make_scene, random_rotation, ring_cameras, wiggle_mask
 from autoalign.geometry.mesh import mesh_from_trimesh
@@ -72,9 +72,32 @@ def test_a_floor_raises_its_turn_alone():
     cov = np.diag([0.04, 0.04, 0.09, np.radians(0.2), np.radians(0.2), np.radians(0.5)]) ** 2
     u = uncertainty_of(cov, cov, np.eye(3))
     z = np.array([0.0, 0.0, 1.0])
-    raised = with_turn_floors(u, [TurnFloor(z, np.radians(3.0) ** 2)])
+    raised = with_turn_floors(u, [TurnFloor(z, np.radians(3.0) ** 2, np.radians(3.0) ** 2)])
     np.testing.assert_allclose(raised.sigma_deg, [0.2, 0.2, 3.0])
     np.testing.assert_allclose(raised.sigma_mm, u.sigma_mm)
     assert raised.turn_floors and "turn about model z: 3 deg" in raised.weak
-    kept = with_turn_floors(u, [TurnFloor(z, np.radians(0.1) ** 2)])
+    kept = with_turn_floors(u, [TurnFloor(z, np.radians(0.1) ** 2, np.radians(0.1) ** 2)])
     np.testing.assert_allclose(kept.covariance, u.covariance)
+    # the covariance takes the floor with the shared outline shift, the views' spread their own
+    both = with_turn_floors(u, [TurnFloor(z, np.radians(1.0) ** 2, np.radians(3.0) ** 2)])
+    np.testing.assert_allclose(both.sigma_deg, [0.2, 0.2, 3.0])
+    np.testing.assert_allclose(np.degrees(np.sqrt(both.spread[5, 5])), 1.0)
+
+
+def test_a_shared_outline_shift_moves_a_shallow_profiles_minimum_as_its_tilt_says():
+    """Twenty views that agree on a shallow minimum at 0 deg (curvatures h_v), whose outline
+    shifted by b px tilts each profile by b g_v per degree: the summed minimum sits at
+    -b sum g / (2 sum h). Resampling the views alone leaves it at 0; with one shift per draw
+    from N(0, s^2) its spread is s |sum g| / (2 sum h) (to the 500 draws' sampling error)."""
+    angles = np.array([-24.0, -12.0, -6.0, -3.0, -1.5, 0.0, 1.5, 3.0, 6.0, 12.0, 24.0])
+    rng = np.random.default_rng(3)
+    h = rng.uniform(0.5, 2.0, 20)[:, None]
+    g = rng.uniform(2.0, 6.0, 20)[:, None]  # every view tilted the same way: a shift they share
+    s = 0.6
+    mid = h * angles[None] ** 2
+    shifted = np.stack([mid - s * g * angles[None], mid, mid + s * g * angles[None]])
+    counts = view_draws(20, 500, rng)
+    assert np.std(bootstrap_minima(angles, mid, 500, rng)) < 1e-9
+    spread = np.std(shared_shift_minima(angles, shifted, s, counts, rng))
+    expected = s * np.mean(np.abs(counts @ g[:, 0]) / (2.0 * counts @ h[:, 0]))
+    assert spread == pytest.approx(expected, rel=0.1), (spread, expected)

@@ -13,6 +13,7 @@ from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import transform_points
 from autoalign.io.bop import Scene
 from autoalign.losses import LOSSES, ViewTerms, robust_view_weights, targets_in_crops
+from autoalign.losses.silhouette import outline_shift_rate
 from autoalign.losses.depth import MAX_SAMPLES, DepthNoise, DepthTerms, depth_terms
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.rasterizers.soft_silhouette import Silhouettes
@@ -126,6 +127,7 @@ class SilhouetteObjective:
         self.loss_fn = LOSSES[loss]
         self.robust = robust
         self._levels: dict[tuple[float, int | None], LevelViews] = {}
+        self._outline_rates: dict[tuple[float, int | None], list[NDArray[np.float32]]] = {}
         self.renders = 0
         self.region: SeedRegion | None = None  # while set, poses are held within it (engine.refine)
 
@@ -149,10 +151,28 @@ class SilhouetteObjective:
                                            scene.masks, depths)
         return self._levels[key]
 
+    def outline_shifted_losses(self, ev: Evaluation, level: Level, shifts_px: tuple[float, ...]) -> NDArray[np.float64]:
+        """(S, V) each view's unweighted loss at ``ev``'s render (at ``level``) with every target's
+        outline moved outward by each of ``shifts_px`` (px at the level's resolution; negative:
+        inward), linearised as the covariance's outline prior is
+        (:func:`~autoalign.losses.silhouette.outline_shift_rate`); a depth term is kept as it was."""
+        key = (level.scale, level.max_views)
+        views = self.at_scale(*key)
+        if key not in self._outline_rates:
+            self._outline_rates[key] = [outline_shift_rate(t) for t in views.targets]
+        rates = self._outline_rates[key]
+        sil = ev.silhouettes
+        t, r = targets_in_crops(views.targets, sil), targets_in_crops(rates, sil)
+        rate_totals = np.array([float(x.sum()) for x in rates])
+        depth = 0.0 if ev.depth is None else ev.depth.loss
+        return np.stack([self.loss_fn(sil, t + b * r, views.totals + b * rate_totals).loss + depth
+                         for b in shifts_px])
+
     def use_cameras(self, cameras: list[Camera]) -> None:
         """Render through ``cameras`` (one per view of the scene, e.g. corrected ones) from now on."""
         self.scene = replace(self.scene, cameras=list(cameras))
         self._levels.clear()
+        self._outline_rates.clear()
 
     def evaluate(self, T_wm: NDArray[np.float64], level: Level, weights: NDArray[np.float64] | None = None,
                  with_derivatives: bool = True) -> Evaluation:

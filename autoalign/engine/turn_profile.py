@@ -13,6 +13,16 @@ lowest sample and its neighbours); the spread (standard deviation) of those turn
 sigma as the views' disagreement gives it, far from the pose too: where a few views decide it and
 disagree, the draws' minima jump between dips; where those views agree, they stay put. The
 covariance's variance of that turn is raised to it when it is larger, along that turn alone.
+
+Resampling views sees what they disagree on, not what every mask shares. The covariance's prior on
+a shift every mask's outline shares (:data:`~autoalign.engine.uncertainty.BOUNDARY_BIAS_PX`) is
+linear, taken at the pose; along a shallow turn a small tilt of the profile moves its minimum far,
+so the profile carries that prior itself: each view's loss is also taken with every target's
+outline moved out and in by the prior's sigma (the same renders), and each draw adds one shared
+shift, drawn from the prior, to its views (the loss is quadratic in the shift). The spread of
+those draws' minima is the turn's floor in the reported covariance; the views' own spread, without
+the shared shift, its floor in the views' spread (:attr:`~autoalign.engine.uncertainty.Uncertainty.spread`,
+what the nearly-symmetric rule reads). Measured in ``docs/results.md``.
 """
 
 from __future__ import annotations
@@ -23,7 +33,7 @@ from numpy.typing import NDArray
 from autoalign.engine.hypotheses import turns
 from autoalign.engine.objective import SilhouetteObjective
 from autoalign.engine.options import Level
-from autoalign.engine.uncertainty import TurnFloor, Uncertainty, with_turn_floors
+from autoalign.engine.uncertainty import BOUNDARY_BIAS_PX, TurnFloor, Uncertainty, with_turn_floors
 
 PROFILE_SCALE = 0.5
 """The resolution of the profile's renders (of the images'). A coarser loss is a noisier one: on the
@@ -56,13 +66,35 @@ def profile_minimum(angles_deg: NDArray[np.float64], totals: NDArray[np.float64]
     return float(np.clip(x[1] - b / (2.0 * a), x[0], x[2]))
 
 
+def view_draws(views: int, draws: int, rng: np.random.Generator) -> NDArray[np.float64]:
+    """(draws, views) how often each view is drawn in each bootstrap draw of as many views, with replacement."""
+    return rng.multinomial(views, np.full(views, 1.0 / views), size=draws).astype(np.float64)
+
+
+def draw_minima(angles_deg: NDArray[np.float64], totals: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(D,) the minimising turn (:func:`profile_minimum`) of each of the summed profiles ``totals``
+    (D, K) sampled at ``angles_deg`` (K,)."""
+    return np.array([profile_minimum(angles_deg, t) for t in totals])
+
+
 def bootstrap_minima(angles_deg: NDArray[np.float64], view_losses: NDArray[np.float64],
                      draws: int, rng: np.random.Generator) -> NDArray[np.float64]:
     """(draws,) the minimising turn (:func:`profile_minimum`) of the summed profile of each bootstrap
     draw of views; ``view_losses`` (V, K) each view's weighted loss at ``angles_deg`` (K,)."""
-    V = len(view_losses)
-    counts = rng.multinomial(V, np.full(V, 1.0 / V), size=draws).astype(np.float64)
-    return np.array([profile_minimum(angles_deg, t) for t in counts @ view_losses])
+    return draw_minima(angles_deg, view_draws(len(view_losses), draws, rng) @ view_losses)
+
+
+def shared_shift_minima(angles_deg: NDArray[np.float64], shifted: NDArray[np.float64], shift_px: float,
+                        counts: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np.float64]:
+    """(D,) the minimising turn of each draw of views (``counts`` (D, V), :func:`view_draws`) with
+    one outline shift every view shares, drawn from N(0, ``shift_px``^2): ``shifted`` (3, V, K) each
+    view's weighted loss at ``angles_deg`` (K,) with the outlines moved by ``-shift_px``, 0 and
+    ``+shift_px``, through which the loss is a parabola in the shift."""
+    lo, mid, hi = shifted
+    slope = (hi - lo) / (2.0 * shift_px)
+    curve = (hi + lo - 2.0 * mid) / (2.0 * shift_px ** 2)
+    b = rng.normal(0.0, shift_px, len(counts))[:, None]
+    return draw_minima(angles_deg, counts @ mid + b * (counts @ slope) + b ** 2 * (counts @ curve))
 
 
 def with_turn_profiles(obj: SilhouetteObjective, T_wm: NDArray[np.float64], u: Uncertainty,
@@ -73,16 +105,23 @@ def with_turn_profiles(obj: SilhouetteObjective, T_wm: NDArray[np.float64], u: U
     if not u.weak_turn_axes:
         return u
     level = Level(PROFILE_SCALE, sigma_px, 0)
+    shift = BOUNDARY_BIAS_PX * PROFILE_SCALE  # the prior's sigma in the profile's pixels
     side = np.asarray(PROFILE_DEG, dtype=np.float64)
     angles = np.r_[-side[::-1], 0.0, side]
-    own = weights * obj.evaluate(T_wm, level, weights=weights, with_derivatives=False).terms.loss
-    rng = np.random.default_rng(0)
+
+    def losses(T: NDArray[np.float64]) -> NDArray[np.float64]:
+        ev = obj.evaluate(T, level, weights=weights, with_derivatives=False)
+        return weights * obj.outline_shifted_losses(ev, level, (-shift, 0.0, shift))  # (3, V)
+
+    own = losses(T_wm)
+    rng, shift_rng = np.random.default_rng(0), np.random.default_rng(1)
     floors = []
     for axis_m in u.weak_turn_axes:
         a_m = np.asarray(axis_m, dtype=np.float64) / np.linalg.norm(axis_m)
-        poses = turns(T_wm, a_m, obj.centre_m, tuple(angles[angles != 0.0]))
-        turned = [weights * obj.evaluate(T, level, weights=weights, with_derivatives=False).terms.loss for T in poses]
-        losses = np.stack(turned[:len(side)] + [own] + turned[len(side):], axis=1)  # (V, K) in angle order
-        minima = bootstrap_minima(angles, losses, DRAWS, rng)
-        floors.append(TurnFloor(a_m, float(np.radians(np.std(minima))) ** 2))
+        turned = [losses(T) for T in turns(T_wm, a_m, obj.centre_m, tuple(angles[angles != 0.0]))]
+        shifted = np.stack(turned[:len(side)] + [own] + turned[len(side):], axis=2)  # (3, V, K) in angle order
+        counts = view_draws(len(weights), DRAWS, rng)
+        alone = draw_minima(angles, counts @ shifted[1])
+        shared = shared_shift_minima(angles, shifted, shift, counts, shift_rng)
+        floors.append(TurnFloor(a_m, float(np.radians(np.std(alone))) ** 2, float(np.radians(np.std(shared))) ** 2))
     return with_turn_floors(u, floors)
