@@ -146,20 +146,6 @@ def outline_shift_rate(target: NDArray) -> NDArray[np.float32]:
     return (grown - shrunk) / 4.0
 
 
-def moved_outline(mask: NDArray, px: float) -> NDArray[np.float32]:
-    """``mask`` (thresholded at 0.5) with its outline moved ``px`` outward (negative: inward), by
-    the Euclidean distance to it, to a fraction of a pixel: a pixel's value is the share of it the
-    moved outline covers, ``clip(px - d + 1/2, 0, 1)`` with ``d`` its signed distance to the outline
-    (which runs half a pixel beyond the outermost pixel centres; negative inside)."""
-    m = (np.asarray(mask) > 0.5).astype(np.uint8)
-    if not m.any() or m.all():
-        return m.astype(np.float32)
-    outside = cv2.distanceTransform(1 - m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) - 0.5
-    inside = cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) - 0.5
-    signed = np.where(m > 0, -inside, outside)
-    return np.clip(px - signed + 0.5, 0.0, 1.0).astype(np.float32)
-
-
 def boundary_bias_grads(sil: Silhouettes, targets: list[NDArray], t_total: NDArray[np.float64]) -> NDArray[np.float64]:
     """(N, 6) per view, the change of :func:`l2`'s gradient per pixel of outward shift of the
     target's outline (``-sum_p dt_p jac_p / area``, band pixels), for the covariance's prior on a

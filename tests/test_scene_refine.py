@@ -298,13 +298,12 @@ def test_a_turn_its_profile_widened_stays_weak_in_the_joint_stage():
     assert u.weak_turn_axes == []
     fit = (np.full(10, 0.95), np.ones(10), ids)
     assert judge(*fit, uncertainty=u).status == "ok"
-    floor = np.radians(1.5) ** 2
-    floored = with_turn_floors(u, [TurnFloor(np.array([0.0, 0.0, 1.0]), floor, floor)])
+    floored = with_turn_floors(u, [TurnFloor(np.array([0.0, 0.0, 1.0]), np.radians(1.5) ** 2)])
     assert len(floored.weak_turn_axes) == 1 and np.isclose(floored.sigma_deg[2], 1.5)
     v = judge(*fit, uncertainty=floored, turn_gap=2 * NEAR_SYMMETRY_GAP)
     assert v.status == "check" and "nearly symmetric: the turn about model z (1.5 deg)" in v.reasons[-1]
     # a floor about a turn already weak is not named twice
-    twice = with_turn_floors(floored, [TurnFloor(np.array([0.0, 0.01, 1.0]) / np.hypot(0.01, 1.0), 0.0, 0.0)])
+    twice = with_turn_floors(floored, [TurnFloor(np.array([0.0, 0.01, 1.0]) / np.hypot(0.01, 1.0), 0.0)])
     assert len(twice.weak_turn_axes) == 1
 
 

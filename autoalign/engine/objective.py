@@ -13,7 +13,6 @@ from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import transform_points
 from autoalign.io.bop import Scene
 from autoalign.losses import LOSSES, ViewTerms, robust_view_weights, targets_in_crops
-from autoalign.losses.silhouette import moved_outline
 from autoalign.losses.depth import MAX_SAMPLES, DepthNoise, DepthTerms, depth_terms
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.rasterizers.soft_silhouette import Silhouettes
@@ -100,14 +99,6 @@ class Evaluation:
         return ViewTermsRecord(self.terms.loss - (0.0 if depth is None else depth), depth, self.weights)
 
 
-def _resampled(images: list[NDArray], cameras: list[Camera], scale: float) -> list[NDArray[np.float32]]:
-    """Full-resolution masks (or ignore maps) area-resampled to ``cameras`` (already at ``scale``)."""
-    if scale == 1.0:
-        return [np.asarray(m, dtype=np.float32) for m in images]  # no copy of float32 masks: targets are only read
-    return [cv2.resize(np.asarray(m, dtype=np.float32), (c.width, c.height), interpolation=cv2.INTER_AREA)
-            for m, c in zip(images, cameras)]
-
-
 class SilhouetteObjective:
     """Weighted multi-view silhouette loss of one scene, with resampled targets per scale.
 
@@ -145,27 +136,18 @@ class SilhouetteObjective:
         if key not in self._levels:
             scene = self.scene if max_views is None else self.scene.subset(self.scene.spread(max_views))
             cams = [c.scaled(scale) for c in scene.cameras]
-            tg = _resampled(scene.masks, cams, scale)
-            ignore = None if scene.ignore is None else [g > 0.5 for g in _resampled(scene.ignore, cams, scale)]
+
+            def resampled(m: NDArray, c: Camera) -> NDArray[np.float32]:
+                if scale == 1.0:
+                    return np.asarray(m, dtype=np.float32)  # no copy: targets are only read
+                return cv2.resize(np.asarray(m, dtype=np.float32), (c.width, c.height), interpolation=cv2.INTER_AREA)
+
+            tg = [resampled(m, c) for m, c in zip(scene.masks, cams)]
+            ignore = None if scene.ignore is None else [resampled(g, c) > 0.5 for g, c in zip(scene.ignore, cams)]
             depths = scene.depths if self.depth is not None else None
             self._levels[key] = LevelViews(cams, tg, np.array([float(t.sum()) for t in tg]), ignore, scene.cameras,
                                            scene.masks, depths)
         return self._levels[key]
-
-    def with_moved_outlines(self, level: Level, shift_px: float) -> LevelViews:
-        """The views at ``level`` with every mask's outline moved ``shift_px`` outward (pixels of the
-        full-resolution masks; negative: inward; :func:`~autoalign.losses.silhouette.moved_outline`),
-        resampled as the targets are. Not cached: a profile's few evaluations use it."""
-        views = self.at_scale(level.scale, level.max_views)
-        moved = _resampled([moved_outline(m, shift_px) for m in views.full_masks], views.cameras, level.scale)
-        return replace(views, targets=moved, totals=np.array([float(t.sum()) for t in moved]))
-
-    def loss_against(self, ev: Evaluation, views: LevelViews) -> NDArray[np.float64]:
-        """(V,) each view's unweighted loss of ``ev``'s render against the targets of ``views`` (the
-        render's views, e.g. with moved outlines: :meth:`with_moved_outlines`); a depth term is
-        kept as it was."""
-        loss = self.loss_fn(ev.silhouettes, targets_in_crops(views.targets, ev.silhouettes), views.totals).loss
-        return loss if ev.depth is None else loss + ev.depth.loss
 
     def use_cameras(self, cameras: list[Camera]) -> None:
         """Render through ``cameras`` (one per view of the scene, e.g. corrected ones) from now on."""

@@ -13,18 +13,6 @@ lowest sample and its neighbours); the spread (standard deviation) of those turn
 sigma as the views' disagreement gives it, far from the pose too: where a few views decide it and
 disagree, the draws' minima jump between dips; where those views agree, they stay put. The
 covariance's variance of that turn is raised to it when it is larger, along that turn alone.
-
-Resampling views sees what they disagree on, not what every mask shares. The covariance's prior on
-a shift every mask's outline shares (:data:`~autoalign.engine.uncertainty.BOUNDARY_BIAS_PX`) is
-linear, taken at the pose; along a shallow turn a small tilt of the profile moves its minimum far,
-so the profile carries that prior itself: each view's loss is also taken (the same renders)
-against its mask with the outline moved out and in by one and two of the prior's sigmas (by the
-Euclidean distance to it, :func:`~autoalign.losses.silhouette.moved_outline`), and each draw adds
-one shift, drawn from the prior and shared by its views (the loss interpolated between those
-shifts). The spread of
-those draws' minima is the turn's floor in the reported covariance; the views' own spread, without
-the shared shift, its floor in the views' spread (:attr:`~autoalign.engine.uncertainty.Uncertainty.spread`,
-what the nearly-symmetric rule reads). Measured in ``docs/results.md``.
 """
 
 from __future__ import annotations
@@ -35,7 +23,7 @@ from numpy.typing import NDArray
 from autoalign.engine.hypotheses import turns
 from autoalign.engine.objective import SilhouetteObjective
 from autoalign.engine.options import Level
-from autoalign.engine.uncertainty import BOUNDARY_BIAS_PX, TurnFloor, Uncertainty, with_turn_floors
+from autoalign.engine.uncertainty import TurnFloor, Uncertainty, with_turn_floors
 
 PROFILE_SCALE = 0.5
 """The resolution of the profile's renders (of the images'). A coarser loss is a noisier one: on the
@@ -68,42 +56,13 @@ def profile_minimum(angles_deg: NDArray[np.float64], totals: NDArray[np.float64]
     return float(np.clip(x[1] - b / (2.0 * a), x[0], x[2]))
 
 
-def view_draws(views: int, draws: int, rng: np.random.Generator) -> NDArray[np.float64]:
-    """(draws, views) how often each view is drawn in each bootstrap draw of as many views, with replacement."""
-    return rng.multinomial(views, np.full(views, 1.0 / views), size=draws).astype(np.float64)
-
-
-def draw_minima(angles_deg: NDArray[np.float64], totals: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(D,) the minimising turn (:func:`profile_minimum`) of each of the summed profiles ``totals``
-    (D, K) sampled at ``angles_deg`` (K,)."""
-    return np.array([profile_minimum(angles_deg, t) for t in totals])
-
-
 def bootstrap_minima(angles_deg: NDArray[np.float64], view_losses: NDArray[np.float64],
                      draws: int, rng: np.random.Generator) -> NDArray[np.float64]:
     """(draws,) the minimising turn (:func:`profile_minimum`) of the summed profile of each bootstrap
     draw of views; ``view_losses`` (V, K) each view's weighted loss at ``angles_deg`` (K,)."""
-    return draw_minima(angles_deg, view_draws(len(view_losses), draws, rng) @ view_losses)
-
-
-SHIFT_STEPS = (-2.0, -1.0, 0.0, 1.0, 2.0)
-"""The shared outline shifts (in the prior's sigmas) each view's loss is taken at along a profile;
-a draw's shift between them is interpolated, beyond them extrapolated, linearly."""
-
-
-def shared_shift_minima(angles_deg: NDArray[np.float64], shifted: NDArray[np.float64],
-                        shifts_px: NDArray[np.float64], sigma_px: float, counts: NDArray[np.float64],
-                        rng: np.random.Generator) -> NDArray[np.float64]:
-    """(D,) the minimising turn of each draw of views (``counts`` (D, V), :func:`view_draws`) with
-    one outline shift every view shares, drawn from N(0, ``sigma_px``^2): ``shifted`` (S, V, K) each
-    view's weighted loss at ``angles_deg`` (K,) with the outlines moved by each of ``shifts_px`` (S,
-    increasing), between which the loss is taken as linear in the shift."""
-    per_draw = np.einsum("dv,svk->sdk", counts, shifted)  # (S, D, K) each draw's summed profile per shift
-    b = rng.normal(0.0, sigma_px, len(counts))
-    seg = np.clip(np.searchsorted(shifts_px, b) - 1, 0, len(shifts_px) - 2)
-    w = ((b - shifts_px[seg]) / (shifts_px[seg + 1] - shifts_px[seg]))[:, None]
-    d = np.arange(len(counts))
-    return draw_minima(angles_deg, (1.0 - w) * per_draw[seg, d] + w * per_draw[seg + 1, d])
+    V = len(view_losses)
+    counts = rng.multinomial(V, np.full(V, 1.0 / V), size=draws).astype(np.float64)
+    return np.array([profile_minimum(angles_deg, t) for t in counts @ view_losses])
 
 
 def with_turn_profiles(obj: SilhouetteObjective, T_wm: NDArray[np.float64], u: Uncertainty,
@@ -114,25 +73,16 @@ def with_turn_profiles(obj: SilhouetteObjective, T_wm: NDArray[np.float64], u: U
     if not u.weak_turn_axes:
         return u
     level = Level(PROFILE_SCALE, sigma_px, 0)
-    shifts = BOUNDARY_BIAS_PX * np.asarray(SHIFT_STEPS)  # px of the full-resolution masks
-    moved = [None if b == 0.0 else obj.with_moved_outlines(level, float(b)) for b in shifts]
     side = np.asarray(PROFILE_DEG, dtype=np.float64)
     angles = np.r_[-side[::-1], 0.0, side]
-
-    def losses(T: NDArray[np.float64]) -> NDArray[np.float64]:
-        """(S, V) each view's weighted loss at ``T`` against the masks with each shared shift."""
-        ev = obj.evaluate(T, level, weights=weights, with_derivatives=False)
-        return weights * np.stack([ev.terms.loss if v is None else obj.loss_against(ev, v) for v in moved])
-
-    own = losses(T_wm)
-    rng, shift_rng = np.random.default_rng(0), np.random.default_rng(1)
+    own = weights * obj.evaluate(T_wm, level, weights=weights, with_derivatives=False).terms.loss
+    rng = np.random.default_rng(0)
     floors = []
     for axis_m in u.weak_turn_axes:
         a_m = np.asarray(axis_m, dtype=np.float64) / np.linalg.norm(axis_m)
-        turned = [losses(T) for T in turns(T_wm, a_m, obj.centre_m, tuple(angles[angles != 0.0]))]
-        shifted = np.stack(turned[:len(side)] + [own] + turned[len(side):], axis=2)  # (S, V, K) in angle order
-        counts = view_draws(len(weights), DRAWS, rng)
-        alone = draw_minima(angles, counts @ shifted[SHIFT_STEPS.index(0.0)])
-        shared = shared_shift_minima(angles, shifted, shifts, BOUNDARY_BIAS_PX, counts, shift_rng)
-        floors.append(TurnFloor(a_m, float(np.radians(np.std(alone))) ** 2, float(np.radians(np.std(shared))) ** 2))
+        poses = turns(T_wm, a_m, obj.centre_m, tuple(angles[angles != 0.0]))
+        turned = [weights * obj.evaluate(T, level, weights=weights, with_derivatives=False).terms.loss for T in poses]
+        losses = np.stack(turned[:len(side)] + [own] + turned[len(side):], axis=1)  # (V, K) in angle order
+        minima = bootstrap_minima(angles, losses, DRAWS, rng)
+        floors.append(TurnFloor(a_m, float(np.radians(np.std(minima))) ** 2))
     return with_turn_floors(u, floors)

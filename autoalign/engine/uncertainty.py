@@ -33,9 +33,8 @@ At the optimum of the weighted least-squares silhouette loss, with the Gauss-New
   at 1.3 sigma (3.5 with the prior alone); on LM-O's SAM masks ``d`` is 0 to 1 px.
 
 A weakly observed turn's variance is then raised to the spread its loss profile's minimum shows
-over resampled views, with a shared outline shift drawn from the prior in the covariance
-(:mod:`autoalign.engine.turn_profile`): a nearly symmetric object's roll is not a parabola far
-from the pose, and a small tilt of a shallow profile moves its minimum far.
+over resampled views (:mod:`autoalign.engine.turn_profile`): a nearly symmetric object's roll is
+not a parabola far from the pose.
 
 The twist is ``(v [mm], w [rad])`` in the world frame about the object centre; sigmas are
 reported about and along the model's own axes (its x, y, z), since those name what a person sees
@@ -76,14 +75,11 @@ _AXES = "xyz"
 @dataclass(frozen=True)
 class TurnFloor:
     """The least variance (rad^2) of the turn about the unit model-frame axis ``axis_m`` (through
-    the object's centre) from its loss profile (:mod:`autoalign.engine.turn_profile`): ``variance``,
-    that of the profile's minimum over resampled views (the floor in the views' spread), and
-    ``shared_variance``, that with a shared outline shift drawn from its prior too (the floor in
-    the reported covariance)."""
+    the object's centre): that of its loss profile's minimum over resampled views
+    (:mod:`autoalign.engine.turn_profile`)."""
 
     axis_m: NDArray[np.float64]
     variance: float
-    shared_variance: float
 
 
 @dataclass
@@ -349,9 +345,9 @@ def with_spread_factor(u: Uncertainty, factor: float) -> Uncertainty:
 
 
 def with_turn_floors(u: Uncertainty, floors: list[TurnFloor]) -> Uncertainty:
-    """``u`` with the variance of each floor's turn raised, along that turn alone, to at least the
-    floor's: in its covariance to the one with the shared outline shift, in its spread to the views'
-    own (``u.turn_floors`` records them); and each floor's turn among the weakly observed ones."""
+    """``u`` with the variance of each floor's turn raised to at least the floor's, along that turn
+    alone, in its covariance and its spread (``u.turn_floors`` records them), and each floor's turn
+    among the weakly observed ones."""
     if not floors:
         return u
     cov = u.covariance.copy()
@@ -359,12 +355,10 @@ def with_turn_floors(u: Uncertainty, floors: list[TurnFloor]) -> Uncertainty:
     axes = list(u.weak_turn_axes)
     for f in floors:
         e = np.r_[np.zeros(3), f.axis_m]
-        for C, floor in ((cov, max(f.shared_variance, f.variance)), (spread, f.variance)):
-            if C is None:
-                continue
+        for C in (c for c in (cov, spread) if c is not None):
             var = float(e @ C @ e)
-            if floor > var:
-                C += (floor - var) * np.outer(e, e)
+            if f.variance > var:
+                C += (f.variance - var) * np.outer(e, e)
         if all(abs(float(f.axis_m @ a)) < SAME_AXIS for a in axes):
             axes.append(f.axis_m)
     return replace(with_covariance(u, cov), turn_floors=list(floors), weak_turn_axes=axes, spread=spread)

@@ -114,20 +114,15 @@ def uncertainty_record(u: Uncertainty | None) -> dict[str, Any] | None:
                              "where polishes with a fifth of the views left out moved farther, plus the prior on a "
                              f"shift of every mask's outline ({BOUNDARY_BIAS_PX:g} px, and with the photos "
                              "outline_disagreement_px on top: sqrt of the sum of squares), weakly observed turns "
-                             "raised to the spread of their loss profile's minimum over resampled views with a shared "
-                             "outline shift (turn_profiles)",
+                             "raised to the spread of their loss profile's minimum over resampled views",
             "views_spread_factor": u.spread_factor,
             "outline_shift_per_px": u.bias_shift,
             "outline_disagreement_px": u.outline_disagreement_px,
             "outline_disagreement": "how far the masks' outlines lie outside the silhouettes at this pose, fitted "
                                     "with the photos too (px, median over the views whose mask is on the object; "
                                     "null: not measured)",
-            "turn_profiles": [{"axis_m": f.axis_m, "sigma_deg": float(np.degrees(np.sqrt(f.variance))),
-                               "sigma_with_outline_shift_deg": float(np.degrees(np.sqrt(f.shared_variance)))}
+            "turn_profiles": [{"axis_m": f.axis_m, "sigma_deg": float(np.degrees(np.sqrt(f.variance)))}
                               for f in u.turn_floors],
-            "turn_profiles_of": "weakly observed turns: sigma_deg the spread of their loss profile's minimum over "
-                                "resampled views; sigma_with_outline_shift_deg that with a shift of every mask's "
-                                f"outline drawn from its prior ({BOUNDARY_BIAS_PX:g} px) in each draw",
             "naive_sigma_mm": u.naive_sigma_mm, "naive_sigma_deg": u.naive_sigma_deg}
 
 
