@@ -128,8 +128,7 @@ def table(rows: list[dict], scenes: int) -> list[str]:
              "| covariance | axes | within 3 sigma | median abs(error) / sigma |", "|---|---|---|---|"]
     for key, name in (("sigma_naive", "naive (residual variance)"),
                       ("sigma_sandwich", "views' spread: jackknife over views, weak turns' profiles"),
-                      ("sigma", f"reported: that + {BOUNDARY_BIAS_PX:g} px outline-shift prior "
-                                "(in the weak turns' profiles too)")):
+                      ("sigma", f"reported: that + {BOUNDARY_BIAS_PX:g} px outline-shift prior")):
         share, med, n = coverage(rows, key)
         lines.append(f"| {name} | {n} | {share:.1%} | {med:.2f} |")
     lines += ["", "| instances | within 1 mm / 1 deg | of them ok | outside 2 mm / 2 deg | of them ok | ok / check / failed |",
