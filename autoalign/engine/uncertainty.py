@@ -130,6 +130,12 @@ class Uncertainty:
     outline_disagreement_px: float | None = None
     spread: NDArray[np.float64] | None = None
 
+    @property
+    def views_spread(self) -> NDArray[np.float64]:
+        """(6, 6) what the views show of the pose: :attr:`spread`, or :attr:`covariance` where
+        there is no spread apart from it."""
+        return self.covariance if self.spread is None else self.spread
+
 
 def _into_model(R_wm: NDArray[np.float64]) -> NDArray[np.float64]:
     """The 6x6 map of a world-frame twist into the model's axes (``v_m = R^T v``, ``w_m = R^T w``)."""

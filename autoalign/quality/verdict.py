@@ -158,8 +158,7 @@ def nearly_symmetric(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.flo
     weak = [a for a in uncertainty.weak_turn_axes if all(abs(float(a @ f)) < SAME_AXIS for f in free)]
     if not weak:
         return False
-    seen = uncertainty.covariance if uncertainty.spread is None else uncertainty.spread
-    loose = any(turn_sigma_deg(seen, a) >= NEAR_SYMMETRY_DEG for a in weak)
+    loose = any(turn_sigma_deg(uncertainty.views_spread, a) >= NEAR_SYMMETRY_DEG for a in weak)
     return loose or (not symmetric and (turn_gap is None or turn_gap < NEAR_SYMMETRY_GAP))
 
 

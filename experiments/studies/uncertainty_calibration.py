@@ -78,7 +78,6 @@ def run_scene(root: Path, k: int) -> list[dict]:
         free = np.zeros(6, bool)
         for axis, _ in sym.continuous:
             free[3 + int(np.argmax(np.abs(axis)))] = True
-        seen = u.covariance if u.spread is None else u.spread  # the views' spread, without the shared shift
         ray = u.view_dir_m
         err = axis_errors(r.result.T_wm, T_gt, mesh.centre)
         big_mm, big_deg = largest_sigmas(u, models.continuous_axes(i))
@@ -87,7 +86,7 @@ def run_scene(root: Path, k: int) -> list[dict]:
         rows.append({"scene": k, "obj": names[r.instance.index], "err_mm": e.pos_err_mm, "err_deg": e.rot_err_deg,
                      "largest_sigma_mm": big_mm, "largest_sigma_deg": big_deg,
                      "axis_err": err.tolist(), "free": free.tolist(),
-                     "sigma": _sigma6(u.covariance).tolist(), "sigma_sandwich": _sigma6(seen).tolist(),
+                     "sigma": _sigma6(u.covariance).tolist(), "sigma_sandwich": _sigma6(u.views_spread).tolist(),
                      "sigma_naive": np.r_[u.naive_sigma_mm, u.naive_sigma_deg].tolist(),
                      "err_ray_mm": None if ray is None else float(abs(err[:3] @ ray)),
                      "sigma_ray_mm": u.sigma_ray_mm, "verdict": r.verdict.status, "reasons": r.verdict.reasons,
@@ -95,7 +94,7 @@ def run_scene(root: Path, k: int) -> list[dict]:
                      "agreeing_views": [agreeing.count, agreeing.total, agreeing.median_iou],
                      # the reported sigma of each weak turn, and the views' (what "nearly symmetric" reads)
                      "weak_turn_deg": [turn_sigma_deg(u.covariance, a) for a in u.weak_turn_axes],
-                     "weak_turn_spread_deg": [turn_sigma_deg(seen, a) for a in u.weak_turn_axes],
+                     "weak_turn_spread_deg": [turn_sigma_deg(u.views_spread, a) for a in u.weak_turn_axes],
                      "turn_gap": r.result.turn_gap,
                      "failures": dict(counts)})
     return rows
