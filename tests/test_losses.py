@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from autoalign.losses import LOSSES, cauchy_weights, targets_in_crops
+from autoalign.losses import LOSSES, cauchy_weights, robust_view_weights, targets_in_crops
 from autoalign.rasterizers.soft_silhouette import Silhouettes
 
 
@@ -72,3 +72,18 @@ def test_cauchy_weights_suppress_outlier_views() -> None:
     w = cauchy_weights(r)
     assert w[:9].min() > 0.79 and w[9] < 0.01
     assert np.all(cauchy_weights(np.zeros(5)) == 1.0)
+
+
+def test_wrong_masks_do_not_change_how_the_rest_are_weighed() -> None:
+    """Views whose mask is implausible get no weight, and do not raise the Cauchy scale either:
+    partly failed masks (IoU 0.5) weigh the same against well-fitting ones (IoU 0.9) with no
+    wrong mask beside them or with a third of the views wrong."""
+    good, partial = [0.9] * 10, [0.5] * 5
+    for wrong in (0, 3, 8):
+        w = robust_view_weights(np.array(good + partial + [0.02] * wrong))
+        assert np.all(w[15:] == 0.0)
+        assert w[10] / w[0] == pytest.approx(1.25 / 7.25)  # (1 + (0.1 / 0.2)^2) / (1 + (0.5 / 0.2)^2)
+    # the scale's own default: every view's median
+    r = np.array([0.1] * 10 + [0.5] * 5 + [0.98] * 8)
+    assert cauchy_weights(r)[0] > cauchy_weights(r, inliers=r < 0.9)[0] * 0.99
+    assert cauchy_weights(r)[10] > 2.0 * cauchy_weights(r, inliers=r < 0.9)[10]
