@@ -92,7 +92,9 @@ class DisambiguationOptions:
             half a tooth (17.5 deg) off with sigmas of 0.15 deg and was ``ok``; its 20 deg turn
             scored 0.85 against its 0.79 (the truth 0.88), while the 14 right poses beside it scored
             their best turn 0.007-0.11 below themselves. 12 renders at 1/4 resolution: about 0.06 s.
-            ``()``: off.
+            The best turn the other way about the same axis is polished too when it also beats the
+            result by ``near_margin`` (half a tooth off, a keyed gear's key is on one side, which 1/4
+            resolution cannot see), and ``orbits`` then compares the two at full resolution. ``()``: off.
         near_margin: mean hard IoU by which a near turn must beat the best to be polished: a pipe
             or a rod turned about its axis of symmetry (the same pose) scored up to 0.0007 above
             itself, the half-tooth gear's turn 0.063.

@@ -385,17 +385,52 @@ def _with_candidate(obj: SilhouetteObjective, final: list[Finalist], parent: Hyp
 
 def _with_best_turn(obj: SilhouetteObjective, scene: Scene, final: list[Finalist], parent: Hypothesis,
                     axes_m: list[NDArray[np.float64]], angles_deg: tuple[float, ...], margin: float, stage: Stage,
-                    opts: RefineOptions, progress: Progress | None) -> tuple[list[Finalist], float]:
+                    opts: RefineOptions, progress: Progress | None, both_ways: bool = False
+                    ) -> tuple[list[Finalist], float]:
     """``parent``'s turns about ``axes_m`` by ``angles_deg`` scored by hard IoU at 1/4 resolution
     (:func:`~autoalign.engine.hypotheses.turn_scores`); the best, if it beats ``parent`` by more than
-    ``margin``, polished at the last level and added to ``final`` (best first). Returns the finalists
-    and how much better ``parent`` scored than its best turn (negative: the turn was better)."""
+    ``margin``, polished at the last level and added to ``final`` (best first). With ``both_ways``
+    the best turn the other way about the same axis is polished too when it also beats ``parent``
+    by ``margin``: a pose between two near-equal minima (a keyed gear half a tooth off) has one on
+    each side, and 1/4 resolution cannot tell which holds the key. Returns the finalists and how
+    much better ``parent`` scored than its best turn (negative: the turn was better)."""
     own, scores, cands = turn_scores(obj.pyramid.with_faces(opts.detail.coarse), scene, parent.T_final,
                                      axes_m, obj.centre_m, angles_deg)
     k = int(np.argmax(scores))
-    if scores[k] > own + margin:
-        final = _with_candidate(obj, final, parent, cands[k], stage, opts.schedule[-1], opts, progress)
+    picked = [k] if scores[k] > own + margin else []
+    if picked and both_ways:
+        n = len(angles_deg)  # the turns are by axis, then by angle
+        axis, sign = k // n, np.sign(angles_deg[k % n])
+        other = [axis * n + j for j in range(n) if np.sign(angles_deg[j]) == -sign]
+        j = max(other, key=lambda j: scores[j], default=None)
+        if j is not None and scores[j] > own + margin:
+            picked.append(j)
+    for j in picked:
+        final = _with_candidate(obj, final, parent, cands[j], stage, opts.schedule[-1], opts, progress)
     return final, own - float(scores[k])
+
+
+def _with_orbit(obj: SilhouetteObjective, scene: Scene, final: list[Finalist], standing: Standing,
+                centre_m: NDArray[np.float64], others: list[Hypothesis], opts: RefineOptions,
+                progress: Progress | None) -> tuple[list[Finalist], Standing]:
+    """When the runner-up is competitive and a 1/n turn from the best, the rest of that turn's
+    orbit scored by full-resolution hard IoU, and the best of it, if it beats the best by
+    ``opts.disambiguation.margin``, polished and added (see :func:`_disambiguate`)."""
+    runner = standing.runner_up
+    if not (opts.disambiguation.orbits and runner is not None and runner.stage is Stage.FINAL
+            and _competitive(runner.loss, standing.ranked[0].loss, opts)):
+        return final, standing
+    best = standing.ranked[0]
+    cands = orbit(best.T_final, runner.T_final)
+    if not len(cands):
+        return final, standing
+    fine = obj.pyramid.fine(opts.detail)
+    ious = np.array([float(np.mean(hard_ious(fine, scene, T))) for T in cands])
+    if ious.max() <= float(np.mean(hard_ious(fine, scene, best.T_final))) + opts.disambiguation.margin:
+        return final, standing
+    final = _with_candidate(obj, final, best, cands[int(np.argmax(ious))], Stage.ORBIT, opts.schedule[-1], opts,
+                            progress)
+    return final, _rank(final, others, centre_m, opts)
 
 
 def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: list[Finalist],
@@ -417,23 +452,16 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
     the best, and the turn gap.
     """
     levels = opts.schedule
-    standing = _rank(final, others, mesh.centre, opts)
-    runner = standing.runner_up
-    if (opts.disambiguation.orbits and runner is not None and runner.stage is Stage.FINAL
-            and _competitive(runner.loss, standing.ranked[0].loss, opts)):
-        best = standing.ranked[0]
-        cands = orbit(best.T_final, runner.T_final)
-        if len(cands):
-            ious = np.array([float(np.mean(hard_ious(obj.pyramid.fine(opts.detail), scene, T))) for T in cands])
-            if ious.max() > float(np.mean(hard_ious(obj.pyramid.fine(opts.detail), scene, best.T_final))) + opts.disambiguation.margin:
-                final = _with_candidate(obj, final, best, cands[int(np.argmax(ious))], Stage.ORBIT, levels[-1], opts,
-                                        progress)
-                standing = _rank(final, others, mesh.centre, opts)
+    final, standing = _with_orbit(obj, scene, final, _rank(final, others, mesh.centre, opts), mesh.centre, others,
+                                  opts, progress)
     if opts.disambiguation.near_turns:
+        before = len(final)
         final, _ = _with_best_turn(obj, scene, final, standing.ranked[0], list(mesh.principal_axes),
                                    opts.disambiguation.near_turns, opts.disambiguation.near_margin, Stage.NEAR_TURN,
-                                   opts, progress)
+                                   opts, progress, both_ways=True)
         standing = _rank(final, others, mesh.centre, opts)
+        if len(final) > before:  # the near turns' minima may be a 1/n turn apart (a keyed gear's teeth)
+            final, standing = _with_orbit(obj, scene, final, standing, mesh.centre, others, opts, progress)
     best = final[0]
     ev, uncertainty = _final_state(obj, best.hypothesis, best.weights, levels, opts.optimizer)
     turn_gap = None
