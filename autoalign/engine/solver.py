@@ -93,6 +93,10 @@ class Problem(Protocol[X, P]):
     def small(self, step: NDArray[np.float64]) -> bool:
         """Whether ``step`` is below the tolerances (the solve has converged)."""
 
+    def parts(self, point: P) -> list[tuple[slice, float]]:
+        """The unknowns of each part whose convergence is judged on its own (``ftol`` of its own
+        value), with that value: the whole problem, or each object of a joint solve."""
+
 
 @dataclass
 class Move(Generic[X, P]):
@@ -217,8 +221,10 @@ class LevenbergMarquardt:
     A rejected step raises ``lam`` by ``growth``, an accepted one lowers it three-fold. Steps are
     clipped to ``max_step`` (mm, degrees; None: not clipped). It stops, without trying it (nothing
     is rendered), at a step whose decrease predicted by the Gauss-Newton model is below ``ftol`` of
-    the objective (MINPACK's ``ftol`` test) or that ``problem.small`` calls converged. ``D``'s
-    entries are at least ``floor`` (times ``trace(H)`` if ``floor_of_trace``).
+    the objective (MINPACK's ``ftol`` test) in every part of the problem (``problem.parts``: in a
+    joint solve each object's share of the decrease against its own loss, so that one object's
+    slow valley is not judged against the whole scene's loss), or that ``problem.small`` calls
+    converged. ``D``'s entries are at least ``floor`` (times ``trace(H)`` if ``floor_of_trace``).
     """
 
     ftol: float
@@ -244,8 +250,8 @@ class LevenbergMarquardt:
                 step = np.zeros_like(g)
             if self.max_step is not None:
                 step = clip_step(step, *self.max_step)
-            predicted = -(g @ step + 0.5 * step @ H @ step)
-            if predicted < self.ftol * value:
+            predicted = -(g * step + 0.5 * step * (H @ step))  # per unknown; their sum is the model's decrease
+            if all(predicted[part].sum() <= self.ftol * v for part, v in problem.parts(point)):
                 return Outcome(tries, stop=Stop.FTOL)
             if problem.small(step):
                 return Outcome(tries, stop=Stop.SMALL_STEP)
@@ -373,6 +379,9 @@ class PoseProblem:
 
     def small(self, step: NDArray[np.float64]) -> bool:
         return bool(np.linalg.norm(step[:3]) < self.tol_mm and np.degrees(np.linalg.norm(step[3:])) < self.tol_deg)
+
+    def parts(self, ev: Evaluation) -> list[tuple[slice, float]]:
+        return [(slice(None), ev.value)]
 
 
 PoseSolve = Callable[..., "tuple[NDArray[np.float64], Trace]"]

@@ -161,6 +161,13 @@ class JointProblem:
     def small(self, step: NDArray[np.float64]) -> bool:
         return False  # the joint solve stops on the predicted gain (ftol) only
 
+    def parts(self, point: JointPoint) -> list[tuple[slice, float]]:
+        """Each instance's twist with its own weighted loss; the cameras and the scale, shared,
+        with the whole value. A kettle whose loss was 3% lower at the truth, 3.3 deg away, stopped
+        there while its predicted gain was below ``ftol`` of the five instances' loss together."""
+        own = [(slice(6 * i, 6 * i + 6), v) for i, v in enumerate(point.ev.instance_values)]
+        return own + ([(slice(self.cams.start, self.n), point.value)] if self.n > self.cams.start else [])
+
     def retract(self, x: JointState, step: NDArray[np.float64]) -> JointState:
         poses = [apply_twist(T, step[6 * k:6 * k + 6], transform_points(T, self.centres_m[k][None])[0])
                  for k, T in enumerate(x.poses)]

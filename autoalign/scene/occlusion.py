@@ -87,6 +87,11 @@ class JointEvaluation:
     def hard_iou(self, i: int) -> NDArray[np.float64]:
         return np.array([f.hard_iou for f in self.fits[i]])
 
+    @property
+    def instance_values(self) -> list[float]:
+        """Each instance's part of ``value``: its views' weighted loss."""
+        return _instance_values(self.fits, self.weights)
+
     def record(self, i: int) -> ViewTermsRecord:
         """Instance ``i``'s terms per view (:class:`~autoalign.engine.objective.ViewTermsRecord`)."""
         d = None if self.depth is None or self.depth[i] is None else self.depth[i].loss
@@ -101,8 +106,12 @@ class JointEvaluation:
         return JointEvaluation(self.fits, w, _weighted_value(self.fits, w), self.robust, self.depth)
 
 
+def _instance_values(fits: list[list[ViewFit]], weights: list[NDArray[np.float64]]) -> list[float]:
+    return [float(w @ np.array([f.loss for f in fs])) for fs, w in zip(fits, weights)]
+
+
 def _weighted_value(fits: list[list[ViewFit]], weights: list[NDArray[np.float64]]) -> float:
-    return float(sum(float(w @ np.array([f.loss for f in fs])) for fs, w in zip(fits, weights)))
+    return float(sum(_instance_values(fits, weights)))
 
 
 @dataclass
