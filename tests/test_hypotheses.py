@@ -193,33 +193,39 @@ def test_without_orbits_the_keyed_gear_fails() -> None:
     assert e.rot_err_deg > 10.0, e.rot_err_deg
 
 
-def test_near_turns_leave_a_local_minimum_half_a_tooth_off(tmp_path) -> None:
-    """On a scene of the calibration study (SAM's failures and systematic outline errors in the
-    masks) a plain 10-tooth gear (D10) descended from its coarse start to half a tooth (18 deg)
-    off and was ``ok``; the near turns' 10-20 deg probe finds the teeth, and the result is within
-    a degree of a symmetric equivalent of the truth."""
-    from autoalign.engine.refine import RefineOptions
+def _calibration_instance(root, scene: int, name: str):
+    """Instance ``name`` of the calibration study's scene ``scene`` (SAM's failures and systematic
+    outline errors in the masks, written under ``root``): its scene, mesh, symmetries, coarse
+    start and true pose."""
     from autoalign.experiments.studies.sam_failures import make_sam_scene
     from autoalign.experiments.studies.uncertainty_calibration import SYSTEMATIC
     from autoalign.io.instances import read_init_poses, read_instance_scenes, read_instances
     from autoalign.io.models import ModelSet
 
-    truth, _, names = make_sam_scene(tmp_path, 36, systematic=SYSTEMATIC, seed=29)
-    k = names.index("gear_plain")
-    found = read_instance_scenes(tmp_path / "scene", read_instances(tmp_path / "scene"))
-    models = ModelSet.read(tmp_path / "models")
+    truth, _, names = make_sam_scene(root, scene, systematic=SYSTEMATIC, seed=29)
+    k = names.index(name)
+    found = read_instance_scenes(root / "scene", read_instances(root / "scene"))
+    models = ModelSet.read(root / "models")
     obj = found.instances[k].obj_id
-    mesh, sym = models.mesh(obj), Symmetries.from_info(models.info[obj])
-    seed = read_init_poses(tmp_path / "init_gt.json", found)[k]
+    seed = read_init_poses(root / "init_gt.json", found)[k]
+    return found.scenes[k], models.mesh(obj), Symmetries.from_info(models.info[obj]), seed, truth[k]
+
+
+def test_near_turns_leave_a_local_minimum_half_a_tooth_off(tmp_path) -> None:
+    """On a scene of the calibration study a plain 10-tooth gear (D10) descended from its coarse
+    start to half a tooth (18 deg) off and was ``ok``; the near turns' 10-20 deg probe finds the
+    teeth, and the result is within a degree of a symmetric equivalent of the truth."""
+    from autoalign.engine.refine import RefineOptions
+
+    scene, mesh, sym, seed, T_gt = _calibration_instance(tmp_path, 36, "gear_plain")
     # the weak turns (30-180 deg about a turn the views barely see) can find the teeth too, where the
     # refits widen that turn's sigma past the weak limit: left out of both runs, so that the near
     # turns are what is tested
-    stuck = autoalign.refine(found.scenes[k], mesh, seed,
+    stuck = autoalign.refine(scene, mesh, seed,
                              RefineOptions(disambiguation=DisambiguationOptions(near_turns=(), weak_turns=())))
-    assert pose_errors(stuck.T_wm, truth[k], mesh.centre, None, sym).rot_err_deg > 10.0
-    res = autoalign.refine(found.scenes[k], mesh, seed,
-                           RefineOptions(disambiguation=DisambiguationOptions(weak_turns=())))
-    e = pose_errors(res.T_wm, truth[k], mesh.centre, None, sym)
+    assert pose_errors(stuck.T_wm, T_gt, mesh.centre, None, sym).rot_err_deg > 10.0
+    res = autoalign.refine(scene, mesh, seed, RefineOptions(disambiguation=DisambiguationOptions(weak_turns=())))
+    e = pose_errors(res.T_wm, T_gt, mesh.centre, None, sym)
     assert e.pos_err_mm < 1.0 and e.rot_err_deg < 1.0, (e.pos_err_mm, e.rot_err_deg)
 
 
@@ -230,26 +236,16 @@ def test_near_turns_try_both_sides_of_a_keyed_gear(tmp_path, monkeypatch) -> Non
     deg) off. Refining both sides lets the orbit compare them at full resolution."""
     import autoalign.engine.refine as refine_module
     from autoalign.engine.refine import RefineOptions
-    from autoalign.experiments.studies.sam_failures import make_sam_scene
-    from autoalign.experiments.studies.uncertainty_calibration import SYSTEMATIC
-    from autoalign.io.instances import read_init_poses, read_instance_scenes, read_instances
-    from autoalign.io.models import ModelSet
 
-    truth, _, names = make_sam_scene(tmp_path, 15, systematic=SYSTEMATIC, seed=29)
-    k = names.index("gear_keyed")
-    found = read_instance_scenes(tmp_path / "scene", read_instances(tmp_path / "scene"))
-    models = ModelSet.read(tmp_path / "models")
-    obj = found.instances[k].obj_id
-    mesh, sym = models.mesh(obj), Symmetries.from_info(models.info[obj])
-    seed = read_init_poses(tmp_path / "init_gt.json", found)[k]
+    scene, mesh, sym, seed, T_gt = _calibration_instance(tmp_path, 15, "gear_keyed")
     options = RefineOptions(disambiguation=DisambiguationOptions(weak_turns=()))  # the near turns are tested
-    res = autoalign.refine(found.scenes[k], mesh, seed, options)
-    e = pose_errors(res.T_wm, truth[k], mesh.centre, None, sym)
+    res = autoalign.refine(scene, mesh, seed, options)
+    e = pose_errors(res.T_wm, T_gt, mesh.centre, None, sym)
     assert e.pos_err_mm < 1.0 and e.rot_err_deg < 1.0, (e.pos_err_mm, e.rot_err_deg)
     one_side = refine_module._with_best_turn
     monkeypatch.setattr(refine_module, "_with_best_turn", lambda *a, **kw: one_side(*a, **{**kw, "both_ways": False}))
-    res = autoalign.refine(found.scenes[k], mesh, seed, options)
-    assert abs(pose_errors(res.T_wm, truth[k], mesh.centre, None, sym).rot_err_deg - 30.0) < 2.0
+    res = autoalign.refine(scene, mesh, seed, options)
+    assert abs(pose_errors(res.T_wm, T_gt, mesh.centre, None, sym).rot_err_deg - 30.0) < 2.0
 
 
 def test_pruning_saves_renders_not_answers() -> None:

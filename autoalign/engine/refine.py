@@ -443,7 +443,9 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
       resolution) and a clearly better one is polished.
     * **Near turns.** The best's small turns about the mesh's principal axes are scored at 1/4
       resolution and a clearly better one is polished: a local minimum a few tens of degrees from
-      the right one (a plain gear half a tooth off) that descent cannot leave.
+      the right one (a plain gear half a tooth off) that descent cannot leave. So is the best turn
+      the other way about the same axis, if also clearly better, and the orbits are tried again on
+      the two (a keyed gear's key, on one side, barely shows at 1/4 resolution).
     * **Weak turns.** From a given pose, the best's turns about its weakly observed axes are
       scored at 1/4 resolution and a clearly better one is polished; how much worse the best
       turn fits is returned (``turn_gap``; ``None`` when none were tried).
