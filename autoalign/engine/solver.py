@@ -240,6 +240,7 @@ class LevenbergMarquardt:
     def step(self, problem: Problem[X, P], x: X, point: P, state: Damping) -> Outcome[X, P]:
         H, g = problem.normal_equations(x, point)
         value = problem.value(point)
+        parts = problem.parts(point)
         floor = self.floor * max(np.trace(H), 1e-30) if self.floor_of_trace else self.floor
         D = np.diag(np.maximum(np.diag(H), floor))
         tries = 0
@@ -251,7 +252,7 @@ class LevenbergMarquardt:
             if self.max_step is not None:
                 step = clip_step(step, *self.max_step)
             predicted = -(g * step + 0.5 * step * (H @ step))  # per unknown; their sum is the model's decrease
-            if all(predicted[part].sum() <= self.ftol * v for part, v in problem.parts(point)):
+            if all(predicted[part].sum() <= self.ftol * v for part, v in parts):
                 return Outcome(tries, stop=Stop.FTOL)
             if problem.small(step):
                 return Outcome(tries, stop=Stop.SMALL_STEP)
