@@ -114,6 +114,39 @@ def test_derivatives_wrt_the_occluders_pose_match_finite_differences(pair):
         np.testing.assert_allclose(G[j], fd, rtol=0.05, atol=0.02 * np.abs(fd).max())
 
 
+def test_an_instance_at_its_previous_pose_is_not_rendered_again(pair):
+    """The joint solve holds converged instances: evaluated after a call at the same poses except
+    instance 0's, the objective renders instance 0 alone, and every fit (loss, derivatives, IoUs,
+    which instances it depends on) equals that of a fresh objective's evaluation. After new cameras
+    nothing is reused."""
+    root, models, truth = pair
+    obj, _ = _objective(root, models)
+    rng = np.random.default_rng(3)
+    start = [perturb_pose(T, 1.0, 1.0, rng, models.mesh(k + 1).centre) for k, T in enumerate(truth)]
+    moved = [perturb_pose(start[0], 1.0, 1.0, rng, models.mesh(1).centre), start[1]]
+    renders = [0, 0]
+    for k, r in enumerate(obj.rasterizers):
+        def counted(*a, _k=k, _render=r.render, **kw):
+            renders[_k] += 1
+            return _render(*a, **kw)
+        r.render = counted
+    obj.evaluate(start, FULL)
+    reused = obj.evaluate(moved, FULL)
+    assert renders == [2, 1]
+    other = _objective(root, models)[0]
+    assert other.rasterizers[0] is obj.rasterizers[0]  # the model set's: its renders are counted too
+    fresh = other.evaluate(moved, FULL)
+    assert renders == [3, 2]
+    assert any(len(f.instances) > 1 for f in fresh.fits[1])  # instance 1's fits depend on instance 0 somewhere
+    for a, b in zip(sum(reused.fits, []), sum(fresh.fits, [])):
+        assert np.array_equal(a.instances, b.instances) and a.loss == b.loss and a.iou == b.iou
+        assert a.hard_iou == b.hard_iou and np.array_equal(a.grad, b.grad) and np.array_equal(a.gn, b.gn)
+    assert reused.value == fresh.value
+    obj.use_cameras(dict(zip(obj.image_ids, obj.cameras)))
+    obj.evaluate(moved, FULL)
+    assert renders == [4, 3]
+
+
 def test_joint_refinement_labels_an_instance_whose_occluders_masks_are_missing(pair, tmp_path):
     """The front object's masks deleted in all views but one: the parts of the object behind it
     that it hides are claimed by no mask. Refined alone (engine.refine, other masks ignored) from

@@ -153,3 +153,88 @@ def test_lm_judges_each_part_against_its_own_loss() -> None:
     assert whole.trace.stop is Stop.FTOL and whole.trace.iterations == 0 and whole.x[1] == 0.0
     parts = minimise(_TwoParts(1000.0, False), np.zeros(2), rule, 50)
     assert parts.trace.stop is Stop.FTOL and abs(parts.x[1] - 3.0) < 0.1, parts.x
+
+
+class _LinearParts:
+    """A linear least-squares toy ``r = J x - b`` of two unknowns, one per part: part 0's value is
+    ``big`` (a loss it cannot shed, like an object's wrong masks), part 1's is ``0.5 |r|^2 + 0.5``
+    (0.5 it cannot shed: a loss that reaches 0 never passes a relative test). ``moved`` records
+    every step's part 0."""
+
+    def __init__(self, J: np.ndarray, b: np.ndarray, big: float) -> None:
+        self.J, self.b, self.big = J, b, big
+        self.moved: list[float] = []
+
+    def evaluate(self, x, weights_of=None):
+        r = self.J @ x - self.b
+        return np.array([self.big, 0.5 * float(r @ r) + 0.5])
+
+    def reweighted(self, point):
+        return point
+
+    def value(self, point) -> float:
+        return float(point.sum())
+
+    def normal_equations(self, x, point):
+        return self.J.T @ self.J, self.J.T @ (self.J @ x - self.b)
+
+    def retract(self, x, step):
+        self.moved.append(float(step[0]))
+        return x + step
+
+    def reject(self, x) -> None:
+        pass
+
+    def small(self, step) -> bool:
+        return False
+
+    def parts(self, point):
+        return [(slice(0, 1), float(point[0])), (slice(1, 2), float(point[1]))]
+
+
+def test_lm_holds_a_converged_part_while_another_moves() -> None:
+    """Independent parts: part 0 is 0.001 from its minimum (a predicted gain far below ``ftol``
+    of its value), part 1 is 3 away. Part 0 is never moved (in a joint solve: never rendered again)
+    and part 1 reaches its minimum."""
+    from autoalign.engine.solver import LevenbergMarquardt, minimise
+
+    problem = _LinearParts(np.eye(2), np.array([0.001, 3.0]), big=1.0)
+    sol = minimise(problem, np.zeros(2), LevenbergMarquardt(1e-3, max_step=None, floor_of_trace=False), 50)
+    assert sol.trace.stop is Stop.FTOL and abs(sol.x[1] - 3.0) < 1e-2, sol.x
+    assert problem.moved and all(m == 0.0 for m in problem.moved) and sol.x[0] == 0.0
+
+
+def test_lm_moves_parts_that_share_a_valley_together() -> None:
+    """Coupled parts: the fit needs ``x0 + x1 = 3`` and, weakly, ``x0 = x1``. Part 0's own share
+    of the predicted gain is far below ``ftol`` of its large value, yet holding it leaves part 1
+    nothing to gain at (0, 2.97): the solve moves both and reaches (1.5, 1.5) instead of spending
+    its budget there."""
+    from autoalign.engine.solver import LevenbergMarquardt, minimise
+
+    problem = _LinearParts(np.array([[1.0, 1.0], [0.1, -0.1]]), np.array([3.0, 0.0]), big=1e4)
+    sol = minimise(problem, np.zeros(2), LevenbergMarquardt(1e-3, max_step=None, floor_of_trace=False), 50)
+    assert sol.trace.stop is Stop.FTOL and sol.trace.iterations < 10, sol.trace
+    assert np.allclose(sol.x, [1.5, 1.5], atol=0.02), sol.x
+
+
+class _NoiseFloor(_TwoParts):
+    """Part 0 as in :class:`_TwoParts`; part 1's Gauss-Newton model promises a gain (gradient -0.1,
+    curvature 1) that its value, ``0.1 + 0.01 |x_1|``, never gives: a loss at the noise floor of
+    re-rendering, where every trial comes out worse."""
+
+    def evaluate(self, x, weights_of=None):
+        return np.array([self.big, 0.1 + 0.01 * abs(x[1])])
+
+    def normal_equations(self, x, point):
+        return np.diag([1.0, 1.0]), np.array([0.0, -0.1])
+
+
+def test_lm_judges_a_part_whose_trial_failed_against_the_whole() -> None:
+    """After a trial that came out worse, the step's predicted gain is judged against the whole
+    value: the solve stops after that one trial instead of shrinking the step until the part's
+    gain is below ``ftol`` of its own small value (ten more renders of the whole scene)."""
+    from autoalign.engine.solver import LevenbergMarquardt, minimise
+
+    sol = minimise(_NoiseFloor(1000.0, False), np.zeros(2), LevenbergMarquardt(1e-3, max_step=None,
+                                                                                floor_of_trace=False), 50)
+    assert sol.trace.stop is Stop.FTOL and sol.trace.tries == 1 and sol.x[1] == 0.0, sol.trace

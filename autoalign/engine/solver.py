@@ -223,8 +223,16 @@ class LevenbergMarquardt:
     is rendered), at a step whose decrease predicted by the Gauss-Newton model is below ``ftol`` of
     the objective (MINPACK's ``ftol`` test) in every part of the problem (``problem.parts``: in a
     joint solve each object's share of the decrease against its own loss, so that one object's
-    slow valley is not judged against the whole scene's loss), or that ``problem.small`` calls
-    converged. ``D``'s entries are at least ``floor`` (times ``trace(H)`` if ``floor_of_trace``).
+    slow valley is not judged against the whole scene's loss; after a trial that came out worse,
+    the step's gain is judged against the whole value, as a loss at its noise floor gives no
+    gain that its model predicts), or that ``problem.small`` calls converged. Until then the
+    parts whose predicted gain is below ``ftol`` of their own are held where they are and the
+    step solves for the others alone, when holding them loses no more of the predicted decrease
+    than ``ftol`` of their values together and of the others' (else they share a valley with the
+    others, as an object's distance and the scene's scale do, and all move): an object that has
+    converged is not moved (nor, in a joint solve, rendered again) while another one follows its
+    valley; it moves again when a later iterate predicts it a gain. ``D``'s entries are at least
+    ``floor`` (times ``trace(H)`` if ``floor_of_trace``).
     """
 
     ftol: float
@@ -245,15 +253,13 @@ class LevenbergMarquardt:
         D = np.diag(np.maximum(np.diag(H), floor))
         tries = 0
         while state.lam <= 1e8:
-            try:
-                step = -np.linalg.solve(H + state.lam * D, g)
-            except np.linalg.LinAlgError:
-                step = np.zeros_like(g)
-            if self.max_step is not None:
-                step = clip_step(step, *self.max_step)
+            step = self._damped_step(H, D, g, state.lam, np.arange(len(g)))
             predicted = -(g * step + 0.5 * step * (H @ step))  # per unknown; their sum is the model's decrease
-            if all(predicted[part].sum() <= self.ftol * v for part, v in parts):
+            done = [predicted[part].sum() <= self.ftol * v for part, v in parts]
+            if all(done) or (tries and predicted.sum() <= self.ftol * value):
                 return Outcome(tries, stop=Stop.FTOL)
+            if any(done):
+                step = self._with_held(H, D, g, state.lam, step, parts, done)
             if problem.small(step):
                 return Outcome(tries, stop=Stop.SMALL_STEP)
             x_new = problem.retract(x, step)
@@ -266,6 +272,28 @@ class LevenbergMarquardt:
             problem.reject(x)
             state.lam *= self.growth
         return Outcome(tries, stop=Stop.DAMPING_LIMIT)
+
+    def _with_held(self, H: NDArray[np.float64], D: NDArray[np.float64], g: NDArray[np.float64], lam: float,
+                   step: NDArray[np.float64], parts: list[tuple[slice, float]], held: list[bool]) -> NDArray[np.float64]:
+        """The step with the ``held`` parts held, if that loses at most ``ftol`` of the predicted
+        decrease, measured against the held parts' values and against the others'; else ``step``."""
+        free = np.ones(len(g), dtype=bool)
+        for (part, _), h in zip(parts, held):
+            free[part] = not h
+        reduced = self._damped_step(H, D, g, lam, np.flatnonzero(free))
+        lost = (g @ reduced + 0.5 * reduced @ (H @ reduced)) - (g @ step + 0.5 * step @ (H @ step))
+        values = [sum(v for (_, v), h in zip(parts, held) if h == side) for side in (True, False)]
+        return reduced if lost <= self.ftol * min(values) else step
+
+    def _damped_step(self, H: NDArray[np.float64], D: NDArray[np.float64], g: NDArray[np.float64], lam: float,
+                     free: NDArray[np.int_]) -> NDArray[np.float64]:
+        """The damped Gauss-Newton step of the unknowns ``free`` with the others held (0), clipped."""
+        step = np.zeros_like(g)
+        try:
+            step[free] = -np.linalg.solve((H + lam * D)[np.ix_(free, free)], g[free])
+        except np.linalg.LinAlgError:
+            pass
+        return step if self.max_step is None else clip_step(step, *self.max_step)
 
 
 @dataclass

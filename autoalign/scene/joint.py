@@ -139,7 +139,8 @@ class JointProblem:
         return out
 
     def _use(self, x: JointState) -> None:
-        if self.with_cameras or self.with_scale:
+        was = self._using
+        if (self.with_cameras or self.with_scale) and (was is None or x.E is not was.E or x.S != was.S):
             self.objective.use_cameras(self.cameras_of(x))
         self._using = x
 
@@ -169,14 +170,15 @@ class JointProblem:
         return own + ([(slice(self.cams.start, self.n), point.value)] if self.n > self.cams.start else [])
 
     def retract(self, x: JointState, step: NDArray[np.float64]) -> JointState:
+        # a part the step holds keeps its very pose (and cameras), so that its renders are reused
         poses = [apply_twist(T, step[6 * k:6 * k + 6], transform_points(T, self.centres_m[k][None])[0])
-                 for k, T in enumerate(x.poses)]
+                 if step[6 * k:6 * k + 6].any() else T for k, T in enumerate(x.poses)]
         E, d, S = x.E, x.d, x.S
-        if self.with_cameras:
+        if self.with_cameras and step[self.cams].any():
             E = {im: apply_twist(np.eye(4), -step[self.cams][6 * c:6 * c + 6], self.p) @ x.E[im]
                  for c, im in enumerate(self.ids)}
             d = x.d + step[self.cams]
-        if self.with_scale:  # the instances grow with the scene
+        if self.with_scale and step[-1] != 0.0:  # the instances grow with the scene
             grow = float(np.exp(step[-1]))
             S = x.S * grow
             poses = [grown_pose(T, c, grow) for T, c in zip(poses, self.centres_m)]

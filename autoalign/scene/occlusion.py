@@ -22,6 +22,7 @@ in front of it: there the models say the pixel is hidden and its comparison with
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any, Callable, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,6 +43,8 @@ from autoalign.quality.overlap import iou_from_counts
 from autoalign.rasterizers.camera_batch import CameraBatch
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.rasterizers.soft_silhouette import Silhouettes
+
+V = TypeVar("V")
 
 
 @dataclass
@@ -154,39 +157,49 @@ class OcclusionObjective:
         pos = {im: g for g, im in enumerate(used)}
         self.views_of = [np.array([pos[im] for im in s.image_ids], dtype=np.int64) for s in found.scenes]
         self.centres_m = [r.mesh.centre for r in self.rasterizers]
-        self._hard_totals: dict[float, list[NDArray[np.float64]]] = {}
+        self._last = _LastValues()
 
     def use_cameras(self, cameras: dict[int, Camera]) -> None:
         """Render through ``cameras`` (by image id) from now on."""
         self.cameras = [cameras[im] for im in self.image_ids]
         for o in self.objectives:
             o.use_cameras([cameras[im] for im in o.scene.image_ids])
+        self._last.clear()
 
     def evaluate(self, poses: list[NDArray[np.float64]], level: Level,
                  weights: list[NDArray[np.float64]] | None = None) -> JointEvaluation:
         """Render every instance at its pose (world from model, mm) in every view and compare;
-        without ``weights`` they are computed from the fit (robust)."""
+        without ``weights`` they are computed from the fit (robust).
+
+        What depends only on instances whose poses are those of the previous call (their renders,
+        their overlaps, the fits of the views none of them changed in) is taken from that call:
+        the joint solve holds the objects that have converged while the others move."""
         cams = [c.scaled(level.scale) for c in self.cameras]
         batch = CameraBatch.of(cams)
-        sils = [r.render(T, cams, level.sigma) for r, T in zip(self.rasterizers, poses)]
+        keys = [(level.scale, level.sigma, np.asarray(T, dtype=np.float64).tobytes()) for T in poses]
+        sils = [self._last.get(("render", i), keys[i], lambda: r.render(T, cams, level.sigma))
+                for i, (r, T) in enumerate(zip(self.rasterizers, poses))]
         views = [o.at_scale(level.scale) for o in self.objectives]
-        pairs = self._overlaps(sils)
-        self._order(pairs, poses, batch, sils)
+        pairs = self._overlaps(sils, keys, poses, batch)
         by_view: dict[tuple[int, int], list[_Pair]] = {}
         for p in pairs:
             by_view.setdefault((p.i, p.g), []).append(p)
         band_rows = [_BandRows(s) for s in sils]
         fits = []
         for i, (sil, lv) in enumerate(zip(sils, views)):
-            fits.append([self._fit(i, k, int(g), sil, lv, sils, band_rows, by_view.get((i, int(g)), []), level)
-                         for k, g in enumerate(self.views_of[i])])
-        depth = self._depth(poses, fits, level)
+            fits.append([])
+            for k, g in enumerate(self.views_of[i]):
+                here = by_view.get((i, int(g)), [])
+                key = (keys[i], tuple((p.j, keys[p.j]) for p in here))
+                fits[i].append(self._last.get(("fit", i, k), key,
+                                              lambda: self._fit(i, k, int(g), sil, lv, sils, band_rows, here, level)))
+        depth = self._depth(poses, keys, fits, level)
         if weights is None:
             weights = [robust_view_weights(np.array([f.iou for f in fs])) if self.robust else np.ones(len(fs))
                        for fs in fits]
         return JointEvaluation(fits, weights, _weighted_value(fits, weights), self.robust, depth)
 
-    def _depth(self, poses: list[NDArray[np.float64]], fits: list[list[ViewFit]],
+    def _depth(self, poses: list[NDArray[np.float64]], keys: list[tuple], fits: list[list[ViewFit]],
                level: Level) -> list[DepthTerms | None] | None:
         """Each instance's depth terms (``None`` without depth), added in place to its views' fits
         (its own twist comes first in each fit)."""
@@ -198,9 +211,9 @@ class OcclusionObjective:
                 out.append(None)
                 continue
             cams = [self.cameras[g] for g in self.views_of[i]]
-            d = depth_terms(rast.caster, rast.mesh, poses[i], cams, sc.depths,
-                            transform_points(poses[i], self.centres_m[i][None])[0], self.depth,
-                            max(DEPTH_SAMPLES_MIN, int(MAX_SAMPLES * level.scale)), sc.masks)
+            d = self._last.get(("depth", i), keys[i], lambda: depth_terms(
+                rast.caster, rast.mesh, poses[i], cams, sc.depths, transform_points(poses[i], self.centres_m[i][None])[0],
+                self.depth, max(DEPTH_SAMPLES_MIN, int(MAX_SAMPLES * level.scale)), sc.masks))
             for k, f in enumerate(fits[i]):
                 grad, gn = f.grad.copy(), f.gn.copy()
                 grad[:6] += d.grad[k]
@@ -210,27 +223,44 @@ class OcclusionObjective:
         return out
 
     # -------------------------------------------------------------------------------- steps
-    def _overlaps(self, sils: list[Silhouettes]) -> list[_Pair]:
-        """Every (i, j, view of i) where both soft silhouettes cover some pixel."""
+    def _overlaps(self, sils: list[Silhouettes], keys: list[tuple], poses: list[NDArray[np.float64]],
+                  batch: CameraBatch) -> list[_Pair]:
+        """Every (i, j, view of i) where both soft silhouettes cover some pixel, with which is in
+        front there (:meth:`_order`); those of two instances at their previous poses are reused."""
+        out, new, fresh = [], [], []
+        for i in range(len(sils)):
+            for j in range(len(sils)):
+                if j == i:
+                    continue
+                found = self._last.find(("pairs", i, j), (keys[i], keys[j]))
+                if found is None:
+                    found = self._pairs(i, j, sils)
+                    new.append(((i, j), found))
+                    fresh += found
+                out += found
+        self._order(fresh, poses, batch, sils)
+        for (i, j), found in new:
+            self._last.put(("pairs", i, j), (keys[i], keys[j]), found)
+        return out
+
+    def _pairs(self, i: int, j: int, sils: list[Silhouettes]) -> list[_Pair]:
+        """The views of ``i`` where the soft silhouettes of ``i`` and ``j`` both cover some pixel."""
         out = []
-        for i, si in enumerate(sils):
-            for g in self.views_of[i]:
-                xi, yi, wi, hi = si.crops[g]
-                for j, sj in enumerate(sils):
-                    if j == i:
-                        continue
-                    xj, yj, wj, hj = sj.crops[g]
-                    x0, y0 = max(xi, xj), max(yi, yj)
-                    x1, y1 = min(xi + wi, xj + wj), min(yi + hi, yj + hj)
-                    if x1 <= x0 or y1 <= y0:
-                        continue
-                    yy, xx = np.mgrid[y0:y1, x0:x1]
-                    pi = ((yy - yi) * wi + (xx - xi)).ravel()
-                    pj = ((yy - yj) * wj + (xx - xj)).ravel()
-                    both = (si.soft[si.offsets[g] + pi] > 0) & (sj.soft[sj.offsets[g] + pj] > 0)
-                    if both.any():
-                        uv = np.column_stack([xx.ravel()[both], yy.ravel()[both]]) + 0.5
-                        out.append(_Pair(i, j, int(g), pi[both], pj[both], uv))
+        si, sj = sils[i], sils[j]
+        for g in self.views_of[i]:
+            xi, yi, wi, hi = si.crops[g]
+            xj, yj, wj, hj = sj.crops[g]
+            x0, y0 = max(xi, xj), max(yi, yj)
+            x1, y1 = min(xi + wi, xj + wj), min(yi + hi, yj + hj)
+            if x1 <= x0 or y1 <= y0:
+                continue
+            yy, xx = np.mgrid[y0:y1, x0:x1]
+            pi = ((yy - yi) * wi + (xx - xi)).ravel()
+            pj = ((yy - yj) * wj + (xx - xj)).ravel()
+            both = (si.soft[si.offsets[g] + pi] > 0) & (sj.soft[sj.offsets[g] + pj] > 0)
+            if both.any():
+                uv = np.column_stack([xx.ravel()[both], yy.ravel()[both]]) + 0.5
+                out.append(_Pair(i, j, int(g), pi[both], pj[both], uv))
         return out
 
     def _order(self, pairs: list[_Pair], poses: list[NDArray[np.float64]], batch: CameraBatch,
@@ -319,6 +349,33 @@ class OcclusionObjective:
             hard_iou = float(iou_from_counts(np.count_nonzero(hv & (t > 0.5)), np.count_nonzero(hv),
                                              np.count_nonzero(lv.targets[k] > 0.5)))
         return ViewFit(np.array(involved, dtype=np.int64), loss, grad, gn, iou, hard_iou, len(pix))
+
+
+class _LastValues:
+    """The value last computed for each slot, with the key of the inputs it was computed from."""
+
+    def __init__(self) -> None:
+        self._slots: dict[tuple, tuple[object, object]] = {}
+
+    def find(self, slot: tuple, key: object) -> Any:
+        """The slot's value if it was computed from ``key``, else None."""
+        held = self._slots.get(slot)
+        return held[1] if held is not None and held[0] == key else None
+
+    def put(self, slot: tuple, key: object, value: object) -> None:
+        self._slots[slot] = (key, value)
+
+    def get(self, slot: tuple, key: object, compute: Callable[[], V]) -> V:
+        """The slot's value for ``key``, computed (and kept) unless it was the last one computed."""
+        held = self._slots.get(slot)
+        if held is not None and held[0] == key:
+            return held[1]
+        value = compute()
+        self._slots[slot] = (key, value)
+        return value
+
+    def clear(self) -> None:
+        self._slots.clear()
 
 
 class _BandRows:
