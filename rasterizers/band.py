@@ -75,12 +75,12 @@ def find_band(outline: Outline, crops: NDArray[np.int64], offsets: NDArray[np.in
         centre = np.stack([crops[sv, 0] + cx + 0.5, crops[sv, 1] + cy + 0.5], 1)
         d_cell = point_segment_dist2(centre, outline.a, outline.b)
         cell = ay * atlas.shape[1] + cx
-        order = np.lexsort((-d_cell, cell))  # within a cell, nearest last: it owns the cell
-        last = np.r_[cell[order][1:] != cell[order][:-1], True]
-        owner = order[last]
+        order = np.lexsort((-d_cell, cell))  # within a cell, nearest last: the last write wins
+        owner = np.full(atlas.shape, -1, dtype=np.int64)
+        owner[ay[order], cx[order]] = order
         dist, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
         lut = np.full(int(labels.max()) + 1, -1, dtype=np.int64)
-        lut[labels[ay[owner], cx[owner]]] = owner
+        lut[labels[ay, cx]] = owner[ay, cx]
         in_band = (dist <= band_r) & atlas.valid
     else:
         in_band = np.zeros(atlas.shape, dtype=bool)
@@ -103,9 +103,8 @@ def find_band(outline: Outline, crops: NDArray[np.int64], offsets: NDArray[np.in
         return Band(np.zeros(0, np.int64), np.zeros(0, np.int64), region, samples)
     band = atlas.flat[rr, cc]
     view = atlas.view_of_row[rr]
-    rows, cols = atlas.shape  # a neighbour off the atlas is the edge pixel itself
-    cand = np.stack([lut[labels[np.clip(rr + dy, 0, rows - 1), np.clip(cc + dx, 0, cols - 1)]]
-                     for dy, dx in _CANDIDATE_OFFSETS], 1)
+    nearest = np.pad(lut[labels], 1, mode="edge")
+    cand = np.stack([nearest[rr + 1 + dy, cc + 1 + dx] for dy, dx in _CANDIDATE_OFFSETS], 1)
     p = np.stack([crops[view, 0] + cc + 0.5, crops[view, 1] + rr - atlas.row0[view] + 0.5], 1)
     # Distances only where a candidate differs from the best so far (mostly all five agree);
     # a neighbour across a gap belongs to another view and is never taken.

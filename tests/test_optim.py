@@ -238,3 +238,35 @@ def test_lm_judges_a_part_whose_trial_failed_against_the_whole() -> None:
     sol = minimise(_NoiseFloor(1000.0, False), np.zeros(2), LevenbergMarquardt(1e-3, max_step=None,
                                                                                 floor_of_trace=False), 50)
     assert sol.trace.stop is Stop.FTOL and sol.trace.tries == 1 and sol.x[1] == 0.0, sol.trace
+
+
+def test_a_subset_objective_reuses_the_resampled_views() -> None:
+    """``SilhouetteObjective.subset`` (the refits' leave-a-fifth-out objectives): the views at each
+    scale already resampled are taken from the whole (nothing resampled again) and equal those a
+    new objective on the same views makes, and it evaluates the same loss."""
+    import autoalign.engine.objective as objective_module
+
+    entry = get_model("procedural44", 3)
+    geo = make_trial(entry.mesh.centre, entry.mesh.diameter, 0, 3, 0, 10, 100.0, ImageSetup())
+    scene = make_scene(entry.mesh, geo.T_gt, geo.cameras)
+    whole = SilhouetteObjective(MeshPyramid(entry.mesh), scene, detail=AS_GIVEN)
+    whole.at_scale(0.25)
+    idx = [0, 2, 3, 7, 9]
+    resized = []
+    real = objective_module.cv2.resize
+    objective_module.cv2.resize = lambda *a, **kw: resized.append(1) or real(*a, **kw)
+    try:
+        sub = whole.subset(idx)
+        got = sub.at_scale(0.25)
+    finally:
+        objective_module.cv2.resize = real
+    assert not resized
+    fresh = SilhouetteObjective(MeshPyramid(entry.mesh), scene.subset(idx), detail=AS_GIVEN)
+    want = fresh.at_scale(0.25)
+    assert all(np.array_equal(a, b) for a, b in zip(got.targets, want.targets)) and len(got.targets) == 5
+    assert np.array_equal(got.totals, want.totals)
+    assert [c.K.tolist() for c in got.cameras] == [c.K.tolist() for c in want.cameras]
+    T = apply_twist(geo.T_gt, np.array([1.0, 0.0, 0.0, 0.0, 0.01, 0.0]),
+                    transform_points(geo.T_gt, entry.mesh.centre[None])[0])
+    level = Level(0.25, 0.5, 1)
+    assert sub.evaluate(T, level).value == fresh.evaluate(T, level).value

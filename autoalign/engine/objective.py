@@ -149,6 +149,20 @@ class SilhouetteObjective:
                                            scene.masks, depths)
         return self._levels[key]
 
+    def subset(self, idx: list[int] | NDArray[np.int64]) -> "SilhouetteObjective":
+        """The same objective on the views at positions ``idx`` (no seed region), with the
+        resampled targets of every view at each scale already computed taken from this one."""
+        idx = [int(i) for i in idx]
+        sub = SilhouetteObjective(self.pyramid, self.scene.subset(idx), self.loss_name, self.robust, self.detail,
+                                  self.depth)
+        for (scale, max_views), lv in self._levels.items():
+            if max_views is None:
+                sub._levels[(scale, None)] = LevelViews(
+                    [lv.cameras[i] for i in idx], [lv.targets[i] for i in idx], lv.totals[idx],
+                    None if lv.ignore is None else [lv.ignore[i] for i in idx], [lv.full_cameras[i] for i in idx],
+                    [lv.full_masks[i] for i in idx], None if lv.depths is None else [lv.depths[i] for i in idx])
+        return sub
+
     def use_cameras(self, cameras: list[Camera]) -> None:
         """Render through ``cameras`` (one per view of the scene, e.g. corrected ones) from now on."""
         self.scene = replace(self.scene, cameras=list(cameras))

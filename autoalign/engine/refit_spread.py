@@ -76,8 +76,7 @@ def refit_ratio(obj: SilhouetteObjective, T_wm: NDArray[np.float64], ev: Evaluat
     actual = linear = 0.0
     for g in range(GROUPS):
         out = np.arange(n) % GROUPS == g
-        sub = SilhouetteObjective(obj.pyramid, obj.scene.subset(list(np.flatnonzero(~out))), obj.loss_name,
-                                  obj.robust, obj.detail, obj.depth)
+        sub = obj.subset(np.flatnonzero(~out))
         Tg, _ = run_schedule(sub, T0, (level,), optimizer)
         a = _move(T0, Tg, obj.centre_m)
         step = deletion_step(H_inv, every, np.einsum("v,vij->ij", w[out], ev.terms.gn[out]),

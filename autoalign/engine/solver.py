@@ -274,7 +274,8 @@ class LevenbergMarquardt:
         return Outcome(tries, stop=Stop.DAMPING_LIMIT)
 
     def _with_held(self, H: NDArray[np.float64], D: NDArray[np.float64], g: NDArray[np.float64], lam: float,
-                   step: NDArray[np.float64], parts: list[tuple[slice, float]], held: list[bool]) -> NDArray[np.float64]:
+                   step: NDArray[np.float64], parts: list[tuple[slice, float]],
+                   held: list[bool]) -> NDArray[np.float64]:
         """The step with the ``held`` parts held, if that loses at most ``ftol`` of the predicted
         decrease, measured against the held parts' values and against the others'; else ``step``."""
         free = np.ones(len(g), dtype=bool)

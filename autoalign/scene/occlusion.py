@@ -211,9 +211,10 @@ class OcclusionObjective:
                 out.append(None)
                 continue
             cams = [self.cameras[g] for g in self.views_of[i]]
+            centre = transform_points(poses[i], self.centres_m[i][None])[0]
             d = self._last.get(("depth", i), keys[i], lambda: depth_terms(
-                rast.caster, rast.mesh, poses[i], cams, sc.depths, transform_points(poses[i], self.centres_m[i][None])[0],
-                self.depth, max(DEPTH_SAMPLES_MIN, int(MAX_SAMPLES * level.scale)), sc.masks))
+                rast.caster, rast.mesh, poses[i], cams, sc.depths, centre, self.depth,
+                max(DEPTH_SAMPLES_MIN, int(MAX_SAMPLES * level.scale)), sc.masks))
             for k, f in enumerate(fits[i]):
                 grad, gn = f.grad.copy(), f.gn.copy()
                 grad[:6] += d.grad[k]
