@@ -44,6 +44,7 @@ reported about and along the model's own axes (its x, y, z), since those name wh
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -237,7 +238,9 @@ def median_view_direction(view_dirs_w: NDArray[np.float64] | None,
 
 
 def jackknife(H_inv: NDArray[np.float64], cluster_H: list[tuple[NDArray[np.int64], NDArray[np.float64]]],
-              cluster_grads: NDArray[np.float64]) -> NDArray[np.float64]:
+              cluster_grads: NDArray[np.float64],
+              seen_from: Callable[[int, NDArray[np.float64]], NDArray[np.float64]] | None = None,
+              ) -> NDArray[np.float64]:
     """The delete-one-cluster jackknife covariance, each deletion one Newton step: without view ``v``
     the optimum moves by ``d_v = (H - H_v)^-1 g_v``, and the covariance is
     ``(V - 1) / V sum_v (d_v - mean d)(d_v - mean d)^T`` over the ``V`` views that count (a non-zero
@@ -248,7 +251,10 @@ def jackknife(H_inv: NDArray[np.float64], cluster_H: list[tuple[NDArray[np.int64
 
     Unlike the sandwich (:func:`sandwich`: ``H^-1`` on both sides), a view that alone fixes a
     direction moves the pose far when left out: with few views, or one that dominates, the
-    jackknife is the larger (the small-sample correction the sandwich lacks)."""
+    jackknife is the larger (the small-sample correction the sandwich lacks).
+
+    ``seen_from(v, d_v)``, if given, re-expresses view ``v``'s deletion step before it counts (the
+    joint solve's objects relative to the cameras that still see them)."""
     used = np.flatnonzero(np.any(cluster_grads != 0.0, axis=1))
     V = len(used)
     if V < 2:
@@ -257,6 +263,8 @@ def jackknife(H_inv: NDArray[np.float64], cluster_H: list[tuple[NDArray[np.int64
     for row, v in enumerate(used):
         idx, S = cluster_H[v]
         d[row] = deletion_step(H_inv, idx, S, cluster_grads[v, idx])
+        if seen_from is not None:
+            d[row] = seen_from(int(v), d[row])
     d -= d.mean(axis=0)
     return d.T @ d * ((V - 1) / V)
 
