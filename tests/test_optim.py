@@ -105,27 +105,14 @@ def test_every_solver_ends_with_a_reason_and_the_final_evaluation() -> None:
     assert all(s.message for s in Stop)
 
 
-class _TwoParts:
-    """A toy least-squares problem of two independent unknowns: part 0 fixed at a large loss
-    (``big``), part 1 ``sqrt(1 + (x - 3)^2) - 1``, a valley whose Gauss-Newton curvature (1, its
-    value at the minimum) is too high far from it, so that each step gains a little (as a kettle's
-    turn did in a joint solve). ``whole``: the problem is judged as one part."""
-
-    def __init__(self, big: float, whole: bool) -> None:
-        self.big, self.whole = big, whole
-
-    def evaluate(self, x, weights_of=None):
-        return np.array([self.big, np.sqrt(1.0 + (x[1] - 3.0) ** 2) - 1.0])
+class _ToyParts:
+    """What the toy problems of two unknowns, one per part, share: the value is the parts' sum."""
 
     def reweighted(self, point):
         return point
 
     def value(self, point) -> float:
         return float(point.sum())
-
-    def normal_equations(self, x, point):
-        d = x[1] - 3.0
-        return np.diag([1.0, 1.0]), np.array([0.0, d / np.sqrt(1.0 + d * d)])
 
     def retract(self, x, step):
         return x + step
@@ -137,9 +124,27 @@ class _TwoParts:
         return False
 
     def parts(self, point):
-        if self.whole:
-            return [(slice(None), float(point.sum()))]
         return [(slice(0, 1), float(point[0])), (slice(1, 2), float(point[1]))]
+
+
+class _TwoParts(_ToyParts):
+    """A toy least-squares problem of two independent unknowns: part 0 fixed at a large loss
+    (``big``), part 1 ``sqrt(1 + (x - 3)^2) - 1``, a valley whose Gauss-Newton curvature (1, its
+    value at the minimum) is too high far from it, so that each step gains a little (as a kettle's
+    turn did in a joint solve). ``whole``: the problem is judged as one part."""
+
+    def __init__(self, big: float, whole: bool) -> None:
+        self.big, self.whole = big, whole
+
+    def evaluate(self, x, weights_of=None):
+        return np.array([self.big, np.sqrt(1.0 + (x[1] - 3.0) ** 2) - 1.0])
+
+    def normal_equations(self, x, point):
+        d = x[1] - 3.0
+        return np.diag([1.0, 1.0]), np.array([0.0, d / np.sqrt(1.0 + d * d)])
+
+    def parts(self, point):
+        return [(slice(None), float(point.sum()))] if self.whole else super().parts(point)
 
 
 def test_lm_judges_each_part_against_its_own_loss() -> None:
@@ -155,7 +160,7 @@ def test_lm_judges_each_part_against_its_own_loss() -> None:
     assert parts.trace.stop is Stop.FTOL and abs(parts.x[1] - 3.0) < 0.1, parts.x
 
 
-class _LinearParts:
+class _LinearParts(_ToyParts):
     """A linear least-squares toy ``r = J x - b`` of two unknowns, one per part: part 0's value is
     ``big`` (a loss it cannot shed, like an object's wrong masks), part 1's is ``0.5 |r|^2 + 0.5``
     (0.5 it cannot shed: a loss that reaches 0 never passes a relative test). ``moved`` records
@@ -169,27 +174,12 @@ class _LinearParts:
         r = self.J @ x - self.b
         return np.array([self.big, 0.5 * float(r @ r) + 0.5])
 
-    def reweighted(self, point):
-        return point
-
-    def value(self, point) -> float:
-        return float(point.sum())
-
     def normal_equations(self, x, point):
         return self.J.T @ self.J, self.J.T @ (self.J @ x - self.b)
 
     def retract(self, x, step):
         self.moved.append(float(step[0]))
         return x + step
-
-    def reject(self, x) -> None:
-        pass
-
-    def small(self, step) -> bool:
-        return False
-
-    def parts(self, point):
-        return [(slice(0, 1), float(point[0])), (slice(1, 2), float(point[1]))]
 
 
 def test_lm_holds_a_converged_part_while_another_moves() -> None:
