@@ -259,7 +259,7 @@ class LevenbergMarquardt:
             if all(done) or (tries and predicted.sum() <= self.ftol * value):
                 return Outcome(tries, stop=Stop.FTOL)
             if any(done):
-                step = self._with_held(H, D, g, state.lam, step, parts, done)
+                step = self._with_held(H, D, g, state.lam, step, float(predicted.sum()), parts, done)
             if problem.small(step):
                 return Outcome(tries, stop=Stop.SMALL_STEP)
             x_new = problem.retract(x, step)
@@ -274,15 +274,15 @@ class LevenbergMarquardt:
         return Outcome(tries, stop=Stop.DAMPING_LIMIT)
 
     def _with_held(self, H: NDArray[np.float64], D: NDArray[np.float64], g: NDArray[np.float64], lam: float,
-                   step: NDArray[np.float64], parts: list[tuple[slice, float]],
+                   step: NDArray[np.float64], decrease: float, parts: list[tuple[slice, float]],
                    held: list[bool]) -> NDArray[np.float64]:
-        """The step with the ``held`` parts held, if that loses at most ``ftol`` of the predicted
-        decrease, measured against the held parts' values and against the others'; else ``step``."""
+        """The step with the ``held`` parts held, if that loses at most ``ftol`` of ``step``'s predicted
+        ``decrease``, measured against the held parts' values and against the others'; else ``step``."""
         free = np.ones(len(g), dtype=bool)
         for (part, _), h in zip(parts, held):
             free[part] = not h
         reduced = self._damped_step(H, D, g, lam, np.flatnonzero(free))
-        lost = (g @ reduced + 0.5 * reduced @ (H @ reduced)) - (g @ step + 0.5 * step @ (H @ step))
+        lost = decrease + (g @ reduced + 0.5 * reduced @ (H @ reduced))
         values = [sum(v for (_, v), h in zip(parts, held) if h == side) for side in (True, False)]
         return reduced if lost <= self.ftol * min(values) else step
 

@@ -138,6 +138,10 @@ class JointProblem:
             out[im] = replace(self.base[im], R_w2c=T_cw[:3, :3], t_w2c=T_cw[:3, 3])
         return out
 
+    def centres_w(self, x: JointState) -> list[NDArray[np.float64]]:
+        """The instances' centres at ``x`` (world, mm): the points their twists turn about."""
+        return [transform_points(T, c[None])[0] for T, c in zip(x.poses, self.centres_m)]
+
     def _use(self, x: JointState) -> None:
         was = self._using
         if (self.with_cameras or self.with_scale) and (was is None or x.E is not was.E or x.S != was.S):
@@ -200,7 +204,7 @@ class JointProblem:
         n, ev, objective = self.n, point.ev, self.objective
         H, g = np.zeros((n, n)), np.zeros(n)
         per_view = np.zeros((len(self.ids), n))
-        centres_w = [transform_points(T, c[None])[0] for T, c in zip(x.poses, self.centres_m)]
+        centres_w = self.centres_w(x)
         for i, fits in enumerate(ev.fits):
             for k, (f, w) in enumerate(zip(fits, ev.weights[i])):
                 gv = int(objective.views_of[i][k])
@@ -223,8 +227,7 @@ class JointProblem:
         Left out, a view no longer pins its camera, which swings back (by 107 mm on the benchmark's
         5-object scene) and drags the others through the gauge on their mean; the objects follow
         them, by up to 2.8 mm in the world, and no label changes."""
-        centres_w = [transform_points(T, c[None])[0] for T, c in zip(x.poses, self.centres_m)]
-        blocks = [camera_block(c, self.p) for c in centres_w]
+        blocks = [camera_block(c, self.p) for c in self.centres_w(x)]
 
         def seen_from(v: int, step: NDArray[np.float64]) -> NDArray[np.float64]:
             cams = step[self.cams].reshape(-1, 6)

@@ -368,11 +368,10 @@ class _LastValues:
 
     def get(self, slot: tuple, key: object, compute: Callable[[], V]) -> V:
         """The slot's value for ``key``, computed (and kept) unless it was the last one computed."""
-        held = self._slots.get(slot)
-        if held is not None and held[0] == key:
-            return held[1]
-        value = compute()
-        self._slots[slot] = (key, value)
+        value = self.find(slot, key)
+        if value is None:
+            value = compute()
+            self.put(slot, key, value)
         return value
 
     def clear(self) -> None:
