@@ -141,6 +141,8 @@ def outline_shift_rate(target: NDArray) -> NDArray[np.float32]:
     wider, under-predicted the pose's response to a real 1 px shift by 30%; this ring by 5-20%
     (``tests/test_uncertainty.py``)."""
     t = (np.asarray(target) > 0.5).astype(np.uint8)
+    if t.size == 0:  # a view whose crop is empty (the object beyond the image's edge): no outline to shift
+        return np.zeros(t.shape, np.float32)
     grown = cv2.dilate(t, _SQUARE).astype(np.float32) + cv2.dilate(t, _CROSS)
     shrunk = cv2.erode(t, _SQUARE).astype(np.float32) + cv2.erode(t, _CROSS)
     return (grown - shrunk) / 4.0
