@@ -9,9 +9,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from autoalign.errors import AutoalignError
+
+if TYPE_CHECKING:
+    from autoalign.label.lock import SessionLock
 
 _DESCRIPTION = """\
 Open a local web page to label the objects of a scene by hand and by autoalign together: choose
@@ -35,14 +38,18 @@ outputs (OUT_DIR, default SCENE_DIR/label_session):
                                verdict (rewritten after every change, atomically)
   scene_gt.json, labels.json   on Export: the accepted labels (BOP) and the decisions and verdicts
   bop/                         on Export: the BOP scene folder ('autoalign export' of scene_gt.json)
+  label.lock                   while the server runs (its pid, host and URL): a second server on the
+                               same OUT_DIR is refused (exit status 2); one left by a killed server
+                               is taken over
 
 keys on the page (the selected instance, in the axes of the view last clicked or hovered):
   arrows move 1 mm in the image plane, PageUp/PageDown along the view, q/e w/s a/d turn 1 degree
   about the view's z / x / y axis; with Shift 5x; r refine from here, Ctrl+Z undo the last move,
   Enter accept, Delete reject
 
-The server listens on 127.0.0.1 only (a free port unless --port) and serves files from the scene
-and models folders only. Stop it with Ctrl-C (exit status 130); nothing accepted is lost."""
+The server listens on 127.0.0.1 only (a free port unless --port), serves files from the scene and
+models folders only, and takes changes from its own page only (a token drawn at its start). Stop it
+with Ctrl-C (exit status 130); nothing accepted is lost."""
 
 
 def add_label_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -72,19 +79,30 @@ def run_label(args: argparse.Namespace) -> int:
     from autoalign.runtime.interrupts import preload
 
     preload("numpy", "cv2", "trimesh")  # extension modules, with Ctrl-C deferred
-    from autoalign.cli.common import warn
-    from autoalign.cli.label_http import LabelServer
     from autoalign.io.bop import check_scene_dir
-    from autoalign.io.models import ModelSet
     from autoalign.io.out_folder import check_outputs_spare_inputs
     from autoalign.jobs.job import OUTPUT_FILES
-    from autoalign.label.session import LabelSession
+    from autoalign.label.lock import SessionLock
 
     scene = check_scene_dir(args.scene)
     out = Path(args.out) if args.out else scene / "label_session"
     check_outputs_spare_inputs(out, scene, [Path(args.instances)] if args.instances else [], OUTPUT_FILES)
     if not 0 <= args.port < 65536:
         raise AutoalignError(f"--port {args.port}: a port is 0 (any free one) to 65535")
+    lock = SessionLock.acquire(out)  # before the session is read: a second server on it changes nothing
+    try:
+        return _serve(args, scene, out, lock)
+    finally:
+        lock.release()
+
+
+def _serve(args: argparse.Namespace, scene: Path, out: Path, lock: SessionLock) -> int:
+    """Read the session of ``out`` (locked by ``lock``) and serve its page until Ctrl-C."""
+    from autoalign.cli.common import warn
+    from autoalign.cli.label_http import LabelServer
+    from autoalign.io.models import ModelSet
+    from autoalign.label.session import LabelSession
+
     models = ModelSet.read(args.models, args.units)
     from autoalign.runtime.backend import mitsuba
 
@@ -101,8 +119,11 @@ def run_label(args: argparse.Namespace) -> int:
     try:
         server = LabelServer(session, args.port, viewer.url if viewer else None)
     except OSError as exc:
+        if viewer is not None:
+            viewer.stop()
         raise AutoalignError(f"--port {args.port}: cannot listen there ({exc.strerror or exc}); choose another "
                              "port or leave --port out") from None
+    lock.announce(server.url)
     print(f"autoalign label: {server.url}  ({len(session.instances)} instances in {len(session.image_ids)} views; "
           f"session in {session.session_path}; Ctrl-C stops)", flush=True)
     if not args.no_browser:

@@ -9,6 +9,8 @@ the browser, from Python, through its own websocket server); the page embeds it.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import threading
 
 import numpy as np
@@ -22,6 +24,12 @@ MAX_CLOUD_POINTS = 200_000
 THUMB_WIDTH = 160
 
 
+def _no_banner() -> contextlib.AbstractContextManager[object]:
+    """Silence what viser prints on stdout as it starts and stops: a boxed URL of its own port (its
+    ``verbose=False`` does not cover it), which people opened instead of the page's own URL printed below it."""
+    return contextlib.redirect_stdout(io.StringIO())
+
+
 class SceneViewer:
     """A viser server showing ``session``, kept up to date by a thread that follows its revisions."""
 
@@ -29,7 +37,8 @@ class SceneViewer:
         import viser
 
         self.session = session
-        self.server = viser.ViserServer(host=HOST, port=0, verbose=False)
+        with _no_banner():
+            self.server = viser.ViserServer(host=HOST, port=0, verbose=False)
         self.server.scene.set_up_direction("+z")
         self._shown: dict[int, tuple[int | None, int]] = {}  # instance -> (obj_id, pose_revision) drawn
         self._handles: dict[int, object] = {}
@@ -55,7 +64,8 @@ class SceneViewer:
     def stop(self) -> None:
         self._stop.set()
         self._thread.join(timeout=5.0)  # it waits at most a second for the session
-        self.server.stop()
+        with _no_banner():
+            self.server.stop()
 
     # ------------------------------------------------------------------ what is drawn
 

@@ -8,11 +8,21 @@ It listens on 127.0.0.1 only, answers only requests whose ``Host`` is that addre
 ``localhost`` (a web page elsewhere cannot reach it through DNS rebinding), and serves files
 only from inside the scene folder, the models folder and the page's own folder (403 otherwise).
 
+A change (every POST) must also come from the page itself: it carries the token this server drew
+at its start (:data:`TOKEN_HEADER`; the page has it from its own HTML and from the state), and an
+``Origin`` or ``Referer`` it sends must be this server's. A page on another site can send a POST
+to 127.0.0.1 (a ``text/plain`` form needs no permission) but can read neither the page nor the
+state, so it has no token; a custom header would need a CORS preflight, which is not answered.
+A POST's body is at most :data:`MAX_BODY` bytes, with a ``Content-Length``; one refused before its
+body was read closes the connection, so that the unread rest is never taken for the next request.
+Every field is checked (:mod:`autoalign.label.fields`): a bad one is a 400 naming it.
+
 API (JSON; pixel coordinates are OpenCV's, in the views' resolution; errors are
 ``{"error": one line}`` with status 400, or 409 while another job runs):
 
 * ``GET /api/state?since=R``: the session (:meth:`LabelSession.snapshot`), as soon as its
-  revision differs from ``R`` (at most :data:`POLL_S` later); ``viewer_url`` is the 3D view.
+  revision differs from ``R`` (at most :data:`POLL_S` later); ``viewer_url`` is the 3D view,
+  ``token`` this server's (a tab open before a restart picks up the new one).
 * ``GET /api/contours/K``: instance K's silhouette outline per view, ``{pose_revision, contours}``.
 * ``GET /api/view/IM.jpg``, ``/api/tint/IM.png``: a view's photo (dark grey without one) and its
   masks tinted in the instances' colours (transparent elsewhere).
@@ -28,8 +38,11 @@ API (JSON; pixel coordinates are OpenCV's, in the views' resolution; errors are
 
 from __future__ import annotations
 
+import hmac
 import json
 import mimetypes
+import re
+import secrets
 import sys
 import threading
 from http import HTTPStatus
@@ -42,12 +55,19 @@ import cv2
 import numpy as np
 
 from autoalign.errors import AutoalignError
+from autoalign.label.fields import MAX_MOVE_MM, MAX_PIXEL, MAX_TURN_DEG, flag, integer, number, text, vector3
 from autoalign.label.session import LabelSession, Progress
 
 HOST = "127.0.0.1"
 POLL_S = 10.0
 """Longest wait of a ``/api/state?since=R`` request before it answers unchanged."""
 PAGE_DIR = Path(__file__).resolve().parent / "label_page"
+TOKEN_HEADER = "X-Autoalign-Token"
+"""The header that carries the server's token on every POST."""
+TOKEN_SLOT = "__AUTOALIGN_TOKEN__"
+"""Where ``index.html`` gets the token."""
+MAX_BODY = 1 << 20
+"""The largest POST body accepted (bytes); the page's are under 1 KiB."""
 TINT_ALPHA = 0.35
 INSTANCE_COLOURS_RGB = ("#ffb43c", "#3c78ff", "#50dc50", "#dc50dc", "#e6e63c", "#50c8ff", "#ff7878", "#78ffc8",
                         "#ff50a0", "#a0a050")
@@ -79,12 +99,18 @@ class LabelServer(ThreadingHTTPServer):
         self.session = session
         self.viewer_url = viewer_url
         self.roots = {"scene": session.scene_dir, "models": session.models.folder}
+        self.token = secrets.token_urlsafe(32)  # drawn anew at each start: see the module doc
         self._images: dict[str, bytes] = {}
         self._images_lock = threading.Lock()
 
     @property
     def url(self) -> str:
         return f"http://{HOST}:{self.server_address[1]}/"
+
+    @property
+    def origins(self) -> tuple[str, ...]:
+        """The origins of this server's own page."""
+        return tuple(f"http://{host}:{self.server_address[1]}" for host in (HOST, "localhost"))
 
     def image(self, key: str, make: Any) -> bytes:
         """The encoded image ``key``, made once by ``make()``."""
@@ -128,6 +154,8 @@ class LabelHandler(BaseHTTPRequestHandler):
         self.send_header("Content-Type", content_type)
         self.send_header("Content-Length", str(len(body)))
         self.send_header("Cache-Control", "max-age=3600" if cache else "no-store")
+        if self.close_connection:
+            self.send_header("Connection", "close")
         self.end_headers()
         self.wfile.write(body)
 
@@ -137,16 +165,24 @@ class LabelHandler(BaseHTTPRequestHandler):
     def _error(self, status: int, message: str) -> None:
         self._json({"error": " ".join(message.split())}, status)
 
+    def _refuse(self, status: int, message: str) -> None:
+        """An error, then the connection closed: what is left of the request (a body not read) must
+        not be parsed as the next one."""
+        self.close_connection = True
+        self._error(status, message)
+
     def _host_ok(self) -> bool:
         host = (self.headers.get("Host") or "").rsplit(":", 1)[0]
         if host in (HOST, "localhost"):
             return True
-        self._error(HTTPStatus.FORBIDDEN, f"host {host!r} refused: autoalign label answers {HOST} only")
+        self._refuse(HTTPStatus.FORBIDDEN, f"host {host!r} refused: autoalign label answers {HOST} only")
         return False
 
     # ------------------------------------------------------------------ GET
 
     def do_GET(self) -> None:  # noqa: N802 - http.server's name
+        if self.headers.get("Content-Length", "0").strip() not in ("", "0") or "Transfer-Encoding" in self.headers:
+            self.close_connection = True  # a GET's body is not read: it must not become the next request
         if not self._host_ok():
             return
         url = urlsplit(self.path)
@@ -161,7 +197,8 @@ class LabelHandler(BaseHTTPRequestHandler):
     def _get(self, path: str, query: dict[str, list[str]]) -> None:
         s = self.server.session
         if path in ("/", "/index.html"):
-            return self._file(PAGE_DIR, "index.html")
+            page = (PAGE_DIR / "index.html").read_text().replace(TOKEN_SLOT, self.server.token)
+            return self._send(200, page.encode(), "text/html; charset=utf-8")
         if path.startswith("/static/"):
             return self._file(PAGE_DIR, path[len("/static/"):])
         if path.startswith("/files/"):
@@ -170,10 +207,12 @@ class LabelHandler(BaseHTTPRequestHandler):
                 return self._error(HTTPStatus.NOT_FOUND, f"{path}: only /files/scene/ and /files/models/ are served")
             return self._file(self.server.roots[root], rel)
         if path == "/api/state":
-            since = int(query.get("since", ["-1"])[0])
-            s.wait(since, POLL_S)
+            since = query.get("since", ["-1"])[0]
+            if not re.fullmatch(r"-?[0-9]{1,18}", since):
+                raise AutoalignError(f"since: {since[:20]!r} is not a revision (a whole number)")
+            s.wait(int(since), POLL_S)
             return self._json({**s.snapshot(), "viewer_url": self.server.viewer_url,
-                               "colours": INSTANCE_COLOURS_RGB})
+                               "colours": INSTANCE_COLOURS_RGB, "token": self.server.token})
         if path.startswith("/api/contours/"):
             rev, polys = s.contours(int(path.rsplit("/", 1)[1]))
             return self._json({"pose_revision": rev, "contours": {str(k): v for k, v in polys.items()}})
@@ -196,26 +235,68 @@ class LabelHandler(BaseHTTPRequestHandler):
     # ------------------------------------------------------------------ POST
 
     def do_POST(self) -> None:  # noqa: N802 - http.server's name
-        if not self._host_ok():
+        if not (self._host_ok() and self._origin_ok() and self._token_ok()):
             return
-        try:
-            n = int(self.headers.get("Content-Length") or 0)
-            body = json.loads(self.rfile.read(n) or b"{}") if n <= 1 << 20 else None
-            if not isinstance(body, dict):
-                raise ValueError
-        except ValueError:
-            return self._error(HTTPStatus.BAD_REQUEST, "the request body must be a JSON object")
+        body = self._body()
+        if body is None:
+            return
         try:
             self._post(urlsplit(self.path).path, body)
         except AutoalignError as exc:
             self._error(HTTPStatus.BAD_REQUEST, str(exc))
-        except (KeyError, TypeError, ValueError) as exc:
-            self._error(HTTPStatus.BAD_REQUEST, f"{self.path}: bad or missing field ({exc})")
+        except (KeyError, TypeError, ValueError) as exc:  # the fields are checked: this is a session's own refusal
+            self._error(HTTPStatus.BAD_REQUEST, f"{self.path}: refused ({exc})")
+
+    def _origin_ok(self) -> bool:
+        """Whether the request's ``Origin`` (or, without one, its ``Referer``) is this server's page, if it names one."""
+        origin = self.headers.get("Origin")
+        if origin is None and self.headers.get("Referer"):
+            ref = urlsplit(self.headers["Referer"])
+            origin = f"{ref.scheme}://{ref.netloc}"
+        if origin is None or origin in self.server.origins:
+            return True
+        self._refuse(HTTPStatus.FORBIDDEN, f"a change from {origin[:80]!r} refused: only the page at "
+                                           f"{self.server.url} changes this session")
+        return False
+
+    def _token_ok(self) -> bool:
+        given = self.headers.get(TOKEN_HEADER, "").encode("latin-1", "replace")
+        if hmac.compare_digest(given, self.server.token.encode()):
+            return True
+        self._refuse(HTTPStatus.FORBIDDEN, f"missing or wrong {TOKEN_HEADER}: changes come only from the page this "
+                                           f"server serves; reload {self.server.url}")
+        return False
+
+    def _body(self) -> dict[str, Any] | None:
+        """The request's JSON object (``{}`` if empty), or ``None`` once refused (a body that is not
+        read whole closes the connection)."""
+        lengths = self.headers.get_all("Content-Length") or ["0"]
+        if "Transfer-Encoding" in self.headers or len(lengths) > 1:
+            self._refuse(HTTPStatus.LENGTH_REQUIRED, "send the body with one Content-Length, not chunked")
+            return None
+        try:
+            n = int(lengths[0])
+        except ValueError:
+            n = -1
+        if not 0 <= n <= MAX_BODY:
+            self._refuse(HTTPStatus.REQUEST_ENTITY_TOO_LARGE if n > MAX_BODY else HTTPStatus.BAD_REQUEST,
+                         f"a request body is 0 to {MAX_BODY} bytes with its Content-Length, not {lengths[0][:20]!r}")
+            return None
+        raw = self.rfile.read(n)
+        if len(raw) < n:
+            self.close_connection = True  # the client went away mid-body
+            return None
+        try:
+            return json_object(raw)
+        except AutoalignError as exc:
+            self._error(HTTPStatus.BAD_REQUEST, str(exc))  # the body was read whole: the connection stays
+            return None
 
     def _post(self, path: str, body: dict[str, Any]) -> None:
         s = self.server.session
         if path == "/api/place":
-            obj, im, u, v = int(body["obj_id"]), int(body["image_id"]), float(body["u"]), float(body["v"])
+            obj, im = integer(body, "obj_id"), integer(body, "image_id")
+            u, v = number(body, "u", MAX_PIXEL), number(body, "v", MAX_PIXEL)
             index = s.instance_at(im, u, v)  # a click off every mask is answered at once
 
             def place(progress: Progress) -> None:
@@ -223,7 +304,7 @@ class LabelHandler(BaseHTTPRequestHandler):
 
             return self._job("place", index, place)
         if path == "/api/refine":
-            index = int(body["instance"])
+            index = integer(body, "instance")
 
             def polish(progress: Progress) -> None:
                 s.refine_from_here(index, progress)
@@ -237,16 +318,16 @@ class LabelHandler(BaseHTTPRequestHandler):
 
             return self._job("export", None, export)
         if path == "/api/nudge":
-            s.nudge(int(body["instance"]), int(body["image_id"]), list(body.get("move_mm", [0, 0, 0])),
-                    list(body.get("turn_deg", [0, 0, 0])))
+            s.nudge(integer(body, "instance"), integer(body, "image_id"), vector3(body, "move_mm", MAX_MOVE_MM),
+                    vector3(body, "turn_deg", MAX_TURN_DEG))
         elif path == "/api/decide":
-            s.decide(int(body["instance"]), str(body["decision"]))
+            s.decide(integer(body, "instance"), text(body, "decision"))
         elif path == "/api/undo":
-            s.undo(int(body["instance"]))
+            s.undo(integer(body, "instance"))
         elif path == "/api/focus":
-            s.focus_on(int(body["instance"]))
+            s.focus_on(integer(body, "instance"))
         elif path == "/api/symmetric":
-            s.mark_symmetric(int(body["instance"]), bool(body["symmetric"]))
+            s.mark_symmetric(integer(body, "instance"), flag(body, "symmetric"))
         else:
             return self._error(HTTPStatus.NOT_FOUND, f"{path}: no such action")
         self._json({"revision": s.revision})
@@ -256,6 +337,24 @@ class LabelHandler(BaseHTTPRequestHandler):
         if not s.start_job(kind, index, work):
             return self._error(HTTPStatus.CONFLICT, f"busy with {s.job.kind}; wait for it to finish")
         self._json({"job": s.job.number}, HTTPStatus.ACCEPTED)
+
+
+def json_object(raw: bytes) -> dict[str, Any]:
+    """A request body as a JSON object (``{}`` if empty); raises :class:`AutoalignError` (a 400) if it is not one."""
+    try:
+        body = json.loads(raw or b"{}", parse_constant=_not_json)
+    except RecursionError:  # the decoder recurses per level: 100,000 nested lists would end the handler
+        raise AutoalignError("the request body must be a JSON object, not nested this deeply") from None
+    except ValueError:
+        body = None
+    if not isinstance(body, dict):
+        raise AutoalignError("the request body must be a JSON object")
+    return body
+
+
+def _not_json(name: str) -> Any:
+    """``json.loads``'s hook for ``NaN``, ``Infinity`` and ``-Infinity``, which JSON does not have."""
+    raise ValueError(f"{name} is not a JSON number")
 
 
 def export_session(session: Any, progress: Any = None) -> Path:

@@ -237,7 +237,8 @@ def test_restart_two_tabs_binding_and_paths(labelled, tmp_path):
                 sync_playwright() as pw:
             # listens on 127.0.0.1 only, the page and the 3D view alike
             assert _listening_address(server.port) == "127.0.0.1"
-            viewer_url = json.loads(_get(server.port, "/api/state")[1])["viewer_url"]
+            state = json.loads(_get(server.port, "/api/state")[1])
+            viewer_url, token = state["viewer_url"], {"X-Autoalign-Token": state["token"]}
             assert viewer_url.startswith("http://127.0.0.1:")
             assert _listening_address(int(viewer_url.rstrip("/").rsplit(":", 1)[1])) == "127.0.0.1"
             # files: the scene's and the models' yes, anything else no (dot-dot, encoded, a link out)
@@ -250,10 +251,10 @@ def test_restart_two_tabs_binding_and_paths(labelled, tmp_path):
                 assert status in (403, 404) and b"root:" not in body and b"cam_K" not in body, path
             assert _get(server.port, "/api/state", host="attacker.example")[0] == 403
             conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=10)
-            conn.request("POST", "/api/decide", body=b"{not json", headers={"Content-Type": "application/json"})
+            conn.request("POST", "/api/decide", body=b"{not json", headers={"Content-Type": "application/json", **token})
             r = conn.getresponse()
             assert r.status == 400 and "JSON object" in json.loads(r.read())["error"]
-            conn.request("POST", "/api/decide", body=json.dumps({"instance": 0, "decision": "accepted"}))
+            conn.request("POST", "/api/decide", body=json.dumps({"instance": 0, "decision": "accepted"}), headers=token)
             r = conn.getresponse()  # nothing placed yet: refused, with the fix
             assert r.status == 400 and "click it in a view" in json.loads(r.read())["error"]
 
@@ -267,12 +268,13 @@ def test_restart_two_tabs_binding_and_paths(labelled, tmp_path):
                 wait_drawn(tab, k)
                 wait_job_done(tab)
             before = {k: np.array(session_instance(out, k)["T_wm"]) for k in (0, 1)}
-            nudges = "Promise.all([...Array(10)].map(() => fetch('/api/nudge', {method: 'POST', body: " \
-                     "JSON.stringify({instance: %d, image_id: 0, move_mm: [0, 0, 1], turn_deg: [0, 0, 0]})})))"
+            nudges = "Promise.all([...Array(10)].map(() => fetch('/api/nudge', {method: 'POST', " \
+                     "headers: {'X-Autoalign-Token': token}, " \
+                     "body: JSON.stringify({instance: %d, image_id: 0, move_mm: [0, 0, 1], turn_deg: [0, 0, 0]})})))"
             tab_a.evaluate(f"window.sent = {nudges % 0}")
             tab_b.evaluate(f"window.sent = {nudges % 1}")
-            tab_a.evaluate("window.sent.then(rs => rs.every(r => r.ok))")
-            tab_b.evaluate("window.sent.then(rs => rs.every(r => r.ok))")
+            assert tab_a.evaluate("window.sent.then(rs => rs.every(r => r.ok))")  # the page's token: accepted
+            assert tab_b.evaluate("window.sent.then(rs => rs.every(r => r.ok))")
             from autoalign.io.bop import read_cameras
 
             _, R_w2c, _ = read_cameras(labelled.scene)[0]
@@ -314,6 +316,10 @@ def test_restart_two_tabs_binding_and_paths(labelled, tmp_path):
                 for inst in saved["instances"]:
                     again = next(i for i in state["instances"] if i["index"] == inst["index"])
                     assert again["T_wm"] == inst["T_wm"] and again["decision"] == inst["decision"] == "accepted"
+                # the tab opened before the restart still makes changes: it took the new server's token
+                assert tab_a.evaluate("token") == state["token"] != token["X-Autoalign-Token"]
+                assert tab_a.evaluate("post('/api/symmetric', {instance: 1, symmetric: false})") is not None
+                assert session_instance(out, 1)["symmetric"] is False
             browser.close()
     finally:
         (labelled.scene / "escape").unlink()

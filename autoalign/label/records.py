@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.engine.uncertainty import Uncertainty
+from autoalign.errors import AutoalignError
 from autoalign.jobs.report import floats
 from autoalign.quality.verdict import Verdict
 
@@ -22,6 +23,43 @@ DECISIONS = ("open", "accepted", "rejected")
 """What the person decided about an instance: nothing yet, its label is right, or it is not wanted."""
 WORST_VIEWS = 3
 MOVED_BY_HAND = "moved by hand since the last refinement: refine from here to judge it"
+MAX_POSITION_MM = 1e6
+"""A pose farther than this (1 km) from the world's origin is refused: nothing a scene shows is there,
+and a pose pushed there (a nudge of 1e308 mm) ends in inf and NaN."""
+ROTATION_TOL = 1e-4
+"""How far a pose's rotation may be from orthonormal (R Rᵀ = I, det R = 1), element-wise (the 3D view's
+gizmo sends its turn as a quaternion of limited precision)."""
+
+
+def pose_problem(T: Any) -> str | None:
+    """What is wrong with ``T`` as a world-from-model pose (4x4 rigid, finite, mm, within
+    :data:`MAX_POSITION_MM` of the origin), or ``None`` if nothing."""
+    try:
+        T = np.asarray(T, dtype=np.float64)
+    except (TypeError, ValueError):
+        return "not a 4x4 matrix of numbers"
+    if T.shape != (4, 4):
+        return f"of shape {T.shape}, not 4x4"
+    if not np.isfinite(T).all():
+        return "not finite (null, NaN or infinite entries)"
+    R = T[:3, :3]
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: refused below, not warned about
+        off = np.abs(R @ R.T - np.eye(3)).max()
+    if not off <= ROTATION_TOL or np.linalg.det(R) < 0 or np.any(T[3] != [0, 0, 0, 1]):
+        return "not a rigid transform (rotation not orthonormal, or last row not 0 0 0 1)"
+    far = float(np.abs(T[:3, 3]).max())
+    if far > MAX_POSITION_MM:
+        return f"{far:.3g} mm from the origin along an axis (more than {MAX_POSITION_MM:g})"
+    return None
+
+
+def checked_pose(T: Any, refused: str) -> NDArray[np.float64]:
+    """``T`` as a float 4x4 pose; raises :class:`AutoalignError` ``"{refused} that is {problem}"`` if
+    :func:`pose_problem` finds one."""
+    problem = pose_problem(T)
+    if problem is not None:
+        raise AutoalignError(f"{refused} that is {problem}")
+    return np.asarray(T, dtype=np.float64)
 
 
 @dataclass
@@ -80,8 +118,16 @@ class LabelledInstance:
 
     @staticmethod
     def from_record(d: dict[str, Any]) -> LabelledInstance:
-        """The instance of a :meth:`record` (raises ``KeyError``, ``TypeError`` or ``ValueError`` on a bad one)."""
+        """The instance of a :meth:`record` (raises ``KeyError``, ``TypeError`` or ``ValueError`` on a bad
+        one: a pose that :func:`pose_problem` finds wrong, an object without a pose or a pose without
+        an object, a non-finite IoU)."""
         T = d.get("T_wm")
+        if (T is None) != (d.get("obj_id") is None):
+            raise ValueError("T_wm is null" if T is None else "T_wm given without obj_id")
+        if T is not None and (problem := pose_problem(T)) is not None:
+            raise ValueError(f"T_wm is {problem}")
+        if not all(isinstance(v, (int, float)) and 0.0 <= v <= 1.0 for v in (d.get("ious") or {}).values()):
+            raise ValueError("ious are not numbers from 0 to 1")
         return LabelledInstance(
             int(d["index"]), None if d.get("obj_id") is None else int(d["obj_id"]),
             None if T is None else np.asarray(T, dtype=np.float64).reshape(4, 4), str(d.get("decision", "open")),

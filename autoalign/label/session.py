@@ -41,6 +41,7 @@ from autoalign.geometry.camera import uv_from_opencv
 from autoalign.io.bop import Scene, scene_gt_of
 from autoalign.io.instances import Instance
 from autoalign.io.models import ModelSet
+from autoalign.label.fields import nudge_vectors
 from autoalign.label.jobs import JobRunner, Progress
 from autoalign.label.page_geometry import (
     Outlines,
@@ -54,6 +55,7 @@ from autoalign.label.records import (
     JobState,
     Judgement,
     LabelledInstance,
+    checked_pose,
     far_from_click,
     moved,
 )
@@ -185,8 +187,10 @@ class LabelSession(SessionScene):
 
     def _store_pose(self, index: int, obj_id: int, T_wm: NDArray[np.float64], source: str,
                     judged: Judgement | None = None, click: tuple[int, float, float] | None = None) -> None:
-        """Set the pose (and its judgement; placed from a ``click``, image id and OpenCV u, v: far from it, flagged)."""
-        T_wm = np.asarray(T_wm, dtype=np.float64)
+        """Set the pose (and its judgement; placed from a ``click``, image id and OpenCV u, v: far from it, flagged).
+        Raises, changing nothing, if the pose is not a finite rigid transform near the scene
+        (:func:`~autoalign.label.records.pose_problem`)."""
+        T_wm = checked_pose(T_wm, f"instance {index}: refused a pose ({source})")
         silhouettes = self._renderer.silhouettes(obj_id, T_wm)  # ray-cast once for the fit and the outlines
         judged = judged if click is None or judged is None else far_from_click(judged, silhouettes[click[0]], *click)
         ious, polys = fit(self.scene_of(index), silhouettes), outlines(silhouettes)
@@ -268,9 +272,7 @@ class LabelSession(SessionScene):
     def nudge(self, index: int, image_id: int, move_mm: list[float], turn_deg: list[float]) -> None:
         """Move instance ``index`` by ``move_mm`` and turn it by ``turn_deg`` (rotation vector) about
         its centre, along the axes of camera ``image_id`` (x right, y down, z forward)."""
-        move, turn = np.asarray(move_mm, dtype=np.float64), np.asarray(turn_deg, dtype=np.float64)
-        if move.shape != (3,) or turn.shape != (3,) or not (np.isfinite(move).all() and np.isfinite(turn).all()):
-            raise AutoalignError("a nudge is three finite numbers to move (mm) and three to turn (degrees)")
+        move, turn = nudge_vectors(move_mm, turn_deg)
         cam = self.view(image_id)
         with self._render:
             inst = self._placed(index)
@@ -279,9 +281,7 @@ class LabelSession(SessionScene):
 
     def set_pose(self, index: int, T_wm: NDArray[np.float64], source: str = "3d") -> None:
         """Put instance ``index`` at ``T_wm`` (4x4, mm), e.g. where it was dragged in the 3D view."""
-        T = np.asarray(T_wm, dtype=np.float64)
-        if T.shape != (4, 4) or not np.isfinite(T).all():
-            raise AutoalignError("a pose is a finite 4x4 matrix")
+        T = checked_pose(T_wm, f"instance {index}: refused a pose")
         with self._render:
             inst = self._placed(index)
             self._store_pose(index, inst.obj_id, T, source)

@@ -43,27 +43,43 @@ class SessionFile:
 
     def read(self, object_ids: list[int]) -> SavedSession | None:
         """The saved session (``None`` if there is none yet); raises if it is not one of this scene's,
-        is unreadable, or names an object not in ``object_ids``."""
+        is unreadable, holds a malformed entry (a null, non-finite or non-rigid pose among them), or
+        names an object not in ``object_ids``."""
         path = self.path
         if not path.is_file():
             return None
         fix = f"delete {path} to start a new session, or pass another --out"
-        data = read_json_file(path, fix)
+        try:
+            data = read_json_file(path, fix)
+        except RecursionError:
+            raise AutoalignError(f"{path}: nested too deeply to be a session; {fix}") from None
         if not isinstance(data, dict) or data.get("kind") != SESSION_KIND:
             raise AutoalignError(f"{path}: not an autoalign label session; {fix}")
         if Path(data.get("scene_dir", "")).resolve() != self.scene_dir.resolve():
             raise AutoalignError(f"{path}: belongs to the scene {data.get('scene_dir')}, not {self.scene_dir}; {fix}")
+        revision = data.get("revision", 0)
+        if not isinstance(revision, int) or isinstance(revision, bool) or revision < 0:
+            raise AutoalignError(f"{path}: revision {revision!r} is not a whole number; {fix}")
+        if not isinstance(data.get("instances"), list):
+            raise AutoalignError(f"{path}: no list of instances; {fix}")
+        return SavedSession(revision, [self._instance(rec, k, object_ids) for k, rec in enumerate(data["instances"])])
+
+    def _instance(self, rec: object, k: int, object_ids: list[int]) -> LabelledInstance:
+        """Entry ``k`` of the saved instances, checked (raises naming the file, the entry and the fix)."""
+        path = self.path
+        name = f"instance {rec.get('index')}" if isinstance(rec, dict) else f"entry {k} of the instances"
+        fix = f"correct or remove that entry (or delete {path} to start a new session), or pass another --out"
         try:
-            instances = []
-            for rec in data["instances"]:
-                inst = LabelledInstance.from_record(rec)
-                if inst.obj_id is not None and inst.obj_id not in object_ids:
-                    raise AutoalignError(f"{path}: instance {inst.index} is object {inst.obj_id}, which has no model "
-                                         f"in {self.models_dir}; pass the models the session was made with")
-                instances.append(inst)
-            return SavedSession(int(data.get("revision", 0)), instances)
-        except (KeyError, TypeError, ValueError):
-            raise AutoalignError(f"{path}: unreadable instance entries; {fix}") from None
+            if not isinstance(rec, dict):
+                raise TypeError("not an object")
+            inst = LabelledInstance.from_record(rec)
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:
+            why = f"no {exc.args[0]}" if isinstance(exc, KeyError) else " ".join(str(exc).split())
+            raise AutoalignError(f"{path}: {name} is malformed ({why}); {fix}") from None
+        if inst.obj_id is not None and inst.obj_id not in object_ids:
+            raise AutoalignError(f"{path}: instance {inst.index} is object {inst.obj_id}, which has no model "
+                                 f"in {self.models_dir}; pass the models the session was made with")
+        return inst
 
     def write(self, revision: int, instances: list[LabelledInstance]) -> None:
         """Write ``session.json`` atomically."""

@@ -14,6 +14,9 @@ const rowHtml = {};           // instance -> the HTML of its row in the list, as
 let clickedAt = null;         // {instance, t0} of the last click, to time click -> outlines on screen
 let shownJob = 0;
 let pressedAt = null;         // where the last click began: pointer events have sub-pixel positions, clicks not
+// The server's token, sent with every change: a page on another site cannot read it, so its POSTs are
+// refused. From this page's HTML, then from each state (a server restarted on this port draws a new one).
+let token = document.querySelector('meta[name="autoalign-token"]').content;
 
 function status(text, error = false) {
   const el = $("#status");
@@ -22,7 +25,7 @@ function status(text, error = false) {
 }
 
 async function post(path, body) {
-  const r = await fetch(path, {method: "POST", headers: {"Content-Type": "application/json"},
+  const r = await fetch(path, {method: "POST", headers: {"Content-Type": "application/json", "X-Autoalign-Token": token},
                                body: JSON.stringify(body || {})});
   const data = await r.json();
   if (!r.ok) { status(data.error || `${path}: ${r.status}`, true); return null; }
@@ -197,6 +200,7 @@ async function apply(s) {
   const first = state === null;
   state = s;
   revision = s.revision;
+  if (s.token) token = s.token;
   if (first) buildViews();
   renderInstances();
   showJob();
