@@ -73,4 +73,10 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module 'autoalign' has no attribute {name!r}")
 
 
+def __dir__() -> list[str]:
+    """The module's own names and the lazily loaded ones (``refine``, ``read_scene``, ...), for
+    ``dir(autoalign)`` and tab completion."""
+    return sorted(set(globals()) | set(_LAZY))
+
+
 __all__ = sorted(_LAZY)

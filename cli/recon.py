@@ -100,7 +100,7 @@ def run_recon(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     capture_path, out = Path(args.capture), Path(args.out)
-    if args.depth_scale <= 0:
+    if not 0 < args.depth_scale < float("inf"):  # nan too
         raise AutoalignError(f"--depth-scale {args.depth_scale}: must be positive (a depth value times it is mm)")
     if out.resolve() == capture_path.resolve() or (capture_path.is_dir() and capture_path.resolve() in out.resolve().parents):
         raise AutoalignError(f"--out {out}: is inside the capture; choose a folder outside it")

@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 
 from autoalign.errors import AutoalignError
 from autoalign.io.bop import read_depth_png, read_json_file
+from autoalign.recon.fusion import DEPTH_TRUNC_MM
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 INTRINSICS_FIX = ('an intrinsics file is JSON {"cam_K": 9 numbers (row-major, px, OpenCV convention: the centre '
@@ -113,16 +114,44 @@ def read_capture(capture: str | os.PathLike[str], workdir: str | os.PathLike[str
     assert size is not None
     if depth_dir is None and capture.is_dir() and (capture / "depth").is_dir():
         depth_dir = capture / "depth"
-    depth = None
-    if depth_dir is not None:
-        depth_dir = Path(depth_dir)
-        depth = []
-        for p in frames:
-            d = depth_dir / f"{p.stem}.png"
-            if not d.is_file():
-                raise AutoalignError(f"{d}: no depth for frame {p.name}; give every frame a depth PNG of the same name "
-                                     "or leave out --depth")
-            read_depth_png(d, size, "the frames are")
-            depth.append(d)
+    depth = None if depth_dir is None else _depth_files(Path(depth_dir), frames, size, depth_scale)
     K = read_intrinsics(Path(intrinsics)) if intrinsics is not None else None
     return Capture(frames, ids, size, depth, float(depth_scale), K)
+
+
+DEPTH_RANGE_MM = (50.0, DEPTH_TRUNC_MM)
+"""Where the median measured depth of a capture may lie (mm): a sensor sees little nearer, and the
+fusion keeps nothing farther; outside it the depth is in another unit than ``--depth-scale`` says."""
+
+
+def _depth_files(depth_dir: Path, frames: list[Path], size: tuple[int, int], depth_scale: float) -> list[Path]:
+    """The depth PNG of every frame in ``depth_dir`` (same name), each read once to check it, and their
+    unit checked against ``depth_scale`` (:func:`check_depth_unit`)."""
+    files, medians = [], []
+    for p in frames:
+        d = depth_dir / f"{p.stem}.png"
+        if not d.is_file():
+            raise AutoalignError(f"{d}: no depth for frame {p.name}; give every frame a depth PNG of the same name "
+                                 "or leave out --depth")
+        values = read_depth_png(d, size, "the frames are")
+        if np.any(values > 0):
+            medians.append(float(np.median(values[values > 0])))
+        files.append(d)
+    check_depth_unit(depth_dir, medians, depth_scale)
+    return files
+
+
+def check_depth_unit(depth_dir: Path, medians: list[float], depth_scale: float) -> None:
+    """Raise, naming ``--depth-scale``, when the frames' median depth values times ``depth_scale``
+    fall outside :data:`DEPTH_RANGE_MM` (0.1 mm units read as mm put a table 5 m away, where the
+    fusion finds nothing)."""
+    if not medians:
+        raise AutoalignError(f"{depth_dir}: every depth image is 0 (no measurement); give the sensor's depth or leave "
+                             "out --depth")
+    mm = float(np.median(medians)) * depth_scale
+    if DEPTH_RANGE_MM[0] <= mm <= DEPTH_RANGE_MM[1]:
+        return
+    guess = depth_scale * 10.0 ** round(np.log10(600.0 / mm))  # a tabletop some 0.6 m away, in a power-of-ten unit
+    raise AutoalignError(f"{depth_dir}: the median depth is {mm:.4g} mm with --depth-scale {depth_scale:g}, not "
+                         f"{DEPTH_RANGE_MM[0]:g}-{DEPTH_RANGE_MM[1]:g} mm as a capture's; pass the --depth-scale that "
+                         f"makes a depth value mm (probably {guess:g}: 0.1 for 0.1 mm units, 1000 for metres)")

@@ -512,6 +512,45 @@ def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best:
     return Finalist(near, ev_near.weights), ev_near, uncertainty, hold
 
 
+SEED_FIX = ("give None (search from the masks), an autoalign.Click, or a 4x4 world-from-model pose: a rotation "
+            "(det +1, no scale) and a translation in mm, last row 0 0 0 1")
+
+
+def checked_pose(T: Any, name: str) -> NDArray[np.float64]:
+    """``T`` as a 4x4 rigid pose (its rotation re-orthonormalised); an error naming ``name`` otherwise."""
+    try:
+        A = np.asarray(T, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise AutoalignError(f"{name}={str(T)[:40]!r} is not a pose; {SEED_FIX}") from None
+    if A.shape != (4, 4) or not np.all(np.isfinite(A)):
+        raise AutoalignError(f"{name}: an array of shape {A.shape} is not a finite 4x4 pose; {SEED_FIX}")
+    R = A[:3, :3]
+    if (np.abs(A[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-9 or np.abs(R @ R.T - np.eye(3)).max() > 1e-3
+            or np.linalg.det(R) < 0):
+        raise AutoalignError(f"{name}: its upper 3x3 is not a rotation (det {np.linalg.det(R):.3g}; a scaled or "
+                             f"mirrored pose?) or its last row is not 0 0 0 1; {SEED_FIX}")
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-9:  # a pose as files store it, a few decimals off
+        U, _, Vt = np.linalg.svd(R)
+        A[:3, :3] = U @ Vt
+    return A
+
+
+def checked_seed(seed: Any) -> Seed:
+    """``seed`` as :func:`refine` takes it: ``None``, a :class:`Click`, or a 4x4 pose (:func:`checked_pose`)."""
+    return seed if seed is None or isinstance(seed, Click) else checked_pose(seed, "seed")
+
+
+def checked_inputs(scene: Any, mesh: Any, seed: Any, anchor: Any) -> tuple[Seed, NDArray[np.float64] | None]:
+    """:func:`refine`'s ``seed`` and ``anchor`` as it takes them (:func:`checked_seed`); an error, saying
+    how to make them, unless ``scene`` is a :class:`Scene` and ``mesh`` a mesh or its pyramid."""
+    if not isinstance(scene, Scene):
+        raise AutoalignError(f"scene: a {type(scene).__name__} is not a Scene; read the folder with "
+                             "autoalign.read_scene(folder) (or autoalign.read_evidence) and pass that")
+    if not isinstance(mesh, (Mesh, MeshPyramid)):
+        raise AutoalignError(f"mesh: a {type(mesh).__name__} is not a Mesh; load it with autoalign.load_mesh(path)")
+    return checked_seed(seed), None if anchor is None else checked_pose(anchor, "anchor")
+
+
 def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: RefineOptions | None = None,
            progress: Progress | None = None, anchor: NDArray[np.float64] | None = None) -> RefineResult:
     """Find the world-from-model pose of ``mesh`` whose silhouettes match the masks of ``scene``.
@@ -533,6 +572,7 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
         anchor: the pose ``options.seed_radius`` is measured from (default: a seed pose; the photo
             rounds pass the person's seed while refining from their own last pose).
     """
+    seed, anchor = checked_inputs(scene, mesh, seed, anchor)
     opts = options or RefineOptions()
     if scene.photos is not None and opts.region is not None:
         pyramid = mesh if isinstance(mesh, MeshPyramid) else MeshPyramid(mesh)

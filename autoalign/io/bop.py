@@ -105,15 +105,49 @@ class Scene:
         return None if self.ignore is None else ~self.ignore[k]
 
 
+class _RepeatedKey(Exception):
+    """A JSON object names one key twice (Python's json keeps the last silently)."""
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _RepeatedKey(key)
+        out[key] = value
+    return out
+
+
 def read_json_file(path: str | os.PathLike[str], what: str) -> Any:
+    """The JSON document in ``path``; an error naming the file and ``what`` it should be if it is
+    missing, not JSON, or names one key twice in an object (one of the two would be lost)."""
     path = Path(path)
     if not path.is_file():
         raise AutoalignError(f"{path}: not found; {what}")
     try:
         with open(path) as f:
-            return json.load(f)
+            return json.load(f, object_pairs_hook=_unique_keys)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise AutoalignError(f"{path}: not valid JSON ({exc.msg if hasattr(exc, 'msg') else exc}); fix or regenerate the file") from None
+    except _RepeatedKey as exc:
+        raise AutoalignError(f"{path}: the key '{exc.args[0]}' appears twice in one object, and only one of them would "
+                             "be read; merge or remove one") from None
+
+
+def whole_number_keys(data: dict[str, Any], path: Path, what: str) -> dict[int, Any]:
+    """``data`` keyed by the whole numbers its keys spell (``what`` names them: "image id"); an error
+    for a key that is no whole number or two keys that spell the same one (``"0"`` and ``"00"``)."""
+    out: dict[int, Any] = {}
+    spelled: dict[int, str] = {}
+    for key, value in data.items():
+        try:
+            k = int(key)
+        except ValueError:
+            raise AutoalignError(f"{path}: key '{key}' is not an {what}; keys must be whole numbers") from None
+        if k in spelled:
+            raise AutoalignError(f"{path}: keys '{spelled[k]}' and '{key}' both name {what} {k}; keep one of them")
+        spelled[k], out[k] = key, value
+    return out
 
 
 def read_depth_png(path: Path, size: tuple[int, int], frame: str = "the image is") -> NDArray[Any]:
@@ -122,6 +156,9 @@ def read_depth_png(path: Path, size: tuple[int, int], frame: str = "the image is
     d = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if d is None or d.ndim != 2:
         raise AutoalignError(f"{path}: not a single-channel depth image; write 16-bit PNG depth (times depth_scale = mm)")
+    if d.dtype == np.uint8:  # 256 levels: at 1 mm a step, nothing beyond 25 cm; scaled, steps of centimetres
+        raise AutoalignError(f"{path}: 8-bit depth (values 0-255) cannot hold the distances; write the sensor's "
+                             "16-bit PNG depth (times depth_scale = mm)")
     if (d.shape[1], d.shape[0]) != tuple(size):
         raise AutoalignError(f"{path}: depth is {d.shape[1]}x{d.shape[0]} but {frame} {size[0]}x{size[1]}; "
                              "register the depth to the colour camera at its resolution")
@@ -138,9 +175,18 @@ def read_depth(scene_dir: str | os.PathLike[str], image_id: int, depth_scale: fl
 
 
 def depth_scales(scene_dir: str | os.PathLike[str]) -> dict[int, float]:
-    """``depth_scale`` per image id from ``scene_camera.json`` (BOP: depth times it is mm; default 1)."""
-    data = read_json_file(Path(scene_dir) / "scene_camera.json", "a BOP scene folder needs scene_camera.json")
-    return {int(k): float(v.get("depth_scale", 1.0)) if isinstance(v, dict) else 1.0 for k, v in data.items()}
+    """``depth_scale`` per image id from ``scene_camera.json`` (BOP: depth times it is mm; default 1),
+    each a positive number (else an error naming the image)."""
+    path = Path(scene_dir) / "scene_camera.json"
+    data = read_json_file(path, "a BOP scene folder needs scene_camera.json")
+    out = {}
+    for im, v in whole_number_keys(data if isinstance(data, dict) else {}, path, "image id").items():
+        scale = v.get("depth_scale", 1.0) if isinstance(v, dict) else 1.0
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (0 < scale < float("inf")):
+            raise AutoalignError(f"{path}: image {im} depth_scale {scale!r} is not a positive number; write the factor "
+                                 "that makes a depth value mm (0.1 for 0.1 mm units)")
+        out[im] = float(scale)
+    return out
 
 
 def with_depth(scene: Scene, read: dict[int, NDArray[np.float32] | None] | None = None) -> Scene:
@@ -163,7 +209,58 @@ def with_depth(scene: Scene, read: dict[int, NDArray[np.float32] | None] | None 
                 d = cv2.resize(d, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
             read[im] = None if d is None else d.astype(np.float32)
     depths = [read[im] for im in scene.image_ids]
-    return scene if any(d is None for d in depths) else replace(scene, depths=depths)
+    if any(d is None for d in depths):
+        return scene
+    check_depth_units(scene, depths)
+    return replace(scene, depths=depths)
+
+
+DEPTH_UNITS_TOLERANCE = 2.0
+"""The depth inside the masks may be at most this many times nearer or farther than where the masks'
+rays meet: an object's surface lies well within that of its centre, while depth in the wrong unit
+(0.1 mm read as mm, metres) is 10 or 1000 times off."""
+
+
+def check_depth_units(scene: Scene, depths: list[NDArray[np.float32]]) -> None:
+    """Raise, naming ``depth_scale``, when the median measured depth inside the masks is more than
+    :data:`DEPTH_UNITS_TOLERANCE` times off the distance from the cameras to the point where the
+    rays through the masks' centroids meet; the depth would pull every pose off (or fail it)."""
+    X = masks_meeting_point(scene)
+    if X is None:
+        return
+    ratios = []
+    for cam, m, d in zip(scene.cameras, scene.masks, depths):
+        inside = (np.asarray(m) > 0.5) & (d > 0)
+        z = float(cam.to_camera(X[None])[0, 2])
+        if inside.sum() >= 20 and z > 0:
+            ratios.append(float(np.median(d[inside])) / z)
+    if not ratios:
+        return
+    ratio = float(np.median(ratios))
+    if 1.0 / DEPTH_UNITS_TOLERANCE <= ratio <= DEPTH_UNITS_TOLERANCE:
+        return
+    assert scene.path is not None  # with_depth reads only scenes read from a folder
+    scale = depth_scales(scene.path).get(scene.image_ids[0], 1.0)
+    raise AutoalignError(f"{scene.path / 'depth'}: the measured depth inside the masks is {ratio:.3g} times the "
+                         f"cameras' distance to the object, so its unit is wrong; set depth_scale in "
+                         f"{scene.path / 'scene_camera.json'} to the factor that makes a depth value mm (now {scale:g}; "
+                         f"about {scale / ratio:.2g} would fit), or pass --depth off")
+
+
+def masks_meeting_point(scene: Scene) -> NDArray[np.float64] | None:
+    """The point (world, mm) nearest in least squares to the rays through the masks' centroids;
+    ``None`` with fewer than two masks or rays too nearly parallel (within some 8 degrees) to meet."""
+    A, b, n = np.zeros((3, 3)), np.zeros(3), 0
+    for cam, m in zip(scene.cameras, scene.masks):
+        ys, xs = np.nonzero(np.asarray(m) > 0.5)
+        if len(xs) == 0:
+            continue
+        d = cam.ray_directions(np.array([[xs.mean() + 0.5, ys.mean() + 0.5]]))[0]
+        P = np.eye(3) - np.outer(d, d)  # off the ray
+        A, b, n = A + P, b + P @ cam.centre, n + 1
+    if n < 2 or np.linalg.eigvalsh(A)[0] < 0.005 * n:
+        return None
+    return np.linalg.solve(A, b)
 def json_floats(entry: dict[str, Any], key: str, n: int, path: Path, where: str, fix: str) -> NDArray[np.float64]:
     if key not in entry:
         raise AutoalignError(f"{path}: {where} has no '{key}'; {fix}")
@@ -190,11 +287,8 @@ def read_camera_file(path: str | os.PathLike[str]) -> dict[int, tuple[NDArray[np
     if not isinstance(data, dict) or not data:
         raise AutoalignError(f"{path}: expected an object mapping image ids to cameras; {fix}")
     out = {}
-    for key, entry in data.items():
-        try:
-            im_id = int(key)
-        except ValueError:
-            raise AutoalignError(f"{path}: key '{key}' is not an image id; keys must be integers") from None
+    for im_id, entry in whole_number_keys(data, path, "image id").items():
+        key = str(im_id)
         if not isinstance(entry, dict):
             raise AutoalignError(f"{path}: image {key} is not an object; {fix}")
         where = f"image {key}"
@@ -214,9 +308,14 @@ PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 
 
 def find_photo(scene_dir: str | os.PathLike[str], image_id: int) -> Path | None:
-    """The photo of an image, ``rgb/{image_id:06d}`` with suffix .png, .jpg, .jpeg, .tif or .tiff, if there is one."""
+    """The photo of an image, ``rgb/{image_id:06d}`` with suffix .png, .jpg, .jpeg, .tif or .tiff, if there
+    is one; an error if there are two (which of them the labels were made on cannot be told)."""
     base = Path(scene_dir) / "rgb" / f"{image_id:06d}"
-    return next((base.with_suffix(s) for s in PHOTO_SUFFIXES if base.with_suffix(s).is_file()), None)
+    found = [base.with_suffix(s) for s in PHOTO_SUFFIXES if base.with_suffix(s).is_file()]
+    if len(found) > 1:  # which one is the photo of the labels is not ours to guess
+        raise AutoalignError(f"{found[0]} and {found[1]}: two photos of image {image_id}; keep one of them in "
+                             f"{base.parent} (remove or move the other)")
+    return found[0] if found else None
 
 
 def photo_path(scene_dir: str | os.PathLike[str], image_id: int) -> Path:
@@ -393,42 +492,74 @@ def scene_cameras(cams: dict[int, tuple[NDArray[np.float64], NDArray[np.float64]
     return [Camera.from_opencv(*cams[im], W, H).scaled(1.0 / read.factor) for im in ids]
 
 
+INIT_FIX = ('an --init file maps image ids to lists of {"obj_id", "cam_R_m2c": 9 numbers, "cam_t_m2c": 3 numbers '
+            '(mm)}, each pose in the camera of its image')
+
+
+def read_init_file(path: str | os.PathLike[str]) -> dict[int, list[dict[str, Any]]]:
+    """Image id -> pose entries of a coarse BOP ``scene_gt.json`` (``--init``), in image order; an
+    error naming the file and the fix if it is not shaped so (a bare entry or list of entries, with
+    no image to say whose camera the pose is in, is named as such)."""
+    path = Path(path)
+    data = read_json_file(path, f"pass an existing BOP scene_gt.json to --init ({INIT_FIX})")
+    if isinstance(data, list) or (isinstance(data, dict) and "cam_R_m2c" in data):
+        raise AutoalignError(f'{path}: its poses are not keyed by image id; write {{"0": [...]}} with the id of the '
+                             f"image whose camera each pose is in ({INIT_FIX})")
+    if not isinstance(data, dict) or not data:
+        raise AutoalignError(f"{path}: holds no poses; {INIT_FIX}")
+    images = whole_number_keys(data, path, "image id")
+    for im, entries in images.items():
+        entries = [entries] if isinstance(entries, dict) else entries
+        if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+            raise AutoalignError(f"{path}: image {im} must hold a list of pose entries; {INIT_FIX}")
+        images[im] = entries
+    return dict(sorted(images.items()))
+
+
+def id_list(ids: Any) -> str:
+    """Image ids for a message: all of a few, else the first ones, the last and how many."""
+    ids = sorted(ids)
+    return ", ".join(map(str, ids)) if len(ids) <= 6 else f"{', '.join(map(str, ids[:4]))}, ..., {ids[-1]} ({len(ids)})"
+
+
+def init_images_without_camera(path: Path, images: dict[int, Any], cameras: Any) -> AutoalignError:
+    """The error for an --init file none of whose images has a camera in the scene."""
+    return AutoalignError(f"{path}: gives poses in image(s) {id_list(images)}, but the scene has cameras only for "
+                          f"image(s) {id_list(cameras)}; key each pose by the id of the image whose camera it is in")
+
+
 def read_init_pose(path: str | Path, scene: Scene, obj_id: int = 1, instance: int = 0) -> NDArray[np.float64]:
     """World-from-model pose (4x4, mm) from a coarse BOP ``scene_gt.json``.
 
-    Uses the first image (lowest id) that is also a view of ``scene``; within it the entry at
-    position ``instance`` if it has ``obj_id`` (a whole BOP ``scene_gt.json``), else the
-    ``instance``-th entry with ``obj_id`` (or the ``instance``-th entry if none has that id).
+    Uses the first image (lowest id) that lists ``obj_id`` and is a view of ``scene`` (else the
+    first with a camera in its ``scene_camera.json``); within it the entry at position ``instance``
+    if it has ``obj_id`` (a whole BOP ``scene_gt.json``), else the ``instance``-th entry with
+    ``obj_id``. A file with no entry for ``obj_id`` is an error: another object's pose is no seed.
     """
     path = Path(path)
-    fix = 'an --init file must map image ids to lists of {"obj_id", "cam_R_m2c": 9 numbers, "cam_t_m2c": 3 numbers (mm)}'
-    data = read_json_file(path, "pass an existing BOP scene_gt.json to --init")
-    if not isinstance(data, dict) or not data:
-        raise AutoalignError(f"{path}: wrong shape for --init; {fix}")
-    by_id = {im: cam for im, cam in zip(scene.image_ids, scene.cameras)}
-    try:
-        keys = sorted(int(k) for k in data)
-    except ValueError:
-        raise AutoalignError(f"{path}: wrong shape for --init (keys must be image ids); {fix}") from None
-    usable = [k for k in keys if k in by_id]
-    if not usable:
-        raise AutoalignError(f"{path}: none of its image ids is a view of the scene; {fix}")
-    im = usable[0]
-    entries = data[str(im)] if str(im) in data else data[im]
-    if isinstance(entries, dict):
-        entries = [entries]
-    if not isinstance(entries, list) or not entries or not all(isinstance(e, dict) for e in entries):
-        raise AutoalignError(f"{path}: image {im} must hold a list of pose entries; {fix}")
+    images = read_init_file(path)
+    T_cw = {im: cam.T_cw for im, cam in zip(scene.image_ids, scene.cameras)}
+    if scene.path is not None:  # an image without a mask still has a camera to place its pose
+        T_cw = {**{im: make_pose(R, t) for im, (_, R, t) in read_cameras(scene.path).items()}, **T_cw}
+    placed = [im for im in images if im in T_cw]
+    if not placed:
+        raise init_images_without_camera(path, images, T_cw)
+    holding = [im for im in placed if any(e.get("obj_id") == obj_id for e in images[im])]
+    if not holding:
+        listed = sorted({str(e.get("obj_id")) for im in placed for e in images[im]})
+        raise AutoalignError(f"{path}: no entry has obj_id {obj_id} (it lists obj_id {', '.join(listed)}); pass "
+                             "--obj-id with the object's id in that file, or add an entry for it")
+    im = next((i for i in holding if i in scene.image_ids), holding[0])
+    entries = images[im]
     if instance < len(entries) and entries[instance].get("obj_id") == obj_id:
         e = entries[instance]  # BOP: the instance is the entry's position (as in mask_visib's file names)
     else:
         same = [e for e in entries if e.get("obj_id") == obj_id]
-        pool = same if same else entries
-        if instance >= len(pool):
-            raise AutoalignError(f"{path}: image {im} has {len(pool)} entries, no instance {instance}; use --instance")
-        e = pool[instance]
-    T_cm = pose_of_entry(e, path, f"image {im}", fix)
-    return invert(by_id[im].T_cw) @ T_cm
+        if instance >= len(same):
+            raise AutoalignError(f"{path}: image {im} has {len(same)} entries with obj_id {obj_id}, no instance "
+                                 f"{instance}; use --instance")
+        e = same[instance]
+    return invert(T_cw[im]) @ pose_of_entry(e, path, f"image {im}", INIT_FIX)
 
 
 def pose_of_entry(e: dict[str, Any], path: Path, where: str, fix: str) -> NDArray[np.float64]:
@@ -468,11 +599,8 @@ def read_labels(path: str | Path) -> dict[int, list[Label]]:
     if not isinstance(data, dict) or not data:
         raise AutoalignError(f"{path}: expected an object mapping image ids to lists of poses; {fix}")
     out: dict[int, list[Label]] = {}
-    for key, entries in data.items():
-        try:
-            im_id = int(key)
-        except ValueError:
-            raise AutoalignError(f"{path}: key '{key}' is not an image id; keys must be integers") from None
+    for im_id, entries in whole_number_keys(data, path, "image id").items():
+        key = str(im_id)
         if not isinstance(entries, list):
             raise AutoalignError(f"{path}: image {key} is not a list; {fix}")
         labels = []

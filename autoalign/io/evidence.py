@@ -7,6 +7,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -14,7 +15,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.errors import AutoalignError
-from autoalign.io.bop import MAX_IMAGE_PIXELS, Scene, read_scene, with_depth
+from autoalign.io.bop import (
+    MAX_IMAGE_PIXELS,
+    Scene,
+    check_scene_dir,
+    find_photo,
+    id_list,
+    mask_files,
+    read_cameras,
+    read_scene,
+    with_depth,
+)
 from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.photos import read_scene_without_masks, with_photos
 
@@ -55,3 +66,24 @@ def read_instance_scenes_without_masks(scene_dir: str | Path, instances: list[In
     base = read_scene_without_masks(scene_dir, max_pixels)
     scenes = [replace(base) for _ in instances]
     return InstanceScenes(list(instances), scenes, list(base.cameras), list(base.image_ids), [])
+
+
+def views_without_photos(scene_dir: str | Path, instance: int | None = None) -> list[int]:
+    """The image ids with a camera and a mask file (of ``instance``; of any with ``None``) that have
+    no photo in ``rgb/``; none when the folder has no ``rgb/`` (two photos of one image are an error)."""
+    scene_dir = check_scene_dir(scene_dir)
+    if not (scene_dir / "rgb").is_dir():
+        return []
+    cams = read_cameras(scene_dir)
+    views = {im for im, k in mask_files(scene_dir) if im in cams and (instance is None or k == instance)}
+    return sorted(im for im in views if find_photo(scene_dir, im) is None)
+
+
+def photos_if_complete(scene_dir: str | Path, instance: int | None, warn: Callable[[str], None]) -> bool:
+    """``--photos auto``: whether every view has its photo; if one lacks it, ``warn`` says (one line)
+    that the run goes on with the masks alone (``--photos on`` stops there instead)."""
+    missing = views_without_photos(scene_dir, instance)
+    if missing:
+        warn(f"{Path(scene_dir) / 'rgb'}: no photo of image(s) {id_list(missing)}, so the photos are not used "
+             "(--photos auto); add them, or pass --photos off to say so, or --photos on to stop without them")
+    return not missing

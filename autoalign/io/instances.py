@@ -29,16 +29,22 @@ from numpy.typing import NDArray
 
 from autoalign.errors import AutoalignError
 from autoalign.geometry.camera import Camera
+from autoalign.geometry.se3 import invert
 from autoalign.io.bop import (
+    INIT_FIX,
     MAX_IMAGE_PIXELS,
     Scene,
     check_masks_have_cameras,
     check_scene_dir,
+    init_images_without_camera,
     mask_files,
+    pose_of_entry,
     read_cameras,
+    read_init_file,
     read_json_file,
     read_masks,
     scene_cameras,
+    whole_number_keys,
     with_depth,
 )
 
@@ -122,7 +128,7 @@ def instances_of_scene_gt(path: str | os.PathLike[str],
     seen: dict[int, tuple[int, str]] = {}
     if not isinstance(data, dict):
         raise AutoalignError(f"{path}: expected image ids mapping to lists of {{\"obj_id\", ...}}; fix the file")
-    for im, entries in data.items():
+    for im, entries in whole_number_keys(data, path, "image id").items():
         if not isinstance(entries, list) or not all(isinstance(e, dict) and isinstance(e.get("obj_id"), int)
                                                     for e in entries):
             raise AutoalignError(f"{path}: image {im} must hold a list of entries with an integer obj_id; fix the file")
@@ -143,13 +149,9 @@ def _from_instances_file(path: Path) -> list[Instance]:
     if not isinstance(table, dict) or not table:
         raise AutoalignError(f"{path}: no \"instances\" table; {INSTANCES_FIX}")
     out = []
-    for k, obj in table.items():
-        try:
-            index = int(k)
-        except ValueError:
-            raise AutoalignError(f"{path}: instance {k!r} is not a number; {INSTANCES_FIX}") from None
-        if not isinstance(obj, int) or obj < 0 or index < 0:
-            raise AutoalignError(f"{path}: instance {k} -> {obj!r}; {INSTANCES_FIX}")
+    for index, obj in whole_number_keys(table, path, "instance number").items():
+        if isinstance(obj, bool) or not isinstance(obj, int) or obj < 0 or index < 0:
+            raise AutoalignError(f"{path}: instance {index} -> {obj!r}; {INSTANCES_FIX}")
         out.append(Instance(index, obj))
     return sorted(out, key=lambda i: i.index)
 
@@ -195,30 +197,21 @@ def read_instance_scenes(scene_dir: str | os.PathLike[str], instances: list[Inst
 def read_init_poses(path: str | os.PathLike[str], found: InstanceScenes) -> dict[int, NDArray[np.float64]]:
     """World-from-model poses (4x4, mm) of the instances from a coarse BOP ``scene_gt.json``.
 
-    Instance ``k``'s pose is entry ``k`` of the lowest image id that is a view of the scene and
-    lists it with the instance's ``obj_id``; instances it does not give are left out.
+    Instance ``k``'s pose is entry ``k`` of the lowest image id that has a camera and lists it with
+    the instance's ``obj_id``; instances it does not give are left out. A file none of whose images
+    has a camera in the scene is an error (:func:`~autoalign.io.bop.read_init_file` checks its shape).
     """
-    from autoalign.geometry.se3 import invert
-    from autoalign.io.bop import pose_of_entry, read_json_file
-
     path = Path(path)
-    fix = 'an --init file maps image ids to lists of {"obj_id", "cam_R_m2c": 9 numbers, "cam_t_m2c": 3 (mm)}'
-    data = read_json_file(path, "pass an existing BOP scene_gt.json to --init")
-    if not isinstance(data, dict):
-        raise AutoalignError(f"{path}: wrong shape for --init; {fix}")
+    images = read_init_file(path)
     cams = dict(zip(found.image_ids, found.cameras))
-    try:
-        images = sorted((int(k), v) for k, v in data.items())
-    except ValueError:
-        raise AutoalignError(f"{path}: wrong shape for --init (keys must be image ids); {fix}") from None
+    if not any(im in cams for im in images):
+        raise init_images_without_camera(path, images, cams)
     out: dict[int, NDArray[np.float64]] = {}
     for inst in found.instances:
-        for im, entries in images:
-            if im not in cams or not isinstance(entries, list) or len(entries) <= inst.index:
+        for im, entries in images.items():
+            if im not in cams or len(entries) <= inst.index or entries[inst.index].get("obj_id") != inst.obj_id:
                 continue
-            e = entries[inst.index]
-            if not isinstance(e, dict) or e.get("obj_id") != inst.obj_id:
-                continue
-            out[inst.index] = invert(cams[im].T_cw) @ pose_of_entry(e, path, f"image {im} entry {inst.index}", fix)
+            T_cm = pose_of_entry(entries[inst.index], path, f"image {im} entry {inst.index}", INIT_FIX)
+            out[inst.index] = invert(cams[im].T_cw) @ T_cm
             break
     return out

@@ -9,7 +9,6 @@ vertices with their colours, for rendering the labels against photos).
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +19,7 @@ import trimesh
 from numpy.typing import NDArray
 
 from autoalign.errors import AutoalignError
+from autoalign.io.bop import read_json_file, whole_number_keys
 from autoalign.geometry.mesh import Mesh, load_mesh
 from autoalign.rasterizers.pyramid import MeshPyramid
 
@@ -76,6 +76,68 @@ def _vertex_colours(visual: Any, n_vertices: int) -> NDArray[np.float32] | None:
     return None
 
 
+INFO_FIX = ('a BOP models_info.json maps object ids to {"diameter": mm, "symmetries_discrete": [16 numbers: a 4x4 '
+            'rigid transform, row-major, mm], "symmetries_continuous": [{"axis": 3 numbers, not all 0, "offset": 3 '
+            'numbers (mm)}]}')
+
+
+def read_models_info(path: str | Path) -> dict[int, dict[str, Any]]:
+    """A BOP ``models_info.json`` by object id, every entry checked (:func:`check_info_entry`): a
+    malformed symmetry is an error naming the file, the object and the fix here, not a traceback
+    when the labels are judged."""
+    path = Path(path)
+    raw = read_json_file(path, INFO_FIX)
+    if not isinstance(raw, dict):
+        raise AutoalignError(f"{path}: not a BOP models_info.json; {INFO_FIX}")
+    info = whole_number_keys(raw, path, "object id")
+    for obj, entry in info.items():
+        if not isinstance(entry, dict):
+            raise AutoalignError(f"{path}: object {obj} is not an object of fields; {INFO_FIX}")
+        check_info_entry(entry, f"{path}: object {obj}")
+    return {obj: dict(entry) for obj, entry in info.items()}
+
+
+def check_info_entry(entry: dict[str, Any], where: str) -> None:
+    """Raise unless ``entry``'s diameter is a positive number, each discrete symmetry a rigid 4x4
+    transform and each continuous one a non-zero axis with an offset (``where`` starts the error)."""
+    if "diameter" in entry and not _finite(entry["diameter"], 1, positive=True):
+        raise AutoalignError(f"{where} diameter {entry['diameter']!r} is not a positive number (mm); {INFO_FIX}")
+    discrete = entry.get("symmetries_discrete", [])
+    continuous = entry.get("symmetries_continuous", [])
+    if not isinstance(discrete, list) or not isinstance(continuous, list):
+        raise AutoalignError(f"{where}: its symmetries must be lists; {INFO_FIX}")
+    for k, T in enumerate(discrete):
+        if not _finite(T, 16) or not _rigid(np.asarray(T, dtype=np.float64).reshape(4, 4)):
+            raise AutoalignError(f"{where} symmetries_discrete[{k}] is not a rigid 4x4 transform (16 numbers, row-major: "
+                                 "a rotation with det +1 and a translation in mm, last row 0 0 0 1); fix it or remove it")
+    for k, c in enumerate(continuous):
+        axis = c.get("axis") if isinstance(c, dict) else None
+        if not _finite(axis, 3) or np.linalg.norm(np.asarray(axis, dtype=np.float64)) < 1e-9:
+            raise AutoalignError(f"{where} symmetries_continuous[{k}] needs an 'axis' of 3 numbers, not all zero (the "
+                                 "axis' direction in the model frame, e.g. [0, 0, 1]); fix it or remove it")
+        if "offset" in c and not _finite(c["offset"], 3):
+            raise AutoalignError(f"{where} symmetries_continuous[{k}] 'offset' must be 3 numbers (a point on the axis, "
+                                 "mm); fix it or remove it")
+
+
+def _finite(value: Any, n: int, positive: bool = False) -> bool:
+    """Whether ``value`` is ``n`` finite numbers (nested lists allowed; one number for ``n`` 1)."""
+    if isinstance(value, bool) or value is None or isinstance(value, (str, dict)):
+        return False
+    try:
+        a = np.asarray(value, dtype=np.float64).ravel()
+    except (TypeError, ValueError):
+        return False
+    return a.size == n and bool(np.all(np.isfinite(a))) and (not positive or bool(np.all(a > 0)))
+
+
+def _rigid(T: NDArray[np.float64], tol: float = 1e-2) -> bool:
+    """Whether ``T`` is a rotation (det +1; BOP files keep few decimals: ``tol``) and a translation."""
+    R = T[:3, :3]
+    return (np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() < 1e-6 and np.abs(R @ R.T - np.eye(3)).max() < tol
+            and abs(np.linalg.det(R) - 1.0) < tol)
+
+
 @dataclass
 class ModelSet:
     """The models of one BOP models folder, by ``obj_id``.
@@ -101,14 +163,7 @@ class ModelSet:
             raise AutoalignError(f"{folder}: models folder not found; pass a BOP models folder with "
                                  "obj_XXXXXX.ply files (and models_info.json) to --models")
         info_path = folder / "models_info.json"
-        info: dict[int, dict[str, Any]] = {}
-        if with_info and info_path.is_file():
-            try:
-                raw = json.loads(info_path.read_text())
-                info = {int(k): dict(v) for k, v in raw.items()}
-            except (json.JSONDecodeError, UnicodeDecodeError, ValueError, TypeError, AttributeError):
-                raise AutoalignError(f"{info_path}: not a BOP models_info.json (object ids mapping to "
-                                     "{\"diameter\", ...}); fix it or remove it") from None
+        info = read_models_info(info_path) if with_info and info_path.is_file() else {}
         return ModelSet(folder, info, units)
 
     def path(self, obj_id: int) -> Path:
