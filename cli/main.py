@@ -379,11 +379,16 @@ def run_refine(args: argparse.Namespace) -> int:
     if args.workers != 1 or args.scheduler is not None:
         raise UsageError("--workers and --scheduler go with --batch LIST")
     t_start = time.perf_counter()
+    photos = args.photos
+    if photos == "auto" and args.masks != "none":  # a view without its photo: go on with the masks, and say so
+        from autoalign.io.evidence import photos_if_complete
+
+        photos = "auto" if photos_if_complete(args.scene, None if args.models else args.instance, warn) else "off"
     job = FolderJob(scene=args.scene, out=args.out, model=args.model, models=args.models, units=args.units,
                     obj_id=args.obj_id, instance=args.instance, instances=args.instances, init=args.init,
                     click=args.click, loss=args.loss, optimizer=args.optimizer, refine_cameras=args.refine_cameras,
                     solve_scale=args.solve_scale, robust=not args.no_robust, depth=args.depth, masks=args.masks,
-                    photos=args.photos, seed_radius=args.seed_radius)
+                    photos=photos, seed_radius=args.seed_radius)
     outcome = refine_folder(job, LOG, ProgressBar(enabled=not args.quiet), t_start)
     elapsed = time.perf_counter() - t_start
     if args.models is not None:
