@@ -22,6 +22,21 @@ def pytest_configure(config: pytest.Config) -> None:
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+@pytest.hookimpl(trylast=True)
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    """Collect the session's garbage now and freeze what is left, before a pytest-xdist worker says
+    it is finished. Then pytest's own collections at exit (five in a row, to report unraisable
+    exceptions) find nothing to walk. They walked a heap of several test files (meshes, renderers,
+    torch and jax) and took over 5 s, after which execnet, which ends a worker that has not returned
+    in 5 s, sent the worker SIGINT: the KeyboardInterrupt landed in jax's gc callback, the only
+    Python code a collection runs, and the run ended with "Exception ignored in: <function
+    _xla_gc_callback> ... KeyboardInterrupt"."""
+    import gc
+
+    gc.collect()
+    gc.freeze()
+
+
 @pytest.fixture
 def refine_models_command(tmp_path: Path) -> Callable[[Path, Path, list[dict]], dict[str, Any]]:
     """Runs ``autoalign refine SCENE --models MODELS --init INIT`` (the coarse ``scene_gt`` entries

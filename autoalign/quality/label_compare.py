@@ -29,6 +29,7 @@ from autoalign.io.bop import mask_path, photo_path, read_masks
 from autoalign.io.photos import read_photo_scaled
 from autoalign.quality.check_report import CheckReport, ViewInstanceCheck
 from autoalign.quality.edge_distance import outline_pixels
+from autoalign.quality.figures import paint_rimmed, rimmed_text, with_legend
 from autoalign.quality.stats import bootstrap_mean_ci
 
 FIGURE_VIEWS = 5
@@ -109,7 +110,8 @@ def comparison_figure(labels: CheckReport, reference: CheckReport, comparisons: 
                       views: int = FIGURE_VIEWS, tile: int = TILE_PX) -> NDArray[np.uint8]:
     """A BGR image: one row per compared instance, ``views`` of its paired views (spread evenly),
     each cropped around the two labels' outlines and scaled to ``tile`` px, with the outline pixels
-    of the mask (cyan, where ``mask_visib`` has one), the labels (green) and the reference (red)."""
+    of the mask (cyan, where ``mask_visib`` has one), the labels (green) and the reference (red), each
+    over a dark rim, and a legend under them (:data:`COMPARE_LEGEND`)."""
     outline = {(v.image_id, v.instance): v.outline_rc for v in labels.views}
     outline_ref = {(v.image_id, v.instance): v.outline_rc for v in reference.views}
     rows = []
@@ -127,7 +129,7 @@ def comparison_figure(labels: CheckReport, reference: CheckReport, comparisons: 
             tiles.append(_tile(photo, lines, f"obj {c.obj_id} inst {c.instance}, image {im}", tile))
         tiles += [np.zeros((tile, tile, 3), np.uint8)] * (views - len(tiles))
         rows.append(np.hstack(tiles))
-    return np.vstack(rows) if rows else np.zeros((tile, tile * views, 3), np.uint8)
+    return with_legend(np.vstack(rows) if rows else np.zeros((tile, tile * views, 3), np.uint8), COMPARE_LEGEND)
 
 
 def _tile(photo: NDArray[np.uint8], lines: dict[str, NDArray[np.int64]], text: str, tile: int) -> NDArray[np.uint8]:
@@ -142,10 +144,20 @@ def _tile(photo: NDArray[np.uint8], lines: dict[str, NDArray[np.int64]], text: s
     img = cv2.resize(padded[r0 + half:r0 + 3 * half, c0 + half:c0 + 3 * half], (tile, tile),
                      interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_CUBIC)
     k = max(int(np.ceil(s)), 1)
+    layers = []
     for name in ("mask", "reference", "labels"):
         # pixel (r, c) covers [c, c+1) x [r, r+1) of the crop before scaling: fill that square
+        m = np.zeros((tile, tile), bool)
         for r, c in ((lines[name] - [r0, c0]) * s).astype(int):
             if 0 <= r < tile and 0 <= c < tile:
-                img[r:r + k, c:c + k] = COLOURS[name]
-    cv2.putText(img, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+                m[r:r + k, c:c + k] = True
+        layers.append((m, COLOURS[name]))
+    paint_rimmed(img, layers)  # a red outline stays visible on a red object
+    rimmed_text(img, text, (4, 14), (255, 255, 255))
     return img
+
+
+COMPARE_LEGEND = [(COLOURS["mask"], "the outline of the instance's mask (mask_visib), where the scene has one"),
+                  (COLOURS["labels"], "the outline of the labels checked (--labels)"),
+                  (COLOURS["reference"], "the outline of the reference labels (--against)")]
+"""What :func:`comparison_figure`'s colours show."""
