@@ -433,7 +433,9 @@ def _print_object_outcome(outcome: FolderOutcome, out: Path, elapsed: float, as_
           f"  cam_t_m2c = [{', '.join(f'{x:.2f}' for x in T_cm[:3, 3])}] mm\n"
           f"IoU over {len(ids)} views: mean {iou_b.mean():.3f} -> {iou_a.mean():.3f}, "
           f"min {iou_b.min():.3f} -> {iou_a.min():.3f} (image {ids[int(np.argmin(iou_a))]})\n"
-          + sigma + f"time {elapsed:.1f} s ({r.iterations} iterations, {r.renders} renders)\n"
+          + sigma + f"verdict: {report.verdict.status}"
+          + ("" if trusted else " (its reasons are listed on stderr)") + "\n"
+          f"time {elapsed:.1f} s ({r.iterations} iterations, {r.renders} renders)\n"
           f"wrote {', '.join(outcome.paths)} to {out}", flush=True)
 
 

@@ -17,8 +17,9 @@ the pose reached, as RBOT and PWP3D learn them again per frame (:mod:`autoalign.
 
 Where the instance has a mask, its pixels train the object's model, never the surroundings', and
 mask and colour are two independent pieces of evidence for each pixel of the band: their odds
-multiply (the mask's from how often real segmenter masks are right: :data:`MASK_TRUST`,
-:data:`MASK_MISS`). A pixel the mask misses but whose colour is clearly the object's becomes the
+multiply (the mask's from how often real segmenter masks are right, :data:`MASK_TRUST` and
+:data:`MASK_MISS`, or from how well the view's mask fits the pose where it fits better:
+:func:`mask_rates`). A pixel the mask misses but whose colour is clearly the object's becomes the
 object (the photo completes a mask that misses parts); one the mask claims against clearly
 background colours becomes undecided (1/2, no pull); and the mask keeps the object's colour model
 off a look-alike background. Pixels that other modelled objects claim (``exclude``) train neither
@@ -132,6 +133,20 @@ EDGE_RING_PX = (1.0, 4.0)
 this far from it (px; the first pixel is the photo's blurred edge)."""
 
 
+def mask_rates(mask: NDArray[np.bool_], silhouette: NDArray[np.bool_]) -> tuple[float, float]:
+    """A view's mask's ``P(object | mask says object)`` and ``P(object | mask says background)`` in
+    the band (``mask`` and the pose's ``silhouette`` at its pixels), counted against the silhouette
+    with Laplace's rule of succession, and never less reliable than segmenter masks typically are
+    (:data:`MASK_TRUST`, :data:`MASK_MISS`). A mask that fits the pose is trusted as far as it fits:
+    where the colours cannot tell object from surroundings (a blurred edge, a look-alike background)
+    they then cannot move an outline the mask draws exactly; a mask that misses parts or strays
+    is held to the typical rates, and the colours complete it."""
+    said_object, said_background = silhouette[mask], silhouette[~mask]
+    trust = (np.count_nonzero(said_object) + 1.0) / (said_object.size + 2.0)
+    miss = (np.count_nonzero(said_background) + 1.0) / (said_background.size + 2.0)
+    return max(trust, MASK_TRUST), min(miss, MASK_MISS)
+
+
 @dataclass
 class RegionTarget:
     """One view's region evidence: the ``target`` (H, W) float32 in [0, 1] (the posterior near the
@@ -199,16 +214,17 @@ def region_target(photo: NDArray[np.uint8], silhouette: NDArray[np.bool_], mask:
     post[near] = model.posterior(codes, sector)
     if excl is not None:
         post[excl] = 0.5
+    band_pixels = near & ((d_in <= band + gap) | ~sil)
+    if excl is not None:
+        band_pixels &= ~excl
     fused = post
     if mask is not None:  # the mask and the colours as independent evidence: their odds multiply
-        p_mask = np.where(known, MASK_TRUST, MASK_MISS)
+        trust, miss = mask_rates(known[band_pixels], sil[band_pixels])
+        p_mask = np.where(known, trust, miss)
         odds = p_mask / (1.0 - p_mask) * post / np.maximum(1.0 - post, 1e-6)
         fused = odds / (1.0 + odds)
     target[box] = np.where(near, fused, target[box])
     # what the photo alone says of the pose: its colours' agreement with the silhouette, and their change across it
-    band_pixels = near & ((d_in <= band + gap) | ~sil)
-    if excl is not None:
-        band_pixels &= ~excl
     agree = np.where(sil, post > 0.5, post < 0.5)[band_pixels & (post != 0.5)]
     lo, hi = EDGE_RING_PX
     ring_in, ring_out = sil & (d_in > lo) & (d_in <= hi), ~sil & (d_out > lo) & (d_out <= hi)

@@ -234,6 +234,10 @@ def check_refine(root: Path, stdout: str) -> None:
     assert record["verdict"] == "ok" and record["min_iou_after"] > 0.99
     assert cv2.imread(str(out / "overlay.png")).shape[2] == 3
     assert "wrote scene_gt.json, refine.json, overlay.png to out/example" in stdout
+    # the fit as printed stays as good or gets better (the photos joined masks that fit), and the verdict is said
+    before, after = map(float, re.search(r"IoU over 24 views: mean ([0-9.]+) -> ([0-9.]+)", stdout).groups())
+    assert after >= before, stdout
+    assert "\nverdict: ok\n" in stdout, stdout
 
 
 def check_click(root: Path, stdout: str) -> None:
