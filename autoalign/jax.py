@@ -184,6 +184,10 @@ def refine(scene: Scene, mesh: Mesh, T_init: NDArray[np.float64], sigma: float =
     on JAX's own threads, where a ``jax.enable_x64`` context does not reach."""
     import optimistix as optx
 
+    from autoalign.engine.refine import checked_inputs, checked_pose
+
+    checked_inputs(scene, mesh, None, None)  # a path for either: one line saying how to read it
+    T_init = checked_pose(T_init, "T_init")  # a scaled or mirrored pose would be refined as one
     if not jax.config.jax_enable_x64:
         raise ValueError('autoalign.jax.refine needs double precision: call jax.config.update("jax_enable_x64", True) '
                          "first (single precision cannot hold poses to 0.01 mm)")

@@ -267,7 +267,12 @@ def run_split_half(args: argparse.Namespace, scene: Path, labels: Path, models: 
         if getattr(args, option, None) is not None:
             raise AutoalignError(f"--{option}: not with --split-half, which refines every view of the scene from "
                                  "--labels; drop one of them")
-    prepared = prepare_split_half(scene, labels, models, photos=getattr(args, "photos", None) or "auto",
+    photos = getattr(args, "photos", None) or "auto"
+    if photos == "auto":  # a view without its photo: the halves go on with the masks, as 'refine' does
+        from autoalign.io.evidence import photos_if_complete
+
+        photos = "auto" if photos_if_complete(scene, None, LOG.warning) else "off"
+    prepared = prepare_split_half(scene, labels, models, photos=photos,
                                   depth=getattr(args, "depth", None) or "auto", log=LOG,
                                   instances=getattr(args, "instances", None))
     created = prepare_out_dir(out) if out is not None else []

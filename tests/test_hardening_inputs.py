@@ -166,6 +166,15 @@ def test_refine_refuses_a_folder_or_a_path_for_scene_and_mesh(api_inputs) -> Non
         autoalign.refine(scene, EXAMPLE / "model.ply", seed=T)
 
 
+def test_jax_refine_refuses_a_scaled_start(api_inputs) -> None:
+    aj = pytest.importorskip("autoalign.jax")
+    scene, mesh, T = api_inputs
+    with pytest.raises(AutoalignError, match=r"^T_init: its upper 3x3 is not a rotation \(det 8"):
+        aj.refine(scene, mesh, np.diag([2.0, 2.0, 2.0, 1.0]) @ T)
+    with pytest.raises(AutoalignError, match="^scene: a str is not a Scene"):
+        aj.refine(str(EXAMPLE / "scene"), mesh, T)
+
+
 def test_a_seed_with_rounding_error_is_taken_as_its_rotation() -> None:
     from autoalign.engine.refine import checked_seed
 
@@ -279,6 +288,24 @@ def test_photos_auto_goes_on_without_photos_when_one_is_missing(example, capsys,
 def test_photos_auto_with_every_photo_uses_them(example, capsys, monkeypatch) -> None:
     job = job_of(refine_argv(example), monkeypatch)
     assert job.photos == "auto" and job.uses_photos and capsys.readouterr().err == ""
+
+
+def test_check_split_half_photos_auto_goes_on_without_photos(example, capsys, monkeypatch) -> None:
+    import autoalign.jobs.check as check
+
+    (example / "scene" / "rgb" / "000005.jpg").unlink()
+    asked = {}
+
+    def capture(*args, **kwargs):
+        asked.update(kwargs)
+        raise Stop
+
+    monkeypatch.setattr(check, "prepare_split_half", capture)
+    with pytest.raises(Stop):
+        main(["check", str(example / "scene"), "--labels", str(example / "scene" / "scene_gt.json"), "--models",
+              str(example / "models"), "--split-half"])
+    warnings = capsys.readouterr().err.splitlines()
+    assert asked["photos"] == "off" and len(warnings) == 1 and "no photo of image(s) 5" in warnings[0]
 
 
 def test_photos_on_stops_at_a_missing_photo(example, capsys) -> None:

@@ -512,23 +512,24 @@ def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best:
     return Finalist(near, ev_near.weights), ev_near, uncertainty, hold
 
 
-SEED_FIX = ("give None (search from the masks), an autoalign.Click, or a 4x4 world-from-model pose: a rotation "
-            "(det +1, no scale) and a translation in mm, last row 0 0 0 1")
+POSE_FIX = "give a 4x4 world-from-model pose: a rotation (det +1, no scale) and a translation in mm, last row 0 0 0 1"
+SEED_FIX = POSE_FIX.replace("give a 4x4", "give None (search from the masks), an autoalign.Click, or a 4x4")
 
 
-def checked_pose(T: Any, name: str) -> NDArray[np.float64]:
-    """``T`` as a 4x4 rigid pose (its rotation re-orthonormalised); an error naming ``name`` otherwise."""
+def checked_pose(T: Any, name: str, fix: str = POSE_FIX) -> NDArray[np.float64]:
+    """``T`` as a 4x4 rigid pose (a rotation a few decimals off re-orthonormalised); an error naming
+    ``name`` and ending with ``fix`` otherwise."""
     try:
         A = np.asarray(T, dtype=np.float64)
     except (TypeError, ValueError):
-        raise AutoalignError(f"{name}={str(T)[:40]!r} is not a pose; {SEED_FIX}") from None
+        raise AutoalignError(f"{name}={str(T)[:40]!r} is not a pose; {fix}") from None
     if A.shape != (4, 4) or not np.all(np.isfinite(A)):
-        raise AutoalignError(f"{name}: an array of shape {A.shape} is not a finite 4x4 pose; {SEED_FIX}")
+        raise AutoalignError(f"{name}: an array of shape {A.shape} is not a finite 4x4 pose; {fix}")
     R = A[:3, :3]
     if (np.abs(A[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-9 or np.abs(R @ R.T - np.eye(3)).max() > 1e-3
             or np.linalg.det(R) < 0):
         raise AutoalignError(f"{name}: its upper 3x3 is not a rotation (det {np.linalg.det(R):.3g}; a scaled or "
-                             f"mirrored pose?) or its last row is not 0 0 0 1; {SEED_FIX}")
+                             f"mirrored pose?) or its last row is not 0 0 0 1; {fix}")
     if np.abs(R @ R.T - np.eye(3)).max() > 1e-9:  # a pose as files store it, a few decimals off
         U, _, Vt = np.linalg.svd(R)
         A[:3, :3] = U @ Vt
@@ -537,7 +538,7 @@ def checked_pose(T: Any, name: str) -> NDArray[np.float64]:
 
 def checked_seed(seed: Any) -> Seed:
     """``seed`` as :func:`refine` takes it: ``None``, a :class:`Click`, or a 4x4 pose (:func:`checked_pose`)."""
-    return seed if seed is None or isinstance(seed, Click) else checked_pose(seed, "seed")
+    return seed if seed is None or isinstance(seed, Click) else checked_pose(seed, "seed", SEED_FIX)
 
 
 def checked_inputs(scene: Any, mesh: Any, seed: Any, anchor: Any) -> tuple[Seed, NDArray[np.float64] | None]:
