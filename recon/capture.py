@@ -51,8 +51,8 @@ def read_intrinsics(path: str | os.PathLike[str]) -> NDArray[np.float64]:
             K = np.array([[data["fx"], 0.0, data["cx"]], [0.0, data["fy"], data["cy"]], [0.0, 0.0, 1.0]], dtype=np.float64)
     except (KeyError, TypeError, ValueError):
         raise AutoalignError(f"{path}: wrong shape; {INTRINSICS_FIX}") from None
-    if K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise AutoalignError(f"{path}: the focal lengths must be positive; {INTRINSICS_FIX}")
+    if not np.all(np.isfinite(K)) or not (K[0, 0] > 0 and K[1, 1] > 0):  # NaN too
+        raise AutoalignError(f"{path}: the focal lengths must be positive and every number finite; {INTRINSICS_FIX}")
     return K
 
 

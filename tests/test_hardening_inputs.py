@@ -454,3 +454,11 @@ def test_recon_depth_with_its_scale_is_taken(tmp_path) -> None:
     capture = capture_with_depth(tmp_path / "capture", 6000)
     read = read_capture(capture, tmp_path / "work", depth_scale=0.1)
     assert read.depth_scale == 0.1 and [p.name for p in read.depth] == ["000000.png", "000001.png", "000002.png"]
+
+
+def test_recon_intrinsics_with_nan(tmp_path, capsys) -> None:
+    pytest.importorskip("pycolmap")
+    capture = capture_with_depth(tmp_path / "capture", 6000)
+    K = write_json(tmp_path / "K.json", '{"fx": NaN, "fy": 80, "cx": 48, "cy": 36}')
+    refused(["recon", str(capture), "--out", str(tmp_path / "scene"), "--quiet", "--depth-scale", "0.1",
+             "--intrinsics", str(K)], capsys, str(K), "every number finite")
