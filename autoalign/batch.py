@@ -13,8 +13,15 @@
   ``OUT/errors.jsonl`` with its one-line error and runs again next time, and a scene interrupted
   by Ctrl-C is not recorded at all (the run stops; the same command again finishes it).
 
+A task may carry ``settings``: what defines its result besides its id (a scene's ``refine``
+options, a trial's views). They are recorded with it, and a run that finds a task recorded as done
+with other settings is refused (:func:`check_resume`) rather than skipping it as done.
+
 Ctrl-C: worker processes ignore it and are terminated by the parent, which then raises
-``KeyboardInterrupt`` (the command exits 130); no worker outlives the run.
+``KeyboardInterrupt`` (the command exits 130); no worker outlives the run. SIGTERM to the parent
+does the same (the command exits 143; :mod:`autoalign.runtime.interrupts`); where nothing handles
+SIGTERM (a library user's program), the parent stops its workers first and then ends by SIGTERM
+as it would have (:func:`_sigterm_unwinds`).
 
 Why Dask (``dask.distributed``) rather than Ray: it is pure Python and pip-installable with no
 compiled core, a ``LocalCluster`` starts in a second inside a test, and a cluster is just
@@ -43,7 +50,7 @@ from typing import Any
 
 from autoalign.errors import AutoalignError
 from autoalign.io.atomic_files import write_bytes_atomic
-from autoalign.runtime.interrupts import Interrupts, held_signals, is_command_process
+from autoalign.runtime.interrupts import STOP_SIGNALS, Interrupts, held_signals, is_command_process
 
 Task = dict[str, Any]
 TaskFn = Callable[[Task], dict[str, Any]]
@@ -84,13 +91,14 @@ def init_worker(threads: int) -> None:
     a worker that handled it would end its task as interrupted and take the next one), and its
     share of the cores (drjit defaults to all of them).
 
-    The worker was started with SIGINT blocked (:func:`~autoalign.runtime.interrupts.held_signals`), so a
-    Ctrl-C pressed while it started is dropped here rather than raised in its start-up code. SIGTERM,
-    with which the parent stops it, unwinds a task in progress before the process ends (:func:`_on_sigterm`).
+    The worker was started with SIGINT and SIGTERM blocked (:func:`~autoalign.runtime.interrupts.held_signals`),
+    so a Ctrl-C pressed while it started is dropped here rather than raised in its start-up code. SIGTERM,
+    with which the parent stops it, unwinds a task in progress before the process ends (:func:`_on_sigterm`);
+    one that came while it started ends it as soon as it is unblocked here.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_sigterm)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, set(STOP_SIGNALS))
     os.environ.setdefault("OMP_NUM_THREADS", str(threads))
     try:
         from autoalign.runtime.backend import drjit
@@ -160,6 +168,48 @@ class RecordWriter:
         self._f.close()
 
 
+_ABSENT = object()
+
+
+def _recorded_settings(rec: dict[str, Any], settings: dict[str, Any]) -> tuple[dict[str, Any], bool]:
+    """The settings a record was made with, and whether they are all of them: a record made before
+    records kept their ``settings`` has only those it names at its top level (a trial's views)."""
+    if isinstance(rec.get("settings"), dict):
+        return rec["settings"], True
+    return {k: rec[k] for k in settings if k in rec}, False
+
+
+def settings_changes(old: dict[str, Any], new: dict[str, Any], all_of_old: bool = True) -> str:
+    """The settings that differ, as ``--name OLD, now NEW`` (``not given`` where one has none); ``""`` if none.
+    With ``all_of_old`` false only the names ``old`` has are compared."""
+    def norm(v: Any) -> Any:
+        return v if v is _ABSENT else json.loads(json.dumps(v))  # tuples and lists alike
+
+    def show(v: Any) -> str:
+        return "not given" if v is _ABSENT or v is None else json.dumps(v) if isinstance(v, (dict, list)) else str(v)
+
+    names = sorted(old.keys() | new.keys() if all_of_old else old.keys(), key=str)
+    changes = [f"--{str(k).lstrip('-').replace('_', '-')} {show(old.get(k, _ABSENT))}, now {show(new.get(k, _ABSENT))}"
+               for k in names if norm(old.get(k, _ABSENT)) != norm(new.get(k, _ABSENT))]
+    return "; ".join(changes)
+
+
+def check_resume(tasks: Sequence[Task], records_path: str | Path, unit: str = "task") -> None:
+    """Refuse to resume ``records_path`` with tasks of other settings: a task recorded as done whose
+    ``settings`` differ from its record's would be skipped as done, though it never ran with them
+    (:class:`AutoalignError`, one line naming the file, the first such task, what differs and the fix)."""
+    by_id = {r["id"]: r for r in read_records(records_path)}
+    for t in tasks:
+        rec = by_id.get(t["id"])
+        if rec is None or not isinstance(t.get("settings"), dict):
+            continue
+        old, complete = _recorded_settings(rec, t["settings"])
+        changes = settings_changes(old, t["settings"], complete)
+        if changes:
+            raise AutoalignError(f"{records_path}: {unit} {t['id']} was done with other options ({changes}); to "
+                                 "resume give the same options, or write to another --out folder")
+
+
 @dataclass
 class RunSummary:
     """Counts of one :func:`run_tasks` call: tasks in all, already done before it (skipped), done
@@ -197,8 +247,9 @@ def run_tasks(tasks: Sequence[Task], task_fn: TaskFn, out_dir: str | Path, recor
 
     t_start = time.perf_counter()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     records_path = out / records
+    check_resume(tasks, records_path, unit)
+    out.mkdir(parents=True, exist_ok=True)
     repair_jsonl(records_path)
     done_ids = {r["id"] for r in read_records(records_path)}
     pending = [t for t in tasks if t["id"] not in done_ids]
@@ -209,6 +260,7 @@ def run_tasks(tasks: Sequence[Task], task_fn: TaskFn, out_dir: str | Path, recor
     writer = RecordWriter(records_path)
     err_writer = RecordWriter(out / "errors.jsonl")
     bar = tqdm(total=len(pending), desc=desc, unit=unit, disable=not progress, dynamic_ncols=True)
+    settings = {t["id"]: t["settings"] for t in pending if "settings" in t}
 
     def handle(rec: dict[str, Any]) -> None:
         if "error" in rec:
@@ -216,6 +268,8 @@ def run_tasks(tasks: Sequence[Task], task_fn: TaskFn, out_dir: str | Path, recor
             summary.failed += 1
             bar.write(f"{unit} {rec['id']} failed: {rec['error']}")
         else:
+            if rec.get("id") in settings and "settings" not in rec:
+                rec = {**rec, "settings": settings[rec["id"]]}
             writer.write(rec)
             summary.done += 1
         bar.update(1)
@@ -239,13 +293,19 @@ def run_tasks(tasks: Sequence[Task], task_fn: TaskFn, out_dir: str | Path, recor
 
 def _run_processes(pending: list[Task], task_fn: TaskFn, workers: int, handle: Handler) -> None:
     """The tasks on ``workers`` spawned processes (:func:`init_worker`); stopped on any exception."""
+    with _sigterm_unwinds():
+        _run_pool(pending, task_fn, workers, handle)
+
+
+def _run_pool(pending: list[Task], task_fn: TaskFn, workers: int, handle: Handler) -> None:
+    """:func:`_run_processes` once SIGTERM unwinds: the pool, its workers stopped on any exception."""
     threads = max(1, (os.cpu_count() or 1) // workers)
     ex = ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
                              initializer=init_worker, initargs=(threads,))
     try:
-        # The workers start here (on submit), with Ctrl-C blocked until init_worker ignores it; one
-        # pressed meanwhile is raised after the block, not inside the executor's own code.
-        with held_signals(signal.SIGINT):
+        # The workers start here (on submit), with Ctrl-C and SIGTERM blocked until init_worker sets
+        # its handlers; one that comes meanwhile is raised after the block, not inside the executor's own code.
+        with held_signals(*STOP_SIGNALS):
             futs = {ex.submit(safe_task, t, task_fn): t for t in pending}
         for fut in as_completed(futs):
             if isinstance(fut.exception(), BrokenProcessPool):
@@ -254,13 +314,39 @@ def _run_processes(pending: list[Task], task_fn: TaskFn, workers: int, handle: H
             else:
                 handle(fut.result())
     except BaseException:
-        _stop_workers(ex)
+        with held_signals(*STOP_SIGNALS):  # a second Ctrl-C or SIGTERM must not cut the stopping short
+            _stop_workers(ex)
         # Free the executor now, not at exit: the command ends an interrupted run with os._exit, which
         # runs no finalizers, and the resource tracker would then warn of its leaked semaphores.
         del ex
         gc.collect()  # its queues sit in reference cycles
         raise
     ex.shutdown(wait=True)
+
+
+@contextmanager
+def _sigterm_unwinds() -> Iterator[None]:
+    """Within the block, a SIGTERM that would end this process at once (its default action: a library
+    user's program; the command handles it itself) raises :class:`Terminated` instead, so that the
+    worker processes are stopped; the process then ends by SIGTERM as it would have. Elsewhere (another
+    thread, a handler in place) nothing changes."""
+    main = threading.current_thread() is threading.main_thread()
+    if not main or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        yield
+        return
+
+    def unwind(signum: int, frame: Any) -> None:
+        raise Terminated
+
+    signal.signal(signal.SIGTERM, unwind)
+    try:
+        yield
+    except Terminated:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        signal.raise_signal(signal.SIGTERM)
+        raise  # not reached: the default action ends the process
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _stop_workers(ex: ProcessPoolExecutor) -> None:
@@ -338,13 +424,16 @@ def _run_dask(pending: list[Task], scheduler: Any, handle: Handler, task_fn: Tas
 # ----------------------------------------------------------------------------------------------
 
 BATCH_RECORDS = "batch.jsonl"
+PATH_OPTIONS = ("--init", "--model", "--models", "--instances")
+"""``refine`` options whose value is a file or folder: in a batch list, relative to the list's folder."""
 
 
 def read_scene_list(path: str | Path) -> list[tuple[Path, list[str]]]:
     """The scene folders of a batch list, each with its own extra ``refine`` options: one scene per
-    line, its folder first (relative to the list's folder unless absolute), then its options as on
-    a command line (e.g. ``--init coarse.json``); blank lines and ``#`` comments skipped. Each
-    folder must exist and their names must differ (each scene's outputs go to ``OUT/<name>``)."""
+    line, its folder first, then its options as on a command line (e.g. ``--init coarse.json``);
+    blank lines and ``#`` comments skipped. Every path in the list (the folder, and the values of
+    :data:`PATH_OPTIONS`) is relative to the list's folder unless absolute, and must exist. The
+    folders' names must differ (each scene's outputs go to ``OUT/<name>``)."""
     import shlex
 
     path = Path(path)
@@ -364,9 +453,9 @@ def read_scene_list(path: str | Path) -> list[tuple[Path, list[str]]]:
             raise AutoalignError(f"{path}: line {n}: {exc}; quote paths with spaces") from None
         p = Path(first) if Path(first).is_absolute() else path.parent / first
         if not p.is_dir():
-            raise AutoalignError(f"{path}: line {n}: {first} is not a folder; list existing scene folders, "
-                                 "one per line")
-        scenes.append((p, extra))
+            raise AutoalignError(f"{path}: line {n}: {first} is not a folder ({p}: paths in a batch list are relative "
+                                 "to the list's folder); list existing scene folders, one per line")
+        scenes.append((p, _list_paths(path, n, extra)))
     if not scenes:
         raise AutoalignError(f"{path}: no scene folders listed; write one scene folder per line")
     names = [p.name for p, _ in scenes]
@@ -375,6 +464,22 @@ def read_scene_list(path: str | Path) -> list[tuple[Path, list[str]]]:
         raise AutoalignError(f"{path}: scene folders named alike ({', '.join(twice)}) would share an output folder; "
                              "rename them or run them in separate batches")
     return scenes
+
+
+def _list_paths(path: Path, n: int, options: list[str]) -> list[str]:
+    """A list line's options with the values of :data:`PATH_OPTIONS` made relative to the list's
+    folder (as its scene folders are), each checked to exist."""
+    out = list(options)
+    for k, word in enumerate(out[:-1]):
+        if word not in PATH_OPTIONS:
+            continue
+        value = Path(out[k + 1])
+        resolved = value if value.is_absolute() else path.parent / value
+        if not resolved.exists():
+            raise AutoalignError(f"{path}: line {n}: {word} {out[k + 1]}: not found ({resolved}: paths in a batch list "
+                                 "are relative to the list's folder); fix the path")
+        out[k + 1] = str(resolved)
+    return out
 
 
 def refine_task(task: Task) -> dict[str, Any]:
@@ -395,7 +500,7 @@ def refine_task(task: Task) -> dict[str, Any]:
         return {"id": task["id"], "error": f"autoalign: error: {one_line(str(exc))}"}
     messages = [f"autoalign: warning: {m}" for m in [*log.warnings, *outcome.notes]]
     if Interrupts.seen:  # after the outputs were written: they are complete, the run stops before the next task
-        messages.append("autoalign: Ctrl-C came after the outputs were written; they are complete")
+        messages.append(f"autoalign: {Interrupts.name()} came after the outputs were written; they are complete")
     return {"id": task["id"], "scene": task["scene"], "out": task["out"], "status": int(outcome.status),
             "seconds": time.perf_counter() - t0, "messages": messages[-5:]}
 
@@ -405,11 +510,13 @@ def _interrupts_of_a_task() -> Iterator[None]:
     """Ctrl-C during a task run in this process's main thread, as in the ``autoalign`` command
     (:class:`~autoalign.runtime.interrupts.Interrupts`): raised as ``KeyboardInterrupt`` (also when
     a library turned it into another exception) until the task's outputs are written, only
-    remembered after that. Elsewhere (a worker, which ignores it; another thread) nothing changes."""
+    remembered after that; SIGTERM the same where the command handles it (a library user's
+    program keeps its own). Elsewhere (a worker, which ignores Ctrl-C; another thread) nothing changes."""
     if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         yield
         return
-    previous = signal.signal(signal.SIGINT, Interrupts.handler)
+    ours = signal.getsignal(signal.SIGTERM) in (Interrupts.handler, Interrupts.remember)
+    previous = Interrupts.install(STOP_SIGNALS if ours else (signal.SIGINT,))
     try:
         if Interrupts.seen and is_command_process():  # pressed while the command's modules loaded
             raise KeyboardInterrupt
@@ -421,7 +528,7 @@ def _interrupts_of_a_task() -> Iterator[None]:
                 raise KeyboardInterrupt from exc
             raise
     finally:
-        signal.signal(signal.SIGINT, previous)
+        Interrupts.restore(previous)
 
 
 def refine_many(scenes: Sequence[str | Path], args: Sequence[str], out_dir: str | Path, workers: int = 1,
@@ -435,7 +542,30 @@ def refine_many(scenes: Sequence[str | Path], args: Sequence[str], out_dir: str 
 
 def refine_tasks(scenes: Sequence[str | Path], args: Sequence[str], out_dir: str | Path,
                  extra: dict[str, list[str]] | None = None) -> list[Task]:
-    """The tasks of :func:`refine_many` (one per scene, its id the scene folder's absolute path)."""
+    """The tasks of :func:`refine_many` (one per scene, its id the scene folder's absolute path, its
+    settings its options: :func:`refine_settings`)."""
     extra = extra or {}
-    return [{"id": str(Path(s).absolute()), "scene": str(Path(s)), "args": [*args, *extra.get(str(s), [])],
-             "out": str(Path(out_dir) / Path(s).name)} for s in scenes]
+    tasks = []
+    for s in scenes:
+        argv = [*args, *extra.get(str(s), [])]
+        tasks.append({"id": str(Path(s).absolute()), "scene": str(Path(s)), "args": argv,
+                      "out": str(Path(out_dir) / Path(s).name), "settings": refine_settings(argv)})
+    return tasks
+
+
+def refine_settings(argv: Sequence[str]) -> dict[str, Any]:
+    """What a scene's ``refine`` options (``argv``) make of it, for :func:`check_resume`: every option
+    of :class:`~autoalign.jobs.job.FolderJob` with its value (defaults included, so that ``--photos
+    auto`` and no ``--photos`` are alike), files and folders as absolute paths. Options it cannot
+    read (the scene then fails with their error) are kept as given."""
+    from dataclasses import asdict
+
+    from autoalign.jobs.job import FolderJob
+
+    try:
+        job = asdict(FolderJob.from_argv(".", argv, "."))
+    except AutoalignError:
+        return {"args": list(argv)}
+    paths = {o.lstrip("-") for o in PATH_OPTIONS}
+    return {k: str(Path(v).absolute()) if k in paths and v is not None else v
+            for k, v in job.items() if k not in ("scene", "out")}

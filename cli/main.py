@@ -56,7 +56,7 @@ from autoalign.jobs.job import (
     FolderOutcome,
 )
 from autoalign.jobs.refine_folder import refine_folder
-from autoalign.runtime.interrupts import Interrupts, is_command_process
+from autoalign.runtime.interrupts import STOP_SIGNALS, Interrupts, is_command_process
 
 # ------------------------------------------------------------------------------------------
 # Argument parsing
@@ -211,10 +211,11 @@ def _add_batch_and_output_arguments(p: argparse.ArgumentParser) -> None:
     """``refine``'s options for many scenes and for what it prints."""
     many = p.add_argument_group("many scenes")
     many.add_argument("--batch", metavar="LIST",
-                      help="instead of SCENE_DIR: a text file with one scene folder per line (relative to the "
-                           "file, # comments), optionally followed by that scene's own options (e.g. --init "
-                           "FILE); each scene is refined with the other options into OUT_DIR/<folder name>; "
-                           "OUT_DIR/batch.jsonl records the finished ones, so a run started again skips them")
+                      help="instead of SCENE_DIR: a text file with one scene folder per line (# comments), "
+                           "optionally followed by that scene's own options (e.g. --init FILE); every path in it "
+                           "is relative to the file; each scene is refined with the other options into "
+                           "OUT_DIR/<folder name>; OUT_DIR/batch.jsonl records the finished ones, so a run started "
+                           "again with the same options skips them (with others it is refused)")
     many.add_argument("--workers", metavar="N", type=positive_int, default=1,
                       help="with --batch: scenes refined at once in separate processes (default 1)")
     many.add_argument("--scheduler", metavar="ADDRESS",
@@ -265,21 +266,24 @@ def main(argv: list[str] | None = None) -> int:
     # parent stops it; nohup) keeps ignoring it.
     if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         return _main(argv)
-    previous = signal.signal(signal.SIGINT, Interrupts.handler)
+    previous = Interrupts.install()  # Ctrl-C and SIGTERM both unwind the run (workers stopped), see interrupts.py
     if Interrupts.seen and is_command_process():  # pressed while the command's modules loaded
-        signal.signal(signal.SIGINT, previous)
+        Interrupts.restore(previous)
         print(f"\n{PROG}: interrupted", file=sys.stderr, flush=True)
         return EXIT_INTERRUPTED
-    Interrupts.seen = False
+    Interrupts.reset()
     try:
         status = _main(argv)
     except KeyboardInterrupt:  # pressed while the parser's modules loaded, before the command's own handling
         print(f"\n{PROG}: interrupted", file=sys.stderr, flush=True)
-        return EXIT_INTERRUPTED
+        return Interrupts.exit_status()
     finally:
-        signal.signal(signal.SIGINT, previous)
-    if Interrupts.seen and status != EXIT_INTERRUPTED:  # Ctrl-C after Interrupts.outputs_written()
-        print(f"\n{PROG}: Ctrl-C came after the outputs were written; they are complete", file=sys.stderr, flush=True)
+        Interrupts.restore(previous)
+    if status == EXIT_INTERRUPTED:  # stopped by a signal: 143 when it was SIGTERM
+        return Interrupts.exit_status()
+    if Interrupts.seen:  # Ctrl-C after Interrupts.outputs_written()
+        print(f"\n{PROG}: {Interrupts.name()} came after the outputs were written; they are complete", file=sys.stderr,
+              flush=True)
     return status
 
 
@@ -444,11 +448,12 @@ def entry() -> None:
     without Python's finalization: drjit's worker threads, still busy, crashed it (SIGSEGV, an abort
     on the GIL) in about one interrupted run in ten, and a late SIGINT could still raise there."""
     status = main()
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the status is decided: Ctrl-C from here on changes nothing
-    if status == EXIT_INTERRUPTED:
+    for s in STOP_SIGNALS:  # the status is decided: Ctrl-C or SIGTERM from here on changes nothing
+        signal.signal(s, signal.SIG_IGN)
+    if status in (128 + s for s in STOP_SIGNALS):
         sys.stdout.flush()
         sys.stderr.flush()
-        os._exit(EXIT_INTERRUPTED)
+        os._exit(status)
     sys.exit(status)
 
 

@@ -1,7 +1,8 @@
 """Many scenes at once (issue 15): ``autoalign.batch.refine_many`` on a local Dask cluster started
 by the test, and ``autoalign refine --batch`` resuming an interrupted batch without redoing the
 finished scenes. Scenes: one procedural object each, 8 views of 160x120, masks by open3d ray
-casting, a coarse --init 5 mm / 5 deg off given per scene in the list."""
+casting, a coarse --init 5 mm / 5 deg off given per scene in the list (a path relative to the
+list's folder, as the scene folders are)."""
 
 from __future__ import annotations
 
@@ -55,7 +56,7 @@ def batch(tmp_path_factory) -> Path:
         write_multi_scene(scene, [mesh], [obj], [T], cams)
         write_json_atomic(scene / "init_gt.json", scene_gt_of([(obj, perturb_pose(T, 5.0, 5.0, rng, mesh.centre))],
                                                               cams[:1], [0]))
-        lines.append(f"{scene.name} --init {scene / 'init_gt.json'}")
+        lines.append(f"{scene.name} --init {scene.name}/init_gt.json")  # relative to the list, not the cwd
     (root / "list.txt").write_text("# one scene per line\n" + "\n".join(lines) + "\n")
     return root
 
@@ -121,11 +122,12 @@ N_SHORT = 12
 SCENE_OUTPUTS = ("scene_gt.json", "refine.json", "overlay.png")
 
 
-def _short_list(batch: Path, tmp_path: Path) -> Path:
-    """A list of the first ``N_SHORT`` scenes of the batch (absolute paths)."""
+def _short_list(batch: Path, tmp_path: Path, n: int = N_SHORT) -> Path:
+    """A list of the first ``n`` scenes of the batch (absolute paths)."""
     lines = [ln for ln in (batch / "list.txt").read_text().splitlines() if ln and not ln.startswith("#")]
     short = tmp_path / "short.txt"
-    short.write_text("".join(f"{batch / ln}\n" for ln in lines[:N_SHORT]))
+    short.write_text("".join(" ".join(str(batch / w) if k in (0, 2) else w for k, w in enumerate(ln.split())) + "\n"
+                             for ln in lines[:n]))
     return short
 
 
@@ -143,6 +145,75 @@ def _session_processes(sid: int) -> list[tuple[int, str]]:
         if int(session) == sid and state != "Z":
             found.append((int(d.name), state))
     return found
+
+
+class Started:
+    """A command started in a session of its own (as a terminal, Slurm or Docker starts it), its
+    stderr read as it comes (the bar is redrawn with ``\\r``, not ended by a newline)."""
+
+    def __init__(self, argv: list[str], marker: bytes) -> None:
+        import os
+        import threading
+
+        self.p = subprocess.Popen(argv, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        self.err, self.started = bytearray(), threading.Event()
+
+        def read_stderr() -> None:
+            while chunk := os.read(self.p.stderr.fileno(), 4096):
+                self.err.extend(chunk)
+                if marker in self.err:
+                    self.started.set()
+            self.started.set()
+
+        # a daemon: processes that outlive the command keep the pipe open, and must fail the test, not hang it
+        self.reader = threading.Thread(target=read_stderr, daemon=True)
+        self.reader.start()
+        assert self.started.wait(120)
+
+    def __enter__(self) -> Started:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Kill what is left of its session (its process group: the command started it), so that a
+        failed test leaves no process behind."""
+        import os
+        import signal
+
+        try:
+            os.killpg(self.p.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+        self.p.wait(timeout=30)
+
+    def finish(self) -> str:
+        """Wait for the exit; its stderr."""
+        self.p.wait(timeout=120)
+        self.reader.join(timeout=10)
+        return self.err.decode()
+
+    def leaves_no_process(self, within_s: float = 5.0) -> bool:
+        """Whether every process of its session (workers, multiprocessing's resource tracker) is gone
+        within ``within_s`` of now."""
+        import time
+
+        t0 = time.monotonic()
+        while _session_processes(self.p.pid) and time.monotonic() - t0 < within_s:
+            time.sleep(0.1)
+        return _session_processes(self.p.pid) == []
+
+
+def _wait_for_records(path: Path, wanted: int, p: subprocess.Popen) -> None:
+    """Until ``path`` holds ``wanted`` records (however fast the machine runs the tasks) or ``p`` ends."""
+    import time
+
+    t0 = time.monotonic()
+    while len(read_records(path)) < wanted and p.poll() is None and time.monotonic() - t0 < 120:
+        time.sleep(0.02)
+
+
+def _written_scenes(out: Path) -> dict[str, int]:
+    """The scenes of a batch's --out with a refine.json, and when it was written (ns)."""
+    return {d.name: (d / "refine.json").stat().st_mtime_ns for d in out.iterdir() if (d / "refine.json").is_file()}
 
 
 def _complete_outputs(folder: Path) -> bool:
@@ -222,6 +293,123 @@ def test_ctrl_c_in_a_batch_exits_130_records_only_finished_scenes_and_leaves_no_
     records = read_records(out / BATCH_RECORDS)
     assert sorted(Path(r["scene"]).name for r in records) == [f"scene_{k:02d}" for k in range(N_SHORT)]
     assert all(_complete_outputs(out / f"scene_{k:02d}") for k in range(N_SHORT))
+
+
+N_TERM = 6
+
+
+@pytest.mark.parametrize(("workers", "to"), [(2, "the command"), (2, "its process group"), (1, "the command")])
+def test_sigterm_to_a_batch_exits_143_leaves_no_process_and_a_rerun_finishes(batch, tmp_path, workers, to):
+    """SIGTERM (what Slurm, Docker and ``timeout`` send) to ``refine --batch`` once a scene is done,
+    to the command alone (``docker stop``, ``kill PID``) or to its process group (Slurm,
+    ``timeout``): exit 143 with a line saying what is done; every recorded scene has complete
+    outputs; no process of the run is alive 5 s after the exit, and nothing is written after it;
+    the same command again refines exactly the others. (Before: the command ended at once; its
+    workers and the resource tracker went on, wrote scenes that batch.jsonl never recorded, then idled.)"""
+    import os
+    import signal
+
+    out = tmp_path / "out"
+    listed = _short_list(batch, tmp_path, N_TERM)
+    argv = [sys.executable, "-m", "autoalign.cli.main", "refine", "--batch", str(listed), "--models",
+            str(batch / "models"), "--out", str(out), "--workers", str(workers)]
+    with Started(argv, b"refine:") as run:
+        _wait_for_records(out / BATCH_RECORDS, 1, run.p)
+        assert run.p.poll() is None, "the batch ended before SIGTERM; the test needs a longer batch"
+        (os.kill if to == "the command" else os.killpg)(run.p.pid, signal.SIGTERM)
+        stderr = run.finish()
+        assert run.p.returncode == 143, (run.p.returncode, stderr)
+        written = _written_scenes(out)
+        assert run.leaves_no_process(), "processes of the terminated batch outlived it"
+        assert _written_scenes(out) == written, "scenes were written after the command ended"
+        recorded = {Path(r["scene"]).name for r in read_records(out / BATCH_RECORDS)}
+        assert 1 <= len(recorded) < N_TERM
+        assert f"interrupted; {len(recorded)} of {N_TERM} scene(s) done" in stderr, stderr
+        assert "Traceback" not in stderr and "leaked" not in stderr, stderr
+        assert all(_complete_outputs(out / name) for name in recorded)
+        assert not list(out.rglob("*.tmp"))
+
+        again = subprocess.run(argv, capture_output=True, text=True, timeout=300)
+        assert again.returncode == 0, again.stderr
+        assert (f"{N_TERM - len(recorded)} scene(s) refined, {len(recorded)} already done, 0 failed"
+                in again.stdout), again.stdout
+        assert sorted(Path(r["scene"]).name for r in read_records(out / BATCH_RECORDS)) == \
+            [f"scene_{k:02d}" for k in range(N_TERM)]
+        assert all(_complete_outputs(out / f"scene_{k:02d}") for k in range(N_TERM))
+
+
+def test_sigterm_to_simulate_with_workers_exits_143_leaves_no_process_and_a_rerun_finishes(tmp_path):
+    """The same for ``simulate --workers 2`` (the study runs on the batch's engine): SIGTERM to the
+    command once a trial is recorded: exit 143, no process of it alive 5 s later, and the same
+    command again runs exactly the trials not recorded. (``init`` trials: the scene's synthesis
+    and the metrics, no refinement; the study's time goes to starting the workers.)"""
+    import os
+    import signal
+
+    out = tmp_path / "study"
+    argv = [sys.executable, "-m", "autoalign.cli.main", "simulate", "--out", str(out), "--model-ids", "1,2",
+            "--trials", "5", "--method", "init", "--views", "8", "--width", "160", "--height", "120",
+            "--focal", "150", "--workers", "2"]
+    with Started(argv, b"simulate:") as run:
+        _wait_for_records(out / "trials.jsonl", 1, run.p)
+        assert run.p.poll() is None, "the study ended before SIGTERM; the test needs a longer one"
+        os.kill(run.p.pid, signal.SIGTERM)
+        stderr = run.finish()
+        assert run.p.returncode == 143, (run.p.returncode, stderr)
+        assert run.leaves_no_process(), "processes of the terminated study outlived it"
+        assert "Traceback" not in stderr and "leaked" not in stderr, stderr
+        done = len(read_records(out / "trials.jsonl"))
+        assert 1 <= done < 10
+        again = subprocess.run([*argv, "--no-progress"], capture_output=True, text=True, timeout=300)
+        assert again.returncode == 0, again.stderr
+        assert f"{10 - done} trials run, {done} already done, 0 failed" in again.stdout, again.stdout
+        ids = [r["id"] for r in read_records(out / "trials.jsonl")]
+        assert len(ids) == len(set(ids)) == 10
+
+
+def test_a_batch_started_again_with_other_options_is_refused(batch, tmp_path):
+    """``--batch`` with ``--photos off``, then the same list and --out with ``--photos on
+    --refine-cameras``: exit 2, one line naming batch.jsonl, what differs and the fix; nothing
+    written. (Before: "2 already done", exit 0, the scenes never refined with the new options.)
+    The first options again: every scene already done."""
+    out = tmp_path / "out"
+    listed = _short_list(batch, tmp_path, 2)
+
+    def run(*options: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", "--batch", str(listed),
+                               "--models", str(batch / "models"), "--out", str(out), *options],
+                              capture_output=True, text=True, timeout=300)
+
+    assert run("--photos", "off", "--quiet").returncode == 0
+    before = {p: p.stat().st_mtime_ns for p in out.rglob("*")}
+    p = run("--photos", "on", "--refine-cameras")
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, p.stderr
+    assert str(out / BATCH_RECORDS) in p.stderr and "another --out" in p.stderr and "same options" in p.stderr
+    assert "--photos off, now on" in p.stderr and "--refine-cameras False, now True" in p.stderr, p.stderr
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == before
+    p = run("--photos", "off")
+    assert p.returncode == 0 and "0 scene(s) refined, 2 already done, 0 failed" in p.stdout, p.stdout + p.stderr
+
+
+def test_paths_in_a_batch_list_are_relative_to_the_list(batch, tmp_path):
+    """A scene's --init in a list is read relative to the list's folder, as its scene folder is
+    (the list of the fixture says ``scene_00 --init scene_00/init_gt.json``, and the other tests run
+    it from another folder); a missing one is a one-line error naming the list, its line, the
+    option and the rule, exit 2, nothing written."""
+    from autoalign.batch import read_scene_list
+
+    (scene, options), *_ = read_scene_list(batch / "list.txt")
+    assert scene == batch / "scene_00" and options == ["--init", str(batch / "scene_00" / "init_gt.json")]
+    bad = tmp_path / "lists" / "bad.txt"
+    bad.parent.mkdir()
+    bad.write_text(f"# first\n{batch / 'scene_00'} --init scene_00/init_gt.json\n")
+    p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", "--batch", str(bad), "--models",
+                        str(batch / "models"), "--out", str(tmp_path / "out")], capture_output=True, text=True,
+                       cwd=batch, timeout=300)
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, p.stderr
+    assert f"{bad}: line 2: --init scene_00/init_gt.json: not found" in p.stderr, p.stderr
+    assert "relative to the list's folder" in p.stderr
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_dask_worker_killed_mid_scene_is_retried_and_recorded(batch, tmp_path):

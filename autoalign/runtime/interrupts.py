@@ -1,9 +1,14 @@
-"""Ctrl-C that cannot be lost, for the ``autoalign`` command (standard library only).
+"""Ctrl-C (and SIGTERM) that cannot be lost, for the ``autoalign`` command (standard library only).
 
 SIGINT raises ``KeyboardInterrupt`` as usual *and* is remembered: libraries may swallow the
 exception (trimesh wraps failed optional imports with ``except BaseException``), and a run
 interrupted there went on and wrote its outputs with exit status 0. :meth:`Interrupts.check`
 raises again wherever the run may stop safely (progress updates, before writing).
+
+SIGTERM (what Slurm, Docker and ``timeout`` send) is handled the same way in the command: it
+unwinds the run like Ctrl-C, so that worker processes are stopped before the command ends (its
+default action ended the command at once and left the workers running), and the command exits
+143 (128 + SIGTERM) instead of 130 (:meth:`Interrupts.exit_status`).
 
 While the command's own modules are still being imported, a SIGINT is only remembered
 (:meth:`Interrupts.remember`, installed by ``autoalign/__init__.py`` in the command's process):
@@ -24,21 +29,53 @@ from contextlib import contextmanager
 from typing import Any
 
 
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+"""The signals that stop a run of the command: Ctrl-C, and SIGTERM from a job scheduler or ``kill``."""
+
+
 class Interrupts:
-    """Whether Ctrl-C was pressed during this run, and the handlers that record it."""
+    """Whether Ctrl-C (or SIGTERM) came during this run, which one, and the handlers that record it."""
 
     seen = False
+    signum: int = signal.SIGINT
 
     @classmethod
     def remember(cls, signum: int, frame: Any) -> None:
-        """SIGINT handler while modules load: only remember it."""
-        cls.seen = True
+        """Handler while modules load (and after the outputs are written): only remember it."""
+        cls.seen, cls.signum = True, signum
 
     @classmethod
     def handler(cls, signum: int, frame: Any) -> None:
-        """SIGINT handler while the command runs: remember it and raise ``KeyboardInterrupt``."""
-        cls.seen = True
+        """Handler while the command runs: remember it and raise ``KeyboardInterrupt`` (SIGTERM too,
+        so that everything that cleans up after Ctrl-C, stopping worker processes included, runs)."""
+        cls.seen, cls.signum = True, signum
         raise KeyboardInterrupt
+
+    @classmethod
+    def reset(cls) -> None:
+        """Forget an earlier run's signal (a new run of ``main`` in the same process)."""
+        cls.seen, cls.signum = False, signal.SIGINT
+
+    @classmethod
+    def exit_status(cls) -> int:
+        """The status of a run stopped by the signal seen: 130 after Ctrl-C, 143 after SIGTERM."""
+        return 128 + int(cls.signum)
+
+    @classmethod
+    def name(cls) -> str:
+        """How messages name the signal seen."""
+        return "Ctrl-C" if cls.signum == signal.SIGINT else signal.Signals(cls.signum).name
+
+    @classmethod
+    def install(cls, signums: tuple[int, ...] = STOP_SIGNALS) -> dict[int, Any]:
+        """Make ``signums`` raise (:meth:`handler`); returns the handlers they had, for :meth:`restore`."""
+        return {s: signal.signal(s, cls.handler) for s in signums}
+
+    @staticmethod
+    def restore(previous: dict[int, Any]) -> None:
+        """Put back the handlers :meth:`install` replaced."""
+        for s, h in previous.items():
+            signal.signal(s, h)
 
     @classmethod
     def check(cls) -> None:
@@ -51,13 +88,17 @@ class Interrupts:
         """The command's outputs are written and complete: from here to the command's end, Ctrl-C is
         only remembered, so that the command reports and exits with its own status (``main`` then
         says the outputs are complete) instead of calling finished work interrupted."""
-        if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) == cls.handler:
-            signal.signal(signal.SIGINT, cls.remember)
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for s in STOP_SIGNALS:
+            if signal.getsignal(s) == cls.handler:
+                signal.signal(s, cls.remember)
 
     @classmethod
     @contextmanager
     def deferred(cls) -> Iterator[None]:
-        """Within the command, Ctrl-C during the block is remembered and raised after it (:func:`held_signals`).
+        """Within the command, Ctrl-C (or SIGTERM) during the block is remembered and raised after it
+        (:func:`held_signals`).
 
         C++ extension modules run Python code while they initialise (drjit imports its submodules
         from its module init); an exception raised there ends in ``std::terminate``: the process
@@ -65,10 +106,11 @@ class Interrupts:
         command (another SIGINT handler installed), and in any thread but the main one (only it
         receives signals; ``autoalign label`` refines on a worker thread), this does nothing.
         """
-        if signal.getsignal(signal.SIGINT) != cls.handler:
+        ours = tuple(s for s in STOP_SIGNALS if signal.getsignal(s) == cls.handler)
+        if signal.SIGINT not in ours:
             yield
             return
-        with held_signals(signal.SIGINT):
+        with held_signals(*ours):
             yield
 
 
