@@ -180,3 +180,45 @@ def test_output_folder_of_other_settings_is_refused(tmp_path):
     with pytest.raises(AutoalignError, match="other settings"):
         run_study(StudyConfig(model_ids=(1,), trials=1, methods=("init",), seed=2), tmp_path, progress=False,
                   task_fn=_fake)
+
+
+def test_no_trials_is_a_one_line_error_and_writes_nothing(tmp_path, capsys):
+    """``simulate --trials 0``: exit 2, one line naming --trials and the fix, no folder. (Before: an
+    empty study written, exit 0.)"""
+    out = tmp_path / "study"
+    assert simulate_main(["--out", str(out), "--model-ids", "1", *TINY, "--trials", "0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--trials 0" in err and "--trials 1 or more" in err and "\n" not in err, err
+    assert not out.exists()
+
+
+def test_a_study_started_again_with_other_views_is_refused_and_its_report_says_its_views(tmp_path, capsys):
+    """``simulate --views 12`` into a folder of 8-view trials: exit 2, one line naming the folder's
+    file, what differs and the fix; nothing written. (Before: "already done", exit 0, and
+    results.md mixed "views 12", "40 views" and the 8-view trials.) An older folder, whose config
+    and trials did not record every setting, is refused by its trials' own views. The report's
+    heading gives the trials' number of views."""
+    out = tmp_path / "study"
+    argv = ["--out", str(out), "--model-ids", "1", "--method", "init", *TINY]
+    assert simulate_main(argv) == 0
+    md = (out / "results.md").read_text()
+    assert "## Main result (8 views," in md and "## Main result (40 views" not in md
+    assert "this study's main trials had 8 views, images of 160x120 px with f = 150 px" in md
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    capsys.readouterr()
+    assert simulate_main([*argv, "--views", "12"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert str(out / "config.json") in err and "--views 8, now 12" in err and "\n" not in err, err
+    assert "another --out" in err and "same options" in err
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+    config = json.loads((out / "config.json").read_text())  # as an older version wrote them
+    del config["fingerprint"]["views"]
+    (out / "config.json").write_text(json.dumps(config))
+    records = [{k: v for k, v in r.items() if k != "settings"} for r in read_records(out / "trials.jsonl")]
+    (out / "trials.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    assert simulate_main([*argv, "--views", "12"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert str(out / "trials.jsonl") in err and "--views 8, now 12" in err and "\n" not in err, err
+    assert simulate_main(argv) == 0  # the same options resume it
+    assert "0 trials run, 1 already done" in capsys.readouterr().out

@@ -305,6 +305,27 @@ def _n_starts(records: list[dict[str, Any]], method: str) -> dict[str, str]:
     return {"n_starts": text, "n_starts_note": note}
 
 
+def _views_of(records: list[dict[str, Any]], condition: str, last_run: dict[str, Any]) -> str:
+    """How many views the trials of ``condition`` had (``8 views``; several numbers when the folder
+    mixes them; the last run's when there are no trials yet)."""
+    views = sorted({int(r["views"]) for r in records if r.get("condition") == condition and r.get("views") is not None})
+    if not views and last_run.get("views") is not None:
+        views = [int(last_run["views"])]
+    if not views:
+        return "views not recorded"
+    return f"{' / '.join(map(str, views))} view{'s' if views != [1] else ''}"
+
+
+def _this_study(records: list[dict[str, Any]], config: dict[str, Any]) -> str:
+    """A line saying that the choices below are the paper's protocol and what this study's main
+    trials had instead where they differ (``--views``, the image settings)."""
+    setup = (config.get("fingerprint") or {}).get("setup") or {}
+    image = (f", images of {setup['width']}x{setup['height']} px with f = {setup['focal']:g} px"
+             if {"width", "height", "focal"} <= setup.keys() else "")
+    return (f"The paper's protocol as read here; this study's main trials had "
+            f"{_views_of(records, 'main', config.get('last_run') or {})}{image}.\n\n")
+
+
 def markdown(records: list[dict[str, Any]], config: dict[str, Any] | None = None) -> str:
     """The full results report."""
     cfg = (config or {}).get("last_run", {})
@@ -312,7 +333,8 @@ def markdown(records: list[dict[str, Any]], config: dict[str, Any] | None = None
     parts = ["# Simulated convergence study (ProgressLabeller protocol)\n",
              f"{len(records)} trials; methods: {', '.join(methods)}. Per-trial data: `trials.csv` "
              "(and `trials.jsonl` with trajectories and poses). Plots in `plots/`.\n",
-             "## Main result (40 views, paper's initial-pose distribution)\n", main_table(records),
+             f"## Main result ({_views_of(records, 'main', cfg)}, paper's initial-pose distribution)\n",
+             main_table(records),
              "\nColumns: success = fraction of trials whose final pose passes the test; iterations are those "
              "to the first pose passing the headline test, over successful trials; wall time is the method's "
              "own (scene synthesis and metrics excluded); 'wall s per converged trial' = total wall time / "
@@ -325,7 +347,7 @@ def markdown(records: list[dict[str, Any]], config: dict[str, Any] | None = None
              "\n## Number of views\n", condition_table(records, "views"),
              "\n## Mask noise\n", condition_table(records, "noise"),
              "\n## Sensitivity to the ambiguous protocol choices\n", condition_table(records, "sensitivity"),
-             "\n## Protocol choices\n"]
+             "\n## Protocol choices\n", _this_study(records, config or {})]
     for k, v in PROTOCOL_CHOICES.items():
         parts.append(f"- **{k}**: {v}\n")
     parts.append("\n### The paper method\n")

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from autoalign.batch import RunSummary, run_tasks
+from autoalign.batch import RunSummary, check_resume, run_tasks, settings_changes
 from autoalign.errors import AutoalignError
 from autoalign.experiments.studies.metrics import (
     CRITERIA,
@@ -52,8 +52,12 @@ SWEEP_VIEWS = (5, 10, 20, 40)
 NOISE_KINDS = ("erode", "dilate", "shift")
 NOISE_FRACTIONS = (0.25, 0.5)
 HEADLINE = "cols"
+TRIAL_SETTINGS = ("views", "sigma_mm", "noise", "paper", "models", "seed", "setup")
+"""A task's fields that define its trial besides its id: recorded with it, and a rerun that
+differs in them is refused (:func:`autoalign.batch.check_resume`) instead of skipping it as done."""
 PROCEDURAL = "procedural44"
 TRAJ_MAX = 400  # trajectory points kept per trial
+RECORDS = "trials.jsonl"
 
 
 @dataclass(frozen=True)
@@ -91,8 +95,11 @@ class StudyConfig:
     setup: ImageSetup = field(default_factory=ImageSetup)
 
     def fingerprint(self) -> dict[str, Any]:
-        """The settings two runs into one output folder must share (they define the trials)."""
-        return {"models": self.models, "seed": self.seed, "setup": asdict(self.setup)}
+        """The settings two runs into one output folder must share: they define the trials (the
+        main condition's views and initial noise, the paper method's settings), so a folder holds
+        one study (its report one number of views). Trials, methods and parts may change."""
+        return {"models": self.models, "seed": self.seed, "setup": asdict(self.setup), "views": self.views,
+                "sigma_mm": self.sigma_mm, "paper": asdict(self.paper)}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -220,6 +227,7 @@ def build_tasks(cfg: StudyConfig, ids: Iterable[int] | None = None) -> list[dict
                     t = {k: v for k, v in c.items() if k != "methods"}
                     t.update(id=f"{c['condition']}|m{mid}|t{trial}|{method}", model_id=int(mid), trial=int(trial),
                              method=method, models=cfg.models, seed=int(cfg.seed), setup=asdict(cfg.setup))
+                    t["settings"] = {k: t[k] for k in TRIAL_SETTINGS}
                     tasks.append(t)
     return tasks
 
@@ -362,21 +370,37 @@ def run_task(task: dict[str, Any]) -> dict[str, Any]:
 # ----------------------------------------------------------------------------------------------
 
 def _check_config(out: Path, cfg: StudyConfig) -> None:
+    """Refuse a folder whose ``config.json`` says its trials are of other settings (the names an
+    older folder's fingerprint has; its trials' own settings are checked by :func:`check_resume`)."""
     p = out / "config.json"
-    fp = cfg.fingerprint()
-    if p.is_file():
-        try:
-            old = json.loads(p.read_text()).get("fingerprint")
-        except json.JSONDecodeError:
-            old = None
-        if old is not None and old != json.loads(json.dumps(fp)):
-            raise AutoalignError(f"{p}: this output folder holds trials of other settings ({old}); "
-                                 "use a new --out folder or the same --models, --seed and image settings")
+    if not p.is_file():
+        return
+    try:
+        old = json.loads(p.read_text()).get("fingerprint")
+    except (json.JSONDecodeError, AttributeError):
+        old = None
+    if not isinstance(old, dict):
+        return
+    changes = settings_changes(old, cfg.fingerprint(), all_of_old=False)
+    if changes:
+        raise AutoalignError(f"{p}: this output folder holds trials of other settings ({changes}); "
+                             "use another --out folder, or the same options to resume")
 
-    write_json_atomic(p, {"fingerprint": fp, "last_run": {"trials": cfg.trials, "views": cfg.views,
-                                                          "methods": list(cfg.methods), "parts": list(cfg.parts),
-                                                          "sweep_trials": cfg.sweep_trials, "sigma_mm": cfg.sigma_mm,
-                                                          "paper": asdict(cfg.paper)}})
+
+def _check_tasks(cfg: StudyConfig, tasks: list[dict[str, Any]]) -> None:
+    """Refuse a study with no trials to run (it would write an empty report and exit 0)."""
+    if "main" in cfg.parts and cfg.trials < 1:
+        raise AutoalignError(f"--trials {cfg.trials}: the main condition needs at least 1 trial per model; give "
+                             "--trials 1 or more")
+    if not tasks:
+        raise AutoalignError("no trials to run: give --trials (and --sweep-trials for the other parts) 1 or more")
+
+
+def _write_config(out: Path, cfg: StudyConfig) -> None:
+    """``config.json``: the folder's fingerprint and the last run's settings (the report reads them)."""
+    last = {"trials": cfg.trials, "views": cfg.views, "methods": list(cfg.methods), "parts": list(cfg.parts),
+            "sweep_trials": cfg.sweep_trials, "sigma_mm": cfg.sigma_mm, "paper": asdict(cfg.paper)}
+    write_json_atomic(out / "config.json", {"fingerprint": cfg.fingerprint(), "last_run": last})
 
 
 def run_study(cfg: StudyConfig, out_dir: str | Path, workers: int = 1, scheduler: str | None = None,
@@ -393,10 +417,16 @@ def run_study(cfg: StudyConfig, out_dir: str | Path, workers: int = 1, scheduler
         task_fn: the function run per task (default :func:`run_task`; must be importable by
             worker processes when ``workers > 1``).
         tasks: an explicit task list instead of ``build_tasks(cfg)``.
+
+    Raises :class:`AutoalignError` (nothing written then) when there is no trial to run, or when
+    ``out_dir`` holds trials of other settings (:meth:`StudyConfig.fingerprint`, :func:`check_resume`).
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    _check_config(out, cfg)
     all_tasks = tasks if tasks is not None else build_tasks(cfg)
-    return run_tasks(all_tasks, task_fn or run_task, out, workers=workers, scheduler=scheduler, progress=progress,
-                     desc="simulate", unit="trial")
+    _check_tasks(cfg, all_tasks)
+    _check_config(out, cfg)
+    check_resume(all_tasks, out / RECORDS, "trial")  # before anything is written
+    out.mkdir(parents=True, exist_ok=True)
+    _write_config(out, cfg)
+    return run_tasks(all_tasks, task_fn or run_task, out, RECORDS, workers=workers, scheduler=scheduler,
+                     progress=progress, desc="simulate", unit="trial")
