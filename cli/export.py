@@ -40,18 +40,18 @@ inputs:
                                --labels if there is one, i.e. the cameras 'autoalign refine'
                                corrected or scaled, else SCENE_DIR's)
 
-outputs (in OUT_DIR, written all or none):
+outputs (OUT_DIR, written all or none; an earlier export there is replaced as a whole, and a
+non-empty OUT_DIR without export.json is refused):
   scene_gt.json, scene_gt_info.json, mask/ and mask_visib/{im_id:06d}_{k:06d}.png (0/255),
-  scene_camera.json, rgb/ and depth/ (copies), export.json (counts, parameters, version) and,
-  with --coco, scene_gt_coco.json (COCO image id = BOP image id, category id = obj_id).
+  scene_camera.json (the labelled images' cameras), rgb/ and depth/ (copies), export.json (counts,
+  parameters, version) and, with --coco, scene_gt_coco.json (COCO image id = BOP image id,
+  category id = obj_id).
 
 examples:
   autoalign export scenes/000001 --labels labels/000001/scene_gt.json --models models/ --out bop/000001
   autoalign export scenes/000001 --labels labels/000001/scene_gt.json --models models/ --out bop/000001 --coco
 
 exit status: 0 exported, 2 a mistake in the command or the input files (nothing written)."""
-
-OUTPUT_NAMES = ("scene_gt.json", "scene_gt_info.json", "scene_camera.json", "scene_gt_coco.json", "export.json")
 
 
 def add_export_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -65,7 +65,8 @@ def add_export_parser(subparsers: Any) -> argparse.ArgumentParser:
     req.add_argument("--labels", metavar="SCENE_GT_JSON", required=True, help="the poses, a BOP scene_gt.json")
     req.add_argument("--models", metavar="MODELS_DIR", required=True, help="BOP models folder (obj_XXXXXX.ply, mm)")
     req.add_argument("--out", metavar="OUT_DIR", required=True,
-                     help="the BOP scene folder to write (created if missing; not SCENE_DIR)")
+                     help="the BOP scene folder to write (created if missing; not SCENE_DIR); an earlier export "
+                          "there is replaced as a whole, any other non-empty folder refused")
     opt = p.add_argument_group("options")
     opt.add_argument("--cameras", metavar="SCENE_CAMERA_JSON", default=None,
                      help="cameras to export (default: scene_camera.json beside --labels if present, else SCENE_DIR's)")
@@ -83,7 +84,7 @@ def run_export(args: argparse.Namespace) -> int:
     from autoalign.cli.common import ProgressBar
     from autoalign.io.export import cameras_to_export, export_dataset
     from autoalign.io.models import ModelSet
-    from autoalign.io.out_folder import write_folder
+    from autoalign.io.out_folder import check_replaceable, replace_folder
 
     t0 = time.perf_counter()
     scene, labels_path, out = Path(args.scene), Path(args.labels), Path(args.out)
@@ -91,9 +92,10 @@ def run_export(args: argparse.Namespace) -> int:
         raise AutoalignError(f"{scene}: no scene_camera.json; pass a BOP scene folder as SCENE_DIR")
     if out.resolve() == scene.resolve():
         raise AutoalignError(f"--out {out}: is the scene folder itself; choose another folder with --out")
-    if labels_path.resolve().parent == out.resolve() and labels_path.name in OUTPUT_NAMES:
-        raise AutoalignError(f"--out {out}: would replace the input {labels_path}; choose another folder with --out")
     cameras = cameras_to_export(scene, labels_path, Path(args.cameras) if args.cameras else None)
+    _check_inputs_outside(out, {"SCENE_DIR": scene, "--labels": labels_path, "--cameras": cameras,
+                                "--models": Path(args.models)})
+    check_replaceable(out, "export.json")  # before the rendering, not after it
     models = ModelSet.read(args.models, args.units)
     bar = ProgressBar(enabled=not args.quiet)
     try:
@@ -101,9 +103,18 @@ def run_export(args: argparse.Namespace) -> int:
     finally:
         bar.close()
     files = dataset.files
-    write_folder(out, files)
+    replace_folder(out, files, marker="export.json")
     Interrupts.outputs_written()
     if not args.quiet:
         print(f"{dataset.images} image(s), {dataset.entries} entries ({dataset.dropped} out of view left out), "
               f"{time.perf_counter() - t0:.1f} s; wrote {len(files)} files to {out}", file=sys.stdout, flush=True)
     return 0
+
+
+def _check_inputs_outside(out: Path, inputs: dict[str, Path]) -> None:
+    """Refuse an ``--out`` that holds an input: the export replaces the whole folder."""
+    root = out.resolve()
+    for option, path in inputs.items():
+        if path.resolve() == root or root in path.resolve().parents:
+            raise AutoalignError(f"--out {out}: holds the input {path} ({option}), and an export replaces the whole "
+                                 "folder; choose another folder with --out")

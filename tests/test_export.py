@@ -151,7 +151,7 @@ def test_command_writes_a_bop_folder_with_coco(ex, tmp_path):
     gt = json.loads((out / "scene_gt.json").read_text())
     info = json.loads((out / "scene_gt_info.json").read_text())
     coco = json.loads((out / "scene_gt_coco.json").read_text())
-    assert (out / "scene_camera.json").read_bytes() == (ex.scene / "scene_camera.json").read_bytes()
+    assert json.loads((out / "scene_camera.json").read_text()) == json.loads((ex.scene / "scene_camera.json").read_text())
     n_ann = 0
     for im, entries in gt.items():
         assert len(info[im]) == len(entries)
@@ -219,5 +219,65 @@ def test_cameras_come_from_beside_the_labels_and_unscaled_ones_are_refused(ex, t
     shutil.copy(ex.scene / "scene_camera.json", labels / "scene_camera.json")
     p = run()
     assert p.returncode == 0, p.stderr
-    assert (tmp_path / "bop" / "scene_camera.json").read_bytes() == (ex.scene / "scene_camera.json").read_bytes()
+    assert (json.loads((tmp_path / "bop" / "scene_camera.json").read_text())
+            == json.loads((ex.scene / "scene_camera.json").read_text()))
     assert json.loads((tmp_path / "bop" / "export.json").read_text())["cameras"] == str((labels / "scene_camera.json").absolute())
+
+
+def _export(ex: Exported, scene: Path, labels: Path, out: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "autoalign.cli.main", "export", str(scene), "--labels", str(labels),
+                           "--models", str(ex.root / "models"), "--out", str(out), "--quiet"],
+                          capture_output=True, text=True, timeout=600)
+
+
+def test_an_export_replaces_an_earlier_one_and_has_only_its_images(ex, tmp_path):
+    """An export of all 8 images, then one of 4 of them into the same --out: the folder holds
+    exactly the second (no mask/, mask_visib/ or rgb/ file of the other 4 beside a smaller
+    scene_gt.json), its scene_camera.json the 4 images' cameras, and nothing is left beside it.
+    (Before: the old files stayed, exit 0; and a fresh export of 4 of 8 images wrote 8 cameras.)"""
+    scene = tmp_path / "scene"
+    shutil.copytree(ex.scene, scene)
+    (scene / "rgb").mkdir()
+    for im in range(VIEWS):
+        cv2.imwrite(str(scene / "rgb" / f"{im:06d}.png"), np.zeros((H, W, 3), np.uint8))
+    gt = json.loads((scene / "scene_gt.json").read_text())
+    half = tmp_path / "half.json"
+    half.write_text(json.dumps({k: v for k, v in gt.items() if int(k) % 2 == 0}))
+    kept = {0, 2, 4, 6}
+    out = tmp_path / "bop"
+    p = _export(ex, scene, scene / "scene_gt.json", out)
+    assert p.returncode == 0, p.stderr
+    assert len(list((out / "rgb").iterdir())) == VIEWS
+    assert len(json.loads((out / "scene_camera.json").read_text())) == VIEWS
+    p = _export(ex, scene, half, out)
+    assert p.returncode == 0, p.stderr
+    files = [f.relative_to(out) for f in out.rglob("*") if f.is_file()]
+    assert {int(f.name[:6]) for f in files if len(f.parts) == 2} == kept  # mask/, mask_visib/, rgb/
+    assert {f.parts[0] for f in files if len(f.parts) == 2} == {"mask", "mask_visib", "rgb"}
+    out_gt = json.loads((out / "scene_gt.json").read_text())
+    assert {int(k) for k in out_gt} == kept
+    assert len([f for f in files if f.parts[0] == "mask_visib"]) == sum(len(v) for v in out_gt.values())
+    cams = json.loads((scene / "scene_camera.json").read_text())
+    assert json.loads((out / "scene_camera.json").read_text()) == {k: v for k, v in cams.items() if int(k) in kept}
+    assert json.loads((out / "export.json").read_text())["images"] == len(kept)
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["bop", "half.json", "scene"]  # no temporary folder left
+
+
+def test_an_export_into_a_folder_it_did_not_make_is_refused(ex, tmp_path):
+    """A non-empty --out without export.json (not an earlier export): exit 2, one line naming it,
+    why and the fix; its files untouched. An earlier export's folder that holds an input (the
+    labels) likewise: the export replaces the whole folder."""
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("keep me")
+    p = _export(ex, ex.scene, ex.scene / "scene_gt.json", out)
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, p.stderr
+    assert f"--out {out}: is not empty and has no export.json" in p.stderr and "new or empty folder" in p.stderr
+    assert [f.name for f in out.iterdir()] == ["notes.txt"] and (out / "notes.txt").read_text() == "keep me"
+    (out / "notes.txt").unlink()
+    (out / "export.json").write_text("{}")
+    shutil.copy(ex.scene / "scene_gt.json", out / "labels.json")
+    p = _export(ex, ex.scene, out / "labels.json", out)
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, p.stderr
+    assert f"holds the input {out / 'labels.json'} (--labels)" in p.stderr and "another folder" in p.stderr
+    assert sorted(f.name for f in out.iterdir()) == ["export.json", "labels.json"]

@@ -286,6 +286,13 @@ def cameras_to_export(scene: str | os.PathLike[str], labels_path: str | os.PathL
     return path
 
 
+def cameras_of(cameras_path: str | os.PathLike[str], image_ids: set[int]) -> bytes:
+    """``scene_camera.json`` with the entries of the images ``image_ids`` only, as they are in
+    ``cameras_path``: a dataset of 12 of a scene's 24 images has 12 cameras."""
+    cams = json.loads(Path(cameras_path).read_text())
+    return json.dumps({k: v for k, v in cams.items() if int(k) in image_ids}, indent=1).encode()
+
+
 @dataclass
 class ExportedDataset:
     """What :func:`export_dataset` made: every file of the BOP scene folder (name relative to it ->
@@ -302,8 +309,8 @@ def export_dataset(scene_dir: str | os.PathLike[str], labels_path: str | os.Path
                    progress: Progress | None = None) -> ExportedDataset:
     """The files of a complete BOP scene folder for the labels in ``labels_path`` (a BOP
     ``scene_gt.json``): poses, masks, boxes (:func:`bop_files`), COCO annotations if ``coco``, the
-    cameras of ``cameras_path`` (see :func:`cameras_to_export`), copies of the labelled images'
-    ``rgb/`` and ``depth/``, and ``export.json``. This is ``autoalign export`` and the label page's
+    labelled images' cameras of ``cameras_path`` (see :func:`cameras_to_export`, :func:`cameras_of`),
+    copies of their ``rgb/`` and ``depth/``, and ``export.json``. This is ``autoalign export`` and the label page's
     "Export"; the caller writes the files (atomically)."""
     import statistics
     import time
@@ -318,7 +325,7 @@ def export_dataset(scene_dir: str | os.PathLike[str], labels_path: str | os.Path
     files = bop_files(frames)
     if coco:
         files["scene_gt_coco.json"] = json.dumps(coco_annotations(frames, scene_dir)).encode()
-    files["scene_camera.json"] = cameras_path.read_bytes()
+    files["scene_camera.json"] = cameras_of(cameras_path, set(labels))
     for sub in ("rgb", "depth"):
         if (scene_dir / sub).is_dir():
             for f in sorted((scene_dir / sub).iterdir()):

@@ -1,5 +1,7 @@
 """The output folder of a run (``--out``): created when needed and removed again if the run fails,
-its files written all or none (:mod:`autoalign.io.atomic_files`), and no input file replaced.
+its files written all or none (:mod:`autoalign.io.atomic_files`), and no input file replaced; or,
+for an output that is a whole folder (``autoalign export``'s dataset), replaced as a whole
+(:func:`replace_folder`).
 
 Error messages name ``--out``, the option through which every command and the batch runner
 (:mod:`autoalign.batch`, whose scenes take the command's options) choose this folder.
@@ -8,13 +10,16 @@ Error messages name ``--out``, the option through which every command and the ba
 from __future__ import annotations
 
 import os
+import secrets
+import shutil
+import signal
 import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
 from autoalign.errors import AutoalignError
 from autoalign.io.atomic_files import write_files_atomic
-from autoalign.runtime.interrupts import Interrupts
+from autoalign.runtime.interrupts import Interrupts, held_signals
 
 
 def prepare_out_dir(out: Path) -> list[Path]:
@@ -100,3 +105,61 @@ def check_outputs_spare_inputs(out: Path, scene_dir: Path, inputs: list[Path], o
     for name in outputs:
         if (out / name).resolve() in taken:
             raise AutoalignError(f"--out {out}: writing {name} there would replace the input file {out / name}; {fix}")
+
+
+def replace_folder(out: Path, files: dict[str, bytes], marker: str) -> None:
+    """Make ``out`` hold exactly ``files`` (names relative to it, subfolders allowed), all or none:
+    they are written into a new folder beside it, which then takes its place, the old one removed.
+    No file of an earlier, larger output is left beside the new ones, and a run that fails or is
+    interrupted leaves the old folder as it was. ``marker``, a file every such output has, tells
+    an earlier output from anything else: a non-empty ``out`` without it is refused."""
+    out = out.absolute()
+    check_replaceable(out, marker)
+    created = prepare_out_dir(out.parent)
+    new = _sibling(out, "new")
+    try:
+        new.mkdir()
+        for sub in sorted({name.rsplit("/", 1)[0] for name in files if "/" in name}):
+            (new / sub).mkdir(parents=True, exist_ok=True)
+        write_outputs(new, files)
+        _swap_in(new, out)
+    except BaseException:
+        shutil.rmtree(new, ignore_errors=True)
+        remove_empty_dirs(created)
+        raise
+
+
+def check_replaceable(out: Path, marker: str) -> None:
+    """Refuse an ``out`` that :func:`replace_folder` may not replace: a file, or a non-empty folder
+    without ``marker`` (not an earlier output of the command)."""
+    if out.exists() and not out.is_dir():
+        raise AutoalignError(f"--out {out}: exists and is not a folder; choose a folder with --out")
+    if out.is_dir() and any(out.iterdir()) and not (out / marker).is_file():
+        raise AutoalignError(f"--out {out}: is not empty and has no {marker}, so it is not an earlier output of this "
+                             "command, which replaces the whole folder; choose a new or empty folder with --out")
+
+
+def _sibling(out: Path, what: str) -> Path:
+    """A name beside ``out`` that nothing has: hidden, ending in ``.tmp`` like the temporary files."""
+    return out.parent / f".{out.name}.{what}-{os.getpid()}-{secrets.token_hex(4)}.tmp"
+
+
+def _swap_in(new: Path, out: Path) -> None:
+    """Put the folder ``new`` in the place of ``out`` (if any), then remove the old one. The two renames
+    are not cut apart by Ctrl-C or SIGTERM; if the second fails, the old folder goes back."""
+    old = _sibling(out, "old") if out.exists() else None
+    with held_signals(signal.SIGINT, signal.SIGTERM):
+        try:
+            if old is not None:
+                os.rename(out, old)
+            try:
+                os.rename(new, out)
+            except OSError:
+                if old is not None:
+                    os.rename(old, out)
+                raise
+        except OSError as exc:
+            raise AutoalignError(f"--out {out}: cannot put the new folder in place ({exc.strerror or exc}); "
+                                 "choose another --out") from None
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
