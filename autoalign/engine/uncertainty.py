@@ -340,6 +340,18 @@ def with_outline_disagreement(u: Uncertainty, offset_px: float) -> Uncertainty:
     return replace(with_covariance(u, cov), outline_disagreement_px=float(offset_px))
 
 
+def with_scale_sigma(u: Uncertainty, sigma_relative: float, distance_mm: float) -> Uncertainty:
+    """``u`` with the solved scene scale's uncertainty (relative ``sigma_relative``) added as the
+    label sees it: a scene grown by ``1 + s`` about any point moves every label in its camera's
+    frame by ``s`` times its distance from the camera (``distance_mm``, the median view's), along
+    the ray (``u.view_dir_m``); the instance's twist, taken relative to the grown scene, holds none of it."""
+    if u.view_dir_m is None or sigma_relative <= 0.0:
+        return u
+    cov = u.covariance.copy()
+    cov[:3, :3] += (sigma_relative * distance_mm) ** 2 * np.outer(u.view_dir_m, u.view_dir_m)
+    return with_covariance(u, cov)
+
+
 def with_covariance(u: Uncertainty, cov_m: NDArray[np.float64]) -> Uncertainty:
     """``u`` with the model-frame covariance ``cov_m`` and what it says (sigmas, weak directions,
     sigmas along and across ``u.view_dir_m``)."""

@@ -57,7 +57,8 @@ class JointRefinement:
         iterations: steps tried.
         scale: the factor the scene grew by about the world origin (1.0 without ``with_scale``),
             and ``scale_sigma`` its standard deviation (relative, from the same covariance as the
-            poses; 0 without it).
+            poses; 0 without it), of which ``scale_votes_sigma`` the instances' disagreement on it
+            (:func:`_scale_votes_spread`).
         stop: why the solve stopped.
     """
 
@@ -74,6 +75,7 @@ class JointRefinement:
     view_misfit_after: dict[int, float]
     scale: float = 1.0
     scale_sigma: float = 0.0
+    scale_votes_sigma: float = 0.0
     stop: Stop = Stop.BUDGET
 
 
@@ -287,15 +289,18 @@ def refine_jointly(found: InstanceScenes, pyramids: list[MeshPyramid], poses: li
     if progress is not None:
         progress(stage, level.max_iters, level.max_iters)
     x, start, final = sol.x, sol.trace.start, sol.trace.final
-    cov, unc = _covariances(problem, x, final)
+    cov, votes, unc = _covariances(problem, x, final)
     return JointRefinement(x.poses, final.ev, unc, problem.ids, problem.cameras_of(x), x.E, start.ev.value,
                            final.value, sol.trace.tries, _misfit(objective, start.ev), _misfit(objective, final.ev),
-                           x.S, float(np.sqrt(max(cov[-1, -1], 0.0))) if with_scale else 0.0, sol.stop)
+                           x.S, float(np.sqrt(max(cov[-1, -1], 0.0))) if with_scale else 0.0,
+                           float(np.sqrt(max(votes[-1, -1], 0.0))) if with_scale else 0.0, sol.stop)
 
 
-def _covariances(problem: JointProblem, x: JointState, point: JointPoint) -> tuple[NDArray[np.float64], list[Uncertainty]]:
-    """The views' jackknife covariance of all unknowns (one cluster per view,
-    :func:`~autoalign.engine.uncertainty.jackknife`) and each pose's uncertainty."""
+def _covariances(problem: JointProblem, x: JointState,
+                 point: JointPoint) -> tuple[NDArray[np.float64], NDArray[np.float64], list[Uncertainty]]:
+    """The covariance of all unknowns: the views' jackknife (one cluster per view,
+    :func:`~autoalign.engine.uncertainty.jackknife`) plus, with the scale, the instances' votes on it
+    (returned too); and each pose's uncertainty."""
     parts: list[dict[tuple[int, ...], NDArray]] = [{} for _ in problem.ids]
     H, _, per_view = problem.system(x, point, parts)
     if problem.with_cameras:
@@ -303,11 +308,37 @@ def _covariances(problem: JointProblem, x: JointState, point: JointPoint) -> tup
     H_inv = np.linalg.pinv(H, rcond=1e-12, hermitian=True)
     cov = jackknife(H_inv, [_one_block(p) for p in parts], per_view,
                     problem.relative_to_cameras(x) if problem.with_cameras else None)
+    votes = _scale_votes_spread(problem, x, point) if problem.with_scale else np.zeros_like(cov)
+    cov = cov + votes
     n_band = sum(f.n_band for fits in point.ev.fits for f in fits)
     naive = H_inv * (2.0 * point.ev.value / max(n_band - problem.n, 1))
     unc = [uncertainty_of(cov[6 * k:6 * k + 6, 6 * k:6 * k + 6], naive[6 * k:6 * k + 6, 6 * k:6 * k + 6], T[:3, :3])
            for k, T in enumerate(x.poses)]
-    return cov, unc
+    return cov, votes, unc
+
+
+def _scale_votes_spread(problem: JointProblem, x: JointState, point: JointPoint) -> NDArray[np.float64]:
+    """The jackknife over the instances that decide the scale, each one's say left out in turn
+    (its poses still solved): ``(n - 1) / n sum_k (d_k - mean d)(d_k - mean d)^T`` over the Newton
+    steps ``d_k`` of the system without instance ``k``'s pull on the scale. Instances that agree on
+    the scene's scale move it little; masks of objects whose sizes disagree (a wrong model, a
+    segmenter's bias that only the photos share) pull it apart, which no view left out shows: a
+    scale 26 sigma off (0.988 for 1) was reported with a sigma of 0.05% and every label ``ok``."""
+    deciding = [k for k in range(problem.n_obj) if problem.scale_from is None or problem.scale_from[k]]
+    if len(deciding) < 2:
+        return np.zeros((problem.n, problem.n))
+    _, g, _ = problem.system(x, point)
+    steps = []
+    for k in deciding:
+        without = replace(problem, scale_from=[i != k and i in deciding for i in range(problem.n_obj)])
+        H_k, g_k = without.normal_equations(x, point)
+        if problem.with_cameras:
+            g_k[problem.cams] -= problem.prior.system(x.d)[1]  # as g: the loss's gradient alone
+        steps.append(np.linalg.lstsq(H_k, g_k - g, rcond=1e-12)[0])
+    d = np.array(steps)
+    d -= d.mean(axis=0)
+    n = len(deciding)
+    return d.T @ d * ((n - 1) / n)
 
 
 def _one_block(parts: dict[tuple[int, ...], NDArray]) -> tuple[NDArray[np.int64], NDArray[np.float64]]:

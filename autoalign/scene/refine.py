@@ -38,8 +38,8 @@ from autoalign.engine.hypotheses import turn_scores
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult, refine
 from autoalign.engine.seed_region import SEED_RADIUS
-from autoalign.engine.uncertainty import (with_outline_disagreement, with_outline_shift, with_spread_factor,
-                                         with_turn_floors)
+from autoalign.engine.uncertainty import (with_outline_disagreement, with_outline_shift, with_scale_sigma,
+                                         with_spread_factor, with_turn_floors)
 from autoalign.geometry.se3 import pose_change, symmetric_pose_change
 from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
@@ -172,6 +172,10 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
             silhouettes = pyramids[k].fine(opts.detail).hard_masks(joint.poses[k], own.cameras)
             iou = view_ious(silhouettes, own)
             unc = with_outline_disagreement(unc, shared_outline_offset(silhouettes, own))
+        if joint.scale_sigma > 0.0:  # the labels follow the solved scale along their rays
+            centre_w = joint.poses[k][:3, :3] @ pyramids[k].mesh.centre + joint.poses[k][:3, 3]
+            distance = float(np.median([np.linalg.norm(centre_w - c.centre) for c in found.scenes[k].cameras]))
+            unc = with_scale_sigma(unc, joint.scale_sigma, distance)
         evidence = r.result.photo if photo[k] is None else replace(photo[k], rounds=r.result.photo.rounds)
         after.append(replace(r.result, T_wm=joint.poses[k], iou_after=iou, weights=joint.evaluation.weights[k],
                              uncertainty=unc, turn_gap=gap, depth=depth, terms=joint.evaluation.record(k),
@@ -244,6 +248,11 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
                                          None if solve_scale else given_seeds.get(r.instance.index), seed_radius),
                               r.seconds + seconds)
                for k, (r, res) in enumerate(zip(alone, after))]
+    if solve_scale and joint.scale_votes_sigma ** 2 > joint.scale_sigma ** 2 / 2:  # more than the views' spread
+        reason = (f"the objects disagree on the scene's scale: it moves by {100 * joint.scale_votes_sigma:.2g}% "
+                  "(sigma) as each one's say is left out; check the models' sizes and units")
+        results = [replace(r, verdict=replace(r.verdict, status="failed" if r.verdict.status == "failed" else "check",
+                                              reasons=r.verdict.reasons + [reason])) for r in results]
     if not settled:  # every label's depth in its camera follows the scale: none can be trusted
         reason = (f"the scene's scale did not settle in {rounds} rounds: the objects' masks and their fit disagree "
                   "on it")
