@@ -95,6 +95,13 @@ def test_models_info_zero_continuous_axis(example, capsys) -> None:
     refused(models_argv(example), capsys, "models_info.json", "symmetries_continuous[0]", "not all zero")
 
 
+def test_simulate_models_info_checked_when_read(example, capsys) -> None:
+    """``simulate --models`` reads the same checked models_info.json: one line, before any trial."""
+    spoil_info(example, symmetries_discrete=[[1, 2, 3]])
+    refused(["simulate", "--models", str(example / "models"), "--trials", "1", "--out", str(example.parent / "sim")],
+            capsys, "models_info.json", "object 1 symmetries_discrete[0]", "4x4")
+
+
 @pytest.mark.parametrize("fields, token", [
     ({"symmetries_discrete": [list((2 * np.eye(4)).ravel())]}, "symmetries_discrete[0]"),  # scaled: det 8
     ({"symmetries_discrete": [[-1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 2]]}, "last row"),

@@ -13,7 +13,6 @@ Generation is deterministic (fixed seeds) and takes well under a second for the 
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -646,13 +645,13 @@ def load_bop_models_info(models_dir: str | Path) -> dict[int, dict[str, Any]]:
     Each entry keeps its JSON fields; ``symmetries_discrete`` becomes a list of 4x4 float arrays
     (translation in mm) and both symmetry keys are always present (empty lists when absent).
     """
+    from autoalign.io.models import read_models_info
+
     p = Path(models_dir)
     if p.is_dir():
         p = p / "models_info.json"
-    with open(p) as f:
-        raw = json.load(f)
     out = {}
-    for k, v in raw.items():
+    for k, v in read_models_info(p).items():  # checked: a malformed symmetry is a one-line error, not a traceback
         e = dict(v)
         e["symmetries_discrete"] = [np.asarray(T, dtype=np.float64).reshape(4, 4)
                                     for T in v.get("symmetries_discrete", [])]
