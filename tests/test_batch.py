@@ -367,6 +367,37 @@ def test_sigterm_to_simulate_with_workers_exits_143_leaves_no_process_and_a_reru
         assert len(ids) == len(set(ids)) == 10
 
 
+def test_sigterm_to_a_program_using_run_tasks_stops_its_workers_before_it_ends(tmp_path):
+    """A Python program (not the command: SIGTERM keeps its default action there) running tasks on 2
+    worker processes: SIGTERM to it still ends it by SIGTERM, but only once its workers are stopped;
+    no process of it is alive 5 s later."""
+    import os
+    import signal
+    import textwrap
+
+    script = tmp_path / "tasks.py"
+    script.write_text(textwrap.dedent("""
+        import sys, time
+        from autoalign.batch import run_tasks
+
+        def slow(task):
+            time.sleep(0.3)
+            return {"id": task["id"]}
+
+        if __name__ == "__main__":
+            print("tasks:", file=sys.stderr, flush=True)
+            run_tasks([{"id": str(k)} for k in range(40)], slow, sys.argv[1], workers=2, progress=False)
+    """))
+    with Started([sys.executable, str(script), str(tmp_path / "out")], b"tasks:") as run:
+        _wait_for_records(tmp_path / "out" / "trials.jsonl", 1, run.p)
+        assert run.p.poll() is None, "the tasks ended before SIGTERM"
+        os.kill(run.p.pid, signal.SIGTERM)
+        stderr = run.finish()
+        assert run.p.returncode == -signal.SIGTERM, (run.p.returncode, stderr)
+        assert run.leaves_no_process(), "the program's workers outlived it"
+        assert 1 <= len(read_records(tmp_path / "out" / "trials.jsonl")) < 40
+
+
 def test_a_batch_started_again_with_other_options_is_refused(batch, tmp_path):
     """``--batch`` with ``--photos off``, then the same list and --out with ``--photos on
     --refine-cameras``: exit 2, one line naming batch.jsonl, what differs and the fix; nothing
