@@ -267,3 +267,17 @@ def test_objects_that_disagree_on_the_scale_are_never_ok(tmp_path):
     assert abs(rec["scale"]["mm_per_unit"] / UNIT_MM - 1) > 0.005  # the scale is wrong ...
     for r in rec["instances"]:  # ... and no label says otherwise
         assert r["verdict"] != "ok" and any("disagree on the scene's scale" in x for x in r["reasons"]), r
+
+
+def test_the_scene_refined_with_photos_keeps_the_instances_own_masks():
+    """What ``refine --models`` draws as each instance's mask (overlay.png's tint) is its mask as read,
+    not the colour targets the photos made of it (which showed speckles the mask does not have)."""
+    from autoalign.io.evidence import instance_scenes_with_photos
+    from autoalign.io.instances import read_init_poses
+    from autoalign.scene.refine import refine_scene
+
+    found = instance_scenes_with_photos(read_instance_scenes(EXAMPLE / "scene", read_instances(EXAMPLE / "scene")))
+    models = ModelSet.read(EXAMPLE / "models")
+    refined = refine_scene(found, models, read_init_poses(EXAMPLE / "init_gt.json", found), solve_scale=True)
+    for given, kept in zip(found.scenes, refined.found.scenes):
+        assert all(np.array_equal(a, b) for a, b in zip(given.masks, kept.masks))

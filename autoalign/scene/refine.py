@@ -114,7 +114,7 @@ def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, N
 class SceneRefinement:
     """What :func:`refine_scene` found: every instance's result (after the joint stage), the joint
     stage itself, the joint stage with camera corrections if they were asked for (``joint`` when
-    they were kept), the scenes (through the cameras used at the end), and with ``solve_scale``
+    they were kept), the scenes with the instances' own masks (through the cameras used at the end), and with ``solve_scale``
     the factor by which the given cameras' translations were scaled, its relative sigma, and
     whether it settled (if not, every instance is at least ``check``)."""
 
@@ -258,5 +258,6 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
                   "on it")
         results = [replace(r, verdict=replace(r.verdict, status="failed" if r.verdict.status == "failed" else "check",
                                               reasons=r.verdict.reasons + [reason])) for r in results]
-    return SceneRefinement(results, joint, attempt, found, scale, scale_sigma, settled)
+    # the instances' own masks (with photos, found's are the colour targets) through the final cameras
+    return SceneRefinement(results, joint, attempt, given.through(found.camera_by_id), scale, scale_sigma, settled)
 
