@@ -38,6 +38,7 @@ outputs (OUT_DIR, default SCENE_DIR/label_session):
                                verdict (rewritten after every change, atomically)
   scene_gt.json, labels.json   on Export: the accepted labels (BOP) and the decisions and verdicts
   bop/                         on Export: the BOP scene folder ('autoalign export' of scene_gt.json)
+                               (an earlier export there is replaced as a whole)
   label.lock                   while the server runs (its pid, host and URL): a second server on the
                                same OUT_DIR is refused (exit status 2); one left by a killed server
                                is taken over

@@ -359,19 +359,24 @@ def _not_json(name: str) -> Any:
 
 def export_session(session: Any, progress: Any = None) -> Path:
     """The page's "Export": the accepted labels to ``OUT_DIR/scene_gt.json`` (with the decisions in
-    ``labels.json``), then ``autoalign export`` of them into ``OUT_DIR/bop`` (all or none)."""
+    ``labels.json``), then ``autoalign export`` of them into ``OUT_DIR/bop`` (all or none). As with
+    ``autoalign export``, an earlier export there is replaced as a whole (no mask or photo of a larger
+    one is left behind), and a non-empty ``bop/`` without ``export.json`` is refused before anything
+    is written."""
     from autoalign.io.atomic_files import write_files_atomic
     from autoalign.io.export import cameras_to_export, export_dataset
-    from autoalign.io.out_folder import write_folder
+    from autoalign.io.out_folder import check_replaceable, replace_folder
 
     out = session.out_dir
     labels_path = out / "scene_gt.json"
+    labels = session.accepted_labels()
+    check_replaceable(out / "bop", "export.json")  # before anything is written or rendered
     out.mkdir(parents=True, exist_ok=True)
-    write_files_atomic({labels_path: json.dumps(session.accepted_labels(), indent=1).encode(),
+    write_files_atomic({labels_path: json.dumps(labels, indent=1).encode(),
                         out / "labels.json": json.dumps(session.decisions(), indent=1).encode()})
     cameras = cameras_to_export(session.scene_dir, labels_path, None)
     dataset = export_dataset(session.scene_dir, labels_path, session.models, cameras, progress=progress)
-    write_folder(out / "bop", dataset.files)
+    replace_folder(out / "bop", dataset.files, marker="export.json")
     print(f"autoalign label: exported {dataset.entries} entries in {dataset.images} images to {out / 'bop'}",
           file=sys.stdout, flush=True)
     return out / "bop"

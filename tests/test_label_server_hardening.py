@@ -401,3 +401,42 @@ def test_a_lock_left_by_a_killed_server_is_taken_over(served, tmp_path):
         held = json.loads((out / LOCK_NAME).read_text())
         assert held["pid"] == again.proc.pid and held["url"] == again.url
         assert again.stop() == 130
+
+
+# ---------------------------------------------------------------------------------------------- the page's export
+
+def test_a_second_export_with_fewer_objects_replaces_the_first_as_a_whole(served, tmp_path):
+    """The page's "Export" writes OUT_DIR/bop as 'autoalign export' does: an export of one object after
+    one of two leaves no mask of the second behind, and a bop/ it did not make is refused untouched."""
+    from autoalign.cli.label_http import export_session
+
+    out = tmp_path / "session"
+    SessionFile(out, served.scene, served.models).write(
+        1, [LabelledInstance(0, 1, served.truth[0], decision="accepted"),
+            LabelledInstance(1, 2, served.truth[1], decision="accepted")])
+    session = LabelSession(served.scene, ModelSet.read(served.models), out)
+    bop = export_session(session)
+
+    def files() -> set[str]:
+        return {p.relative_to(bop).as_posix() for p in bop.rglob("*") if p.is_file()}
+
+    first = files()
+    assert any(name.startswith("mask_visib/") and name.endswith("_000001.png") for name in first)
+    session.decide(1, "rejected")
+    assert export_session(session) == bop
+    second = files()
+    masks = sorted(name for name in second if name.startswith(("mask/", "mask_visib/")))
+    assert masks and all(name.endswith("_000000.png") for name in masks), masks  # nothing of instance 1 is left
+    assert len(second) < len(first) and second <= first
+    gt = json.loads((bop / "scene_gt.json").read_text())
+    assert {e["obj_id"] for entries in gt.values() for e in entries} == {1}
+    assert not [p for p in out.iterdir() if p.name.startswith(".bop.")]  # no temporary folder left beside it
+
+    other = tmp_path / "other"
+    (other / "bop").mkdir(parents=True)
+    (other / "bop" / "notes.txt").write_text("mine")
+    SessionFile(other, served.scene, served.models).write(1, [LabelledInstance(0, 1, served.truth[0], decision="accepted")])
+    with pytest.raises(AutoalignError, match="has no export.json"):
+        export_session(LabelSession(served.scene, ModelSet.read(served.models), other))
+    assert [p.name for p in (other / "bop").iterdir()] == ["notes.txt"]
+    assert not (other / "scene_gt.json").exists()  # refused before anything was written
