@@ -500,3 +500,29 @@ def test_a_dask_worker_killed_mid_scene_is_retried_and_recorded(batch, tmp_path)
     assert by_id[victim]["lost_workers"] == 1 and by_id[victim]["status"] == 0
     assert all(_complete_outputs(Path(t["out"])) for t in tasks)
     assert not (tmp_path / "out" / "errors.jsonl").read_text()
+
+
+def test_photos_auto_in_a_batch_scene_goes_on_without_a_missing_photo(batch, tmp_path):
+    """``--photos auto`` in a batch scene whose ``rgb/`` lacks one view's photo: the scene is refined
+    from its masks alone with one warning naming the view (in its record and refine.json), as the
+    single-scene command does; before, the scene failed on the missing photo."""
+    import shutil
+
+    import cv2
+
+    scene = tmp_path / "scene_00"
+    shutil.copytree(batch / "scene_00", scene)
+    (scene / "rgb").mkdir()
+    for im in range(7):  # of 8 views: image 7 has no photo
+        mask = cv2.imread(str(scene / "mask_visib" / f"{im:06d}_000000.png"), cv2.IMREAD_GRAYSCALE)
+        cv2.imwrite(str(scene / "rgb" / f"{im:06d}.png"), cv2.merge([mask // 2, mask, mask // 3]))
+    out = tmp_path / "out"
+    summary = refine_many([scene], ["--models", str(batch / "models"), "--photos", "auto"], out, progress=False,
+                          extra={str(scene): ["--init", str(scene / "init_gt.json")]})
+    assert (summary.done, summary.failed) == (1, 0), read_records(out / BATCH_RECORDS)
+    (record,) = read_records(out / BATCH_RECORDS)
+    warning = [m for m in record["messages"] if "no photo of image(s) 7" in m]
+    assert len(warning) == 1 and "--photos auto" in warning[0], record["messages"]
+    report = json.loads((out / "scene_00" / "refine.json").read_text())
+    assert sum("no photo of image(s) 7" in w for w in report["warnings"]) == 1, report["warnings"]
+    assert report["instances"][0]["verdict"] == "ok"

@@ -98,8 +98,10 @@ class FolderJob:
     seeds it; ``units`` of the meshes (``mm``/``m``, default: refuse tiny meshes); ``depth``: ``auto``
     uses the scene's ``depth/`` when it has one (and metric cameras), ``off`` never; ``masks``:
     ``auto`` reads the instance masks, ``none`` withholds them all (the photos place the objects,
-    from ``init``); ``photos``: ``auto`` uses the photos as evidence when the folder has ``rgb/``,
-    ``on`` always (a photo missing is an error), ``off`` never (:meth:`uses_photos`)."""
+    from ``init``); ``photos``: ``auto`` uses the photos as evidence when the folder has ``rgb/``
+    (:func:`~autoalign.jobs.refine_folder.refine_folder` goes on with the masks alone, and one
+    warning, when a view lacks its photo), ``on`` always (a photo missing is an error), ``off`` never
+    (:meth:`uses_photos`)."""
 
     scene: str
     out: str

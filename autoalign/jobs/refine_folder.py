@@ -57,6 +57,7 @@ def refine_folder(job: FolderJob, log: RunLog | None = None, progress: Stages | 
 
         click = Click.parse(job.click)
     job.check()
+    job = _photos_as_found(job, log)
     out = Path(job.out)
     inputs = [Path(x) for x in (job.model, job.init, job.instances) if x is not None]
     check_outputs_spare_inputs(out, Path(job.scene), inputs, OUTPUT_FILES)
@@ -70,6 +71,20 @@ def refine_folder(job: FolderJob, log: RunLog | None = None, progress: Stages | 
     except BaseException:
         remove_empty_dirs(created)
         raise
+
+
+def _photos_as_found(job: FolderJob, log: RunLog) -> FolderJob:
+    """``--photos auto`` with a view that lacks its photo: ``job`` with the photos off, and one warning
+    in ``log`` saying so (:func:`~autoalign.io.evidence.photos_if_complete`); ``--photos on`` stops at
+    the missing photo instead. The command, a batch's scenes and Python callers alike."""
+    if job.photos != "auto" or job.masks == "none":  # without masks the photos are the evidence
+        return job
+    from dataclasses import replace
+
+    from autoalign.io.evidence import photos_if_complete
+
+    complete = photos_if_complete(job.scene, None if job.models is not None else job.instance, log.warning)
+    return job if complete else replace(job, photos="off")
 
 
 def _refine_object(job: FolderJob, click: Any, log: RunLog, progress: Stages) -> FolderOutcome:
