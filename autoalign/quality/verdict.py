@@ -267,13 +267,22 @@ def _seed_reasons(seed_move: tuple[float, float] | None, seed_radius: tuple[floa
     return [], False
 
 
+def _largest_weak(weak: list[str]) -> str:
+    """The largest weakly observed turn and shift of ``weak`` (largest first, turns first: see
+    :attr:`~autoalign.engine.uncertainty.Uncertainty.weak`), and how many more ``refine.json``
+    lists: a reason that named every direction ran to 400-600 characters of unit vectors."""
+    shown = [w for w in weak if w.startswith("turn")][:1] + [w for w in weak if w.startswith("shift")][:1]
+    more = len(weak) - len(shown)
+    return "; ".join(shown) + (f"; {more} more in refine.json" if more else "")
+
+
 def _sigma_reasons(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.float64], ...],
                    turn_gap: float | None, symmetric: bool) -> list[str]:
     """Why the pose is not well determined (large sigmas, or a nearly symmetric object); none if it is."""
     s_mm, s_deg = largest_sigmas(uncertainty, free_axes_m)
     if s_mm > LARGE_SIGMA_MM or s_deg > LARGE_SIGMA_DEG:
         return [f"weakly observed: sigma up to {s_mm:.2g} mm / {s_deg:.2g} deg"
-                + (f" ({'; '.join(uncertainty.weak)})" if uncertainty.weak else "")
+                + (f" ({_largest_weak(uncertainty.weak)})" if uncertainty.weak else "")
                 + ": views from other directions or measured depth would fix it"]
     if nearly_symmetric(uncertainty, free_axes_m, turn_gap, symmetric):
         # the turn the views barely see is where a nearly symmetric object goes wrong: by several
