@@ -28,8 +28,10 @@ def print_scene_outcome(outcome: FolderOutcome, out: Path, elapsed: float, as_js
         return
     records = report.to_json()["instances"]
     rows = [f"  obj {rec['obj_id']:>3} (instance {rec['instance']}): {rec['verdict']:<6} median IoU "
-            f"{rec['median_iou_after']:.3f} over {len(rec['image_ids'])} views, sigma up to "
-            f"{max(rec['uncertainty']['sigma_mm']):.2g} mm / {max(rec['uncertainty']['sigma_deg']):.2g} deg"
+            f"{rec['median_iou_after']:.3f} over {len(rec['image_ids'])} views"
+            # a sigma is the precision of a pose only where the pose is trusted (as for one object)
+            + (f", sigma up to {max(rec['uncertainty']['sigma_mm']):.2g} mm / "
+               f"{max(rec['uncertainty']['sigma_deg']):.2g} deg" if rec["verdict"] == "ok" else "")
             + (f"; {'; '.join(rec['reasons'])}" if rec["reasons"] else "") for rec in records]
     print(f"{len(records)} instance(s) in {len(report.image_ids)} images, {elapsed:.1f} s:\n" + "\n".join(rows)
           + f"\nwrote {', '.join(outcome.paths)} to {out}", flush=True)

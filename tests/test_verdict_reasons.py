@@ -21,3 +21,29 @@ def test_a_weak_pose_names_its_largest_turn_and_shift_only() -> None:
     reason = next(r for r in verdict.reasons if r.startswith("weakly observed"))
     assert u.weak[0] in reason and next(w for w in u.weak if w.startswith("shift")) in reason
     assert "4 more in refine.json" in reason and len(reason) < 220, reason
+
+
+def test_refine_models_prints_a_sigma_only_for_ok_poses(capsys) -> None:
+    """As for one object: a ``failed`` or ``check`` pose's sigma is not its precision."""
+    from pathlib import Path
+
+    from autoalign.cli.refine_scene import print_scene_outcome
+    from autoalign.jobs.job import FolderOutcome
+    from autoalign.jobs.report import SceneReport
+
+    class Printed(SceneReport):
+        def __init__(self) -> None:  # only what printing reads
+            self.image_ids = [0, 1, 2]
+
+        def to_json(self) -> dict:
+            u = {"sigma_mm": [0.25, 0.1, 0.1], "sigma_deg": [0.5, 0.2, 0.2]}
+            return {"instances": [{"obj_id": o, "instance": k, "verdict": v, "median_iou_after": 0.9,
+                                   "image_ids": [0, 1, 2], "uncertainty": u, "reasons": [] if v == "ok" else ["why"]}
+                                  for k, (o, v) in enumerate([(1, "ok"), (2, "failed"), (3, "check")])]}
+
+    outcome = FolderOutcome.__new__(FolderOutcome)
+    outcome.report, outcome.paths = Printed(), ["scene_gt.json"]
+    print_scene_outcome(outcome, Path("out"), 1.0, as_json=False, quiet=False)
+    lines = capsys.readouterr().out.splitlines()
+    assert "sigma up to 0.25 mm / 0.5 deg" in lines[1]
+    assert all("sigma" not in line and "why" in line for line in lines[2:4]), lines
