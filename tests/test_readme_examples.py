@@ -41,6 +41,7 @@ import numpy as np
 import pytest
 
 import autoalign
+from autoalign.cli.label_http import TOKEN_HEADER
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 REPO = README.parent
@@ -162,10 +163,10 @@ class LabelRun:
     stderr: str
 
 
-def http(url: str, body: dict[str, Any] | None = None) -> bytes:
-    """GET ``url``, or POST ``body`` as JSON to it; the response body."""
+def http(url: str, body: dict[str, Any] | None = None, token: str = "") -> bytes:
+    """GET ``url``, or POST ``body`` as JSON to it with the page's ``token``, as the page does; the response body."""
     data = None if body is None else json.dumps(body).encode()
-    req = urllib.request.Request(url, data=data, headers={"Content-Type": "application/json"},
+    req = urllib.request.Request(url, data=data, headers={"Content-Type": "application/json", TOKEN_HEADER: token},
                                  method="GET" if body is None else "POST")
     with urllib.request.urlopen(req, timeout=60) as r:
         return r.read()
@@ -191,7 +192,8 @@ def run_label(code: str, cwd: Path) -> LabelRun:
         mask = cv2.imread(str(cwd / "autoalign/data/example/scene/mask_visib/000000_000000.png"), cv2.IMREAD_GRAYSCALE)
         depth = cv2.distanceTransform((mask > 0).astype(np.uint8), cv2.DIST_L2, 5)
         row, col = np.unravel_index(int(depth.argmax()), depth.shape)
-        http(url + "/api/place", {"obj_id": 1, "image_id": 0, "u": float(col), "v": float(row)})
+        token = json.loads(http(url + "/api/state"))["token"]
+        http(url + "/api/place", {"obj_id": 1, "image_id": 0, "u": float(col), "v": float(row)}, token)
         deadline = time.monotonic() + 180
         while True:
             state = json.loads(http(url + "/api/state"))
