@@ -5,7 +5,9 @@ background near the outline the object), a view's target stood at 0.9 inside an 
 outside it wherever the colours could not tell (a blurred edge): the soft silhouette's edge then
 settles where the target's mean is 1/2, outwards, and on the bundled example the photos moved the
 mug 0.1 mm / 0.36 deg from where its exact masks put it. A mask is now trusted as far as it fits
-the pose (:func:`~autoalign.losses.region.mask_rates`), never less than segmenter masks typically are.
+the pose (:func:`~autoalign.losses.region.mask_rates`), never less than segmenter masks typically are,
+where the colours confirm the mask's own outline (its edge contrast): one eroded by 4 px, which a
+pose far along the ray fits from one viewpoint, keeps the typical rates, and the colours complete it.
 """
 
 from __future__ import annotations
@@ -37,16 +39,27 @@ def test_a_mask_is_trusted_as_far_as_it_fits() -> None:
     assert trust == MASK_TRUST and miss < 0.001
 
 
-def test_colours_that_cannot_tell_leave_an_exact_mask_as_it_is() -> None:
-    """A grey photo says nothing: the target is the mask within 1% wherever the mask fits."""
+def test_colours_that_cannot_tell_confirm_no_outline() -> None:
+    """A grey photo says nothing of where the outline is: the mask keeps the typical rates (the
+    colours at 1/2 leave it 0.9 inside and 0.2 outside), as before the rates were read from the fit."""
     sil = _disk((120, 160), (60, 80), 30)
     photo = np.full((120, 160, 3), 128, np.uint8)
     target = region_target(photo, sil, sil.astype(np.float32)).target
-    assert np.abs(target - sil).max() < 0.01
-    cut = sil.copy()
-    cut[:, 80:] = False
-    target = region_target(photo, sil, cut.astype(np.float32), options=RegionOptions()).target
-    assert np.allclose(target[sil & ~cut], MASK_MISS, atol=0.02)  # the typical rate where it does not
+    ring = _disk((120, 160), (60, 80), 33) & ~_disk((120, 160), (60, 80), 27)
+    assert np.allclose(target[ring & sil], MASK_TRUST, atol=0.02) and np.allclose(target[ring & ~sil], MASK_MISS, atol=0.02)
+
+
+def test_a_mask_the_colours_show_eroded_is_held_to_the_typical_rates() -> None:
+    """The object's colours on both sides of a mask's outline (eroded by 4 px): however well a pose
+    far along the ray fits it, the colours complete it as before, beyond the mask's own outline."""
+    sil = _disk((120, 160), (60, 80), 30)
+    photo = np.full((120, 160, 3), (40, 160, 40), np.uint8)
+    photo[sil] = (180, 40, 160)
+    eroded = _disk((120, 160), (60, 80), 26)
+    target = region_target(photo, eroded, eroded.astype(np.float32)).target  # the pose fits the eroded mask
+    assert target[sil & ~eroded].min() > 0.5  # the object's colours beyond it: the object
+    exact = region_target(photo, sil, sil.astype(np.float32)).target
+    assert np.abs(exact - sil).max() < 0.01  # the colours confirm this outline: the mask as it is
 
 
 @pytest.mark.parametrize("case", ["example", "mug"])

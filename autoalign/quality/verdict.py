@@ -26,6 +26,7 @@ from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.seed_region import SEED_RADIUS, SeedHold
 from autoalign.engine.uncertainty import SAME_AXIS, Uncertainty, direction_name, turn_sigma_deg
 from autoalign.losses.depth import INLIER_SIGMAS, DepthTerms
+from autoalign.losses.region import EDGE_SUPPORTS
 
 FAILED_IOU = 0.5
 """Median IoU below this: the silhouette does not match the masks; the pose is taken as wrong."""
@@ -53,13 +54,10 @@ measurement at or above which the depth supports the pose. On the real YCB-Video
 dataset's labels give 0.97-1.0 and the same poses moved 5 mm along the ray 0.83-0.96, 10 mm 0.02-0.14."""
 DEPTH_CONTRADICTS = 0.5
 """Below this median share the measured depth contradicts the pose."""
-PHOTO_SUPPORTS = 0.35
+PHOTO_SUPPORTS = EDGE_SUPPORTS
 """Median edge contrast (over the views) at or above which the photo supports the pose
-(:class:`~autoalign.losses.region.RegionTarget`: the mean colour posterior just inside the outline
-less that just outside). Measured (``losses.region.EDGE_RING_PX``): on the synthetic textured scenes
-0.41-0.70 at the true poses, 0.33-0.50 at 2 mm / 2 deg off, 0.16-0.23 at 5 mm / 5 deg; on the real
-LM-O photos (Kinect v1) only 0.16-0.39 at the dataset's labels, so there the photo rarely supports
-a pose and the masks decide."""
+(:class:`~autoalign.losses.region.RegionTarget`; measured: :data:`~autoalign.losses.region.EDGE_SUPPORTS`):
+on the real LM-O photos the photo rarely supports a pose and the masks decide."""
 PHOTO_CONTRADICTS = 0.1
 """Below this median edge contrast the photo contradicts the pose (its colours do not change across
 the outline): synthetic 0.07-0.13 at 10 mm / 10 deg off; real LM-O never below 0.16 at the
