@@ -118,18 +118,16 @@ def test_a_big_heap_with_jax():
 def test_other():
     pass
 """
-TIMED_EXIT = """
+WALKED_AT_EXIT = """
 
 @pytest.hookimpl(trylast=True)
 def pytest_unconfigure(config):
-    # the time of one of the collections a worker makes after it has said it is finished
-    import gc, os, time
+    # how many objects one of the collections a worker makes after it has said it is finished walks
+    import gc, os
     from pathlib import Path
 
-    t0 = time.perf_counter()
-    gc.collect()
     worker = os.environ.get("PYTEST_XDIST_WORKER", "controller")
-    (Path(__file__).parent / f"collect_{worker}.txt").write_text(str(time.perf_counter() - t0))
+    (Path(__file__).parent / f"walked_{worker}.txt").write_text(str(len(gc.get_objects())))
 """
 
 
@@ -138,9 +136,10 @@ def test_worker_with_jax_and_a_big_heap_ends_quickly_without_keyboard_interrupt(
     """A pytest-xdist worker whose collections at exit (pytest makes five, after the worker said it
     was finished) took over 5 s was sent SIGINT by execnet, and the run ended with "Exception
     ignored in: <function _xla_gc_callback> ... KeyboardInterrupt". With tests/conftest.py's
-    collection before that, each of them takes milliseconds (without it, 0.2-0.5 s here)."""
+    collection before that, the heap is frozen and they walk only what came after it: a few
+    thousand objects, not the test's two million (counted, not timed: they took 0.2-0.5 s here)."""
     pytest.importorskip("jax")
-    (tmp_path / "conftest.py").write_text(CONFTEST.read_text() + TIMED_EXIT)
+    (tmp_path / "conftest.py").write_text(CONFTEST.read_text() + WALKED_AT_EXIT)
     (tmp_path / "test_heap.py").write_text(HEAP_TEST)
     p = subprocess.run([sys.executable, "-m", "pytest", "-n", "2", "-q", "-p", "no:cacheprovider", "-p",
                         "no:benchmark", "-W", "ignore::DeprecationWarning", str(tmp_path)], cwd=tmp_path,
@@ -148,5 +147,5 @@ def test_worker_with_jax_and_a_big_heap_ends_quickly_without_keyboard_interrupt(
     text = p.stdout + p.stderr
     assert p.returncode == 0 and "2 passed" in text, text
     assert "KeyboardInterrupt" not in text and "_xla_gc_callback" not in text, text
-    seconds = {f.stem: float(f.read_text()) for f in tmp_path.glob("collect_gw*.txt")}
-    assert len(seconds) == 2 and max(seconds.values()) < 0.1, seconds
+    walked = {f.stem: int(f.read_text()) for f in tmp_path.glob("walked_gw*.txt")}
+    assert len(walked) == 2 and max(walked.values()) < 200_000, walked
