@@ -18,8 +18,8 @@ the pose reached, as RBOT and PWP3D learn them again per frame (:mod:`autoalign.
 Where the instance has a mask, its pixels train the object's model, never the surroundings', and
 mask and colour are two independent pieces of evidence for each pixel of the band: their odds
 multiply (the mask's from how often real segmenter masks are right, :data:`MASK_TRUST` and
-:data:`MASK_MISS`, or from how well the view's mask fits the pose where it fits better:
-:func:`mask_rates`). A pixel the mask misses but whose colour is clearly the object's becomes the
+:data:`MASK_MISS`, or, where the colours confirm the mask's own outline (:data:`EDGE_SUPPORTS`),
+from how well it fits the pose where it fits better: :func:`mask_rates`). A pixel the mask misses but whose colour is clearly the object's becomes the
 object (the photo completes a mask that misses parts); one the mask claims against clearly
 background colours becomes undecided (1/2, no pull); and the mask keeps the object's colour model
 off a look-alike background. Pixels that other modelled objects claim (``exclude``) train neither
