@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+import autoalign
 from autoalign.experiments import RESULTS
 from autoalign.experiments.result_files import write_results
 from autoalign.experiments.scenes.make_example import render_photos, vertex_colours
@@ -30,7 +31,8 @@ from autoalign.geometry.mesh import Mesh
 from autoalign.geometry.se3 import pose_change, transform_points
 from autoalign.io.bop import Scene
 
-EXAMPLE = Path(__file__).resolve().parents[2] / "autoalign" / "data" / "example"
+EXAMPLE = Path(autoalign.__file__).resolve().parent / "data" / "example"
+"""The bundled example, in a checkout and in an installed package alike."""
 
 
 @dataclass(frozen=True)
