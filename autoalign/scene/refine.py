@@ -40,7 +40,7 @@ from autoalign.engine.refine import RefineOptions, RefineResult, refine
 from autoalign.engine.seed_region import SEED_RADIUS
 from autoalign.engine.uncertainty import (with_outline_disagreement, with_outline_shift, with_scale_sigma,
                                          with_spread_factor, with_turn_floors)
-from autoalign.geometry.se3 import pose_change, symmetric_pose_change
+from autoalign.geometry.se3 import pose_change, symmetric_pose_change, transform_points
 from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
 from autoalign.losses.region import RegionOptions
@@ -114,8 +114,8 @@ def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, N
 class SceneRefinement:
     """What :func:`refine_scene` found: every instance's result (after the joint stage), the joint
     stage itself, the joint stage with camera corrections if they were asked for (``joint`` when
-    they were kept), the scenes with the instances' own masks (through the cameras used at the end), and with ``solve_scale``
-    the factor by which the given cameras' translations were scaled, its relative sigma, and
+    they were kept), the scenes with the instances' own masks (through the cameras used at the end),
+    and with ``solve_scale`` the factor by which the given cameras' translations were scaled, its relative sigma, and
     whether it settled (if not, every instance is at least ``check``)."""
 
     results: list[InstanceResult]
@@ -173,7 +173,7 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
             iou = view_ious(silhouettes, own)
             unc = with_outline_disagreement(unc, shared_outline_offset(silhouettes, own))
         if joint.scale_sigma > 0.0:  # the labels follow the solved scale along their rays
-            centre_w = joint.poses[k][:3, :3] @ pyramids[k].mesh.centre + joint.poses[k][:3, 3]
+            centre_w = transform_points(joint.poses[k], pyramids[k].mesh.centre[None])[0]
             distance = float(np.median([np.linalg.norm(centre_w - c.centre) for c in found.scenes[k].cameras]))
             unc = with_scale_sigma(unc, joint.scale_sigma, distance)
         evidence = r.result.photo if photo[k] is None else replace(photo[k], rounds=r.result.photo.rounds)
@@ -181,6 +181,12 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
                              uncertainty=unc, turn_gap=gap, depth=depth, terms=joint.evaluation.record(k),
                              photo=evidence))
     return after
+
+
+def _all_flagged(results: list[InstanceResult], reason: str) -> list[InstanceResult]:
+    """Every instance at least ``check``, with ``reason`` added: what the scene's scale says of them all."""
+    return [replace(r, verdict=replace(r.verdict, status="failed" if r.verdict.status == "failed" else "check",
+                                       reasons=r.verdict.reasons + [reason])) for r in results]
 
 
 def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArray[np.float64]],
@@ -249,15 +255,12 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
                               r.seconds + seconds)
                for k, (r, res) in enumerate(zip(alone, after))]
     if solve_scale and joint.scale_votes_sigma ** 2 > joint.scale_sigma ** 2 / 2:  # more than the views' spread
-        reason = (f"the objects disagree on the scene's scale: it moves by {100 * joint.scale_votes_sigma:.2g}% "
-                  "(sigma) as each one's say is left out; check the models' sizes and units")
-        results = [replace(r, verdict=replace(r.verdict, status="failed" if r.verdict.status == "failed" else "check",
-                                              reasons=r.verdict.reasons + [reason])) for r in results]
+        results = _all_flagged(results, f"the objects disagree on the scene's scale: it moves by "
+                                        f"{100 * joint.scale_votes_sigma:.2g}% (sigma) as each one's say is left out; "
+                                        "check the models' sizes and units")
     if not settled:  # every label's depth in its camera follows the scale: none can be trusted
-        reason = (f"the scene's scale did not settle in {rounds} rounds: the objects' masks and their fit disagree "
-                  "on it")
-        results = [replace(r, verdict=replace(r.verdict, status="failed" if r.verdict.status == "failed" else "check",
-                                              reasons=r.verdict.reasons + [reason])) for r in results]
+        results = _all_flagged(results, f"the scene's scale did not settle in {rounds} rounds: the objects' masks and "
+                                        "their fit disagree on it")
     # the instances' own masks (with photos, found's are the colour targets) through the final cameras
     return SceneRefinement(results, joint, attempt, given.through(found.camera_by_id), scale, scale_sigma, settled)
 
