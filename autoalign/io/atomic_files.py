@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import tempfile
 from pathlib import Path
 from typing import Any
 
-from autoalign.runtime.interrupts import held_signals
+from autoalign.runtime.interrupts import STOP_SIGNALS, held_signals
 
 _UMASK = os.umask(0o022)
 os.umask(_UMASK)  # read once at import: os.umask can only be read by setting it
@@ -30,14 +29,15 @@ def write_files_atomic(files: dict[Path, bytes]) -> None:
     try:
         for path, data in files.items():
             path = Path(path)
-            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-            temps.append((path, tmp))
+            with held_signals(*STOP_SIGNALS):  # a stop between creating and recording it would leak the file
+                fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+                temps.append((path, tmp))
             with os.fdopen(fd, "wb") as f:
                 os.fchmod(f.fileno(), 0o666 & ~_UMASK)
                 f.write(data)
                 f.flush()
                 os.fsync(f.fileno())
-        with held_signals(signal.SIGINT, signal.SIGTERM):  # all the targets replaced, or none
+        with held_signals(*STOP_SIGNALS):  # all the targets replaced, or none
             for path, tmp in temps:
                 os.replace(tmp, path)
     except BaseException:

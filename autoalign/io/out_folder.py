@@ -19,7 +19,7 @@ from pathlib import Path
 
 from autoalign.errors import AutoalignError
 from autoalign.io.atomic_files import write_files_atomic
-from autoalign.runtime.interrupts import Interrupts, held_signals
+from autoalign.runtime.interrupts import STOP_SIGNALS, Interrupts, held_signals
 
 
 def prepare_out_dir(out: Path) -> list[Path]:
@@ -41,12 +41,15 @@ def prepare_out_dir(out: Path) -> list[Path]:
     created = list(reversed(missing))
     try:
         out.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".autoalign-probe-", suffix=".tmp", dir=out)
-        try:
-            os.write(fd, b"autoalign")
-        finally:
-            os.close(fd)
-            os.unlink(probe)
+        # Held: a stop arriving between the probe's creation and its removal (a worker's SIGTERM raises
+        # in whatever line it lands on) would otherwise leave the probe in the user's folder.
+        with held_signals(*STOP_SIGNALS):
+            fd, probe = tempfile.mkstemp(prefix=".autoalign-probe-", suffix=".tmp", dir=out)
+            try:
+                os.write(fd, b"autoalign")
+            finally:
+                os.close(fd)
+                os.unlink(probe)
     except OSError as exc:
         remove_empty_dirs(created)
         raise AutoalignError(f"--out {out}: cannot create or write to the folder ({exc.strerror or exc}); {fix}") from None
