@@ -41,7 +41,7 @@ from autoalign.engine.seed_region import CLEARLY_BETTER, STIFFNESS, SeedHold, Se
 from autoalign.engine.seeding import Click, click_centre, hull_centre, rotation_grid
 from autoalign.engine.solver import Trace
 from autoalign.engine.turn_profile import with_turn_profiles
-from autoalign.engine.uncertainty import Uncertainty, pose_uncertainty
+from autoalign.engine.uncertainty import Uncertainty, pose_uncertainty, viewpoint_groups
 from autoalign.errors import AutoalignError
 from autoalign.geometry.mesh import Mesh
 from autoalign.geometry.se3 import pose_change, transform_points
@@ -339,7 +339,7 @@ def final_uncertainty(obj: SilhouetteObjective, ev: Evaluation, T_wm: NDArray[np
     factor = spread_factor(refit_ratio(obj, T_wm, ev, last, optimizer))
     u = pose_uncertainty(ev.gn, ev.terms.grad, ev.terms.gn, ev.weights, ev.value, len(ev.silhouettes.band),
                          T_wm[:3, :3], bias, dirs, spread_factor=factor)
-    return with_turn_profiles(obj, T_wm, u, ev.weights, last.sigma)
+    return with_turn_profiles(obj, T_wm, u, ev.weights, last.sigma, viewpoint_groups(dirs))
 
 
 def _seed(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,

@@ -8,7 +8,8 @@ sigma of 2. So each weakly observed turn's loss is profiled: the pose turned by 
 (both ways, nothing else moved, the views' weights kept; twelve renders at half the images'
 resolution, :data:`PROFILE_SCALE`), each view's loss kept.
 Then the views are resampled (:data:`DRAWS` bootstrap draws of as many views, with replacement,
-seeded) and the turn that minimises each draw's summed profile is found (a parabola through the
+seeded; the views of one viewpoint drawn as one, :func:`~autoalign.engine.uncertainty.viewpoint_groups`)
+and the turn that minimises each draw's summed profile is found (a parabola through the
 lowest sample and its neighbours); the spread (standard deviation) of those turns is the turn's
 sigma as the views' disagreement gives it, far from the pose too: where a few views decide it and
 disagree, the draws' minima jump between dips; where those views agree, they stay put. The
@@ -66,10 +67,13 @@ def bootstrap_minima(angles_deg: NDArray[np.float64], view_losses: NDArray[np.fl
 
 
 def with_turn_profiles(obj: SilhouetteObjective, T_wm: NDArray[np.float64], u: Uncertainty,
-                       weights: NDArray[np.float64], sigma_px: float) -> Uncertainty:
+                       weights: NDArray[np.float64], sigma_px: float,
+                       groups: list[NDArray[np.int64]] | None = None) -> Uncertainty:
     """``u`` with the variance of each weakly observed turn (:attr:`Uncertainty.weak_turn_axes`)
     raised to its profile's (see the module doc), the loss evaluated at :data:`PROFILE_SCALE` with
-    the silhouettes' blur ``sigma_px`` and the views' ``weights`` (the pose's)."""
+    the silhouettes' blur ``sigma_px`` and the views' ``weights`` (the pose's). ``groups``: the views
+    of one viewpoint each (:func:`~autoalign.engine.uncertainty.viewpoint_groups`), resampled as one;
+    ``None``: each view its own."""
     if not u.weak_turn_axes:
         return u
     level = Level(PROFILE_SCALE, sigma_px, 0)
@@ -83,6 +87,8 @@ def with_turn_profiles(obj: SilhouetteObjective, T_wm: NDArray[np.float64], u: U
         poses = turns(T_wm, a_m, obj.centre_m, tuple(angles[angles != 0.0]))
         turned = [weights * obj.evaluate(T, level, weights=weights, with_derivatives=False).terms.loss for T in poses]
         losses = np.stack(turned[:len(side)] + [own] + turned[len(side):], axis=1)  # (V, K) in angle order
+        if groups is not None:
+            losses = np.stack([losses[g].sum(axis=0) for g in groups])
         minima = bootstrap_minima(angles, losses, DRAWS, rng)
         floors.append(TurnFloor(a_m, float(np.radians(np.std(minima))) ** 2))
     return with_turn_floors(u, floors)

@@ -68,6 +68,15 @@ objects: a 3 px shift costs a 60 px wide ape 0.2 of IoU.) On the 200 synthetic i
 prior's size was weighed at the sandwich: 0 / 1 / 1.5 / 2 px put 86% / 94% / 95% / 96% of the
 per-axis errors within 3 sigma with medians |error| / sigma of 1.40 / 0.80 / 0.61 / 0.49 (a
 Gaussian's: 99.7%, 0.67)."""
+SAME_VIEWPOINT_DEG = 1.0
+"""Views whose directions to the object differ by less than this see one outline: a 1 degree turn
+of the view moves the outline of a 100 mm object seen from 600 mm with a 600 px focal length by
+under a pixel, less than a mask's own error (:data:`BOUNDARY_BIAS_PX`). Their masks' errors are one
+measurement, not independent ones (a segmenter errs alike on near-identical images), so the views'
+spread counts such a group as one view (:func:`viewpoint_groups`); ten frames of a still RGB-D
+camera are one viewpoint, not ten."""
+MIN_VIEWPOINTS = 2
+"""With fewer viewpoints than this the views' spread cannot be measured: their errors are one sample."""
 SAME_AXIS = 0.95
 """Two unit axes whose dot product's magnitude is at least this name the same turn."""
 _AXES = "xyz"
@@ -113,6 +122,9 @@ class Uncertainty:
         spread: (6, 6) what the views show of the pose: their spread (scaled by ``spread_factor``)
             with the turns' profiles (``turn_floors``), without the outline-shift prior; the
             weakly observed turns are found in it. ``None``: ``covariance`` is all there is.
+        viewpoints: how many independent viewpoints the views' spread counts
+            (:func:`viewpoint_groups`); below :data:`MIN_VIEWPOINTS` the spread is a guess (the
+            views counted as one, :func:`jackknife`). ``None``: not known.
     """
 
     covariance: NDArray[np.float64]
@@ -130,6 +142,7 @@ class Uncertainty:
     spread_factor: float = 1.0
     outline_disagreement_px: float | None = None
     spread: NDArray[np.float64] | None = None
+    viewpoints: int | None = None
 
     @property
     def views_spread(self) -> NDArray[np.float64]:
@@ -218,10 +231,13 @@ def pose_uncertainty(H: NDArray[np.float64], view_grads: NDArray[np.float64], vi
     w = np.asarray(weights, dtype=np.float64)[:, None]
     shift_w = np.zeros(6) if bias_grads is None else -H_inv @ (w * bias_grads).sum(axis=0)
     every = np.arange(6)
-    spread = jackknife(H_inv, [(every, wv * Hv) for wv, Hv in zip(w[:, 0], view_gn)], view_grads * w)
+    g = view_grads * w
+    groups = None if view_dirs_w is None else viewpoint_groups(view_dirs_w)
+    spread = jackknife(H_inv, [(every, wv * Hv) for wv, Hv in zip(w[:, 0], view_gn)], g, groups=groups)
     u = uncertainty_of(spread_factor * spread, H_inv * (2.0 * value / max(n_band - 6, 1)), R_wm,
                        shift_w, median_view_direction(view_dirs_w, w[:, 0]), bias_px)
-    return replace(u, spread_factor=float(spread_factor))
+    return replace(u, spread_factor=float(spread_factor),
+                   viewpoints=None if groups is None else viewpoints_seen(groups, g))
 
 
 def median_view_direction(view_dirs_w: NDArray[np.float64] | None,
@@ -237,36 +253,94 @@ def median_view_direction(view_dirs_w: NDArray[np.float64] | None,
     return d[int(np.argmax(d @ mean))]
 
 
+def viewpoint_groups(view_dirs_w: NDArray[np.float64],
+                     same_deg: float = SAME_VIEWPOINT_DEG) -> list[NDArray[np.int64]]:
+    """The views (unit directions ``view_dirs_w`` (V, 3) from each camera to the object) in groups
+    that see it from one viewpoint: each group holds the views within ``same_deg`` of its first
+    (in order), so that a slow sweep is cut into pieces rather than chained into one."""
+    d = np.asarray(view_dirs_w, dtype=np.float64)
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    free = np.ones(len(d), dtype=bool)
+    cos = np.cos(np.radians(same_deg))
+    groups: list[NDArray[np.int64]] = []
+    for v in range(len(d)):
+        if free[v]:
+            members = np.flatnonzero(free & (d @ d[v] >= cos))
+            free[members] = False
+            groups.append(members.astype(np.int64))
+    return groups
+
+
+def viewpoints_seen(groups: list[NDArray[np.int64]], cluster_grads: NDArray[np.float64]) -> int:
+    """How many of ``groups`` hold a view that counts (a non-zero gradient in ``cluster_grads`` (V, n))."""
+    used = np.any(cluster_grads != 0.0, axis=1)
+    return sum(bool(used[g].any()) for g in groups)
+
+
 def jackknife(H_inv: NDArray[np.float64], cluster_H: list[tuple[NDArray[np.int64], NDArray[np.float64]]],
               cluster_grads: NDArray[np.float64],
-              seen_from: Callable[[int, NDArray[np.float64]], NDArray[np.float64]] | None = None,
-              ) -> NDArray[np.float64]:
-    """The delete-one-cluster jackknife covariance, each deletion one Newton step: without view ``v``
-    the optimum moves by ``d_v = (H - H_v)^-1 g_v``, and the covariance is
-    ``(V - 1) / V sum_v (d_v - mean d)(d_v - mean d)^T`` over the ``V`` views that count (a non-zero
-    gradient). ``H_inv`` (n, n) the inverse of the weighted Gauss-Newton matrix ``H``; per view,
-    ``cluster_H`` its weighted part of ``H`` as the unknowns it touches (k,) and their block (k, k),
-    and ``cluster_grads`` (V, n) its weighted gradient (zero outside those unknowns). ``(H - H_v)^-1``
-    comes from ``H^-1`` by the Woodbury identity, a k x k solve per view.
+              seen_from: Callable[[NDArray[np.int64], NDArray[np.float64]], NDArray[np.float64]] | None = None,
+              groups: list[NDArray[np.int64]] | None = None) -> NDArray[np.float64]:
+    """The delete-a-group jackknife covariance, each deletion one Newton step: without the views
+    ``G`` of a group the optimum moves by ``d_G = (H - H_G)^-1 g_G``, and the covariance is
+    ``(K - 1) / K sum_G (d_G - mean d)(d_G - mean d)^T`` over the ``K`` groups that count (a view
+    with a non-zero gradient). ``H_inv`` (n, n) the inverse of the weighted Gauss-Newton matrix
+    ``H``; per view, ``cluster_H`` its weighted part of ``H`` as the unknowns it touches (k,) and
+    their block (k, k), and ``cluster_grads`` (V, n) its weighted gradient (zero outside those
+    unknowns). ``(H - H_G)^-1`` comes from ``H^-1`` by the Woodbury identity, a k x k solve per group.
+    ``groups``: the views of one viewpoint each (:func:`viewpoint_groups`); ``None``: a group per view.
 
     Unlike the sandwich (:func:`sandwich`: ``H^-1`` on both sides), a view that alone fixes a
     direction moves the pose far when left out: with few views, or one that dominates, the
     jackknife is the larger (the small-sample correction the sandwich lacks).
 
-    ``seen_from(v, d_v)``, if given, re-expresses view ``v``'s deletion step before it counts (the
-    joint solve's objects relative to the cameras that still see them)."""
-    used = np.flatnonzero(np.any(cluster_grads != 0.0, axis=1))
-    V = len(used)
-    if V < 2:
-        return sandwich(H_inv, cluster_grads)
-    d = np.zeros((V, H_inv.shape[0]))
-    for row, v in enumerate(used):
-        idx, S = cluster_H[v]
-        d[row] = deletion_step(H_inv, idx, S, cluster_grads[v, idx])
+    With a single viewpoint there is nothing to leave out: the spread over the views is taken
+    (which sees only what differs between near-identical images) times their number ``V``, the
+    variance of ``V`` measurements whose errors are one (the design effect of a cluster of
+    ``V`` fully correlated samples). The verdict does not trust it (:data:`MIN_VIEWPOINTS`).
+
+    ``seen_from(G, d_G)``, if given, re-expresses group ``G``'s deletion step (its views' indices)
+    before it counts (the joint solve's objects relative to the cameras that still see them)."""
+    V = len(cluster_H)
+    used = np.any(cluster_grads != 0.0, axis=1)
+    if groups is None:
+        groups = [np.array([v], dtype=np.int64) for v in range(V)]
+    kept = [g[used[g]] for g in groups if used[g].any()]
+    if len(kept) < 2:
+        views = [np.array([v], dtype=np.int64) for v in np.flatnonzero(used)]
+        if len(views) < 2:
+            return sandwich(H_inv, cluster_grads)
+        return len(views) * _delete_groups(H_inv, cluster_H, cluster_grads, views, seen_from)
+    return _delete_groups(H_inv, cluster_H, cluster_grads, kept, seen_from)
+
+
+def _delete_groups(H_inv: NDArray[np.float64], cluster_H: list[tuple[NDArray[np.int64], NDArray[np.float64]]],
+                   cluster_grads: NDArray[np.float64], groups: list[NDArray[np.int64]],
+                   seen_from: Callable[[NDArray[np.int64], NDArray[np.float64]], NDArray[np.float64]] | None,
+                   ) -> NDArray[np.float64]:
+    """:func:`jackknife` over ``groups`` (at least two, each of views that count)."""
+    K = len(groups)
+    d = np.zeros((K, H_inv.shape[0]))
+    for row, members in enumerate(groups):
+        idx, S = _merged_block([cluster_H[v] for v in members])
+        d[row] = deletion_step(H_inv, idx, S, cluster_grads[members].sum(axis=0)[idx])
         if seen_from is not None:
-            d[row] = seen_from(int(v), d[row])
+            d[row] = seen_from(members, d[row])
     d -= d.mean(axis=0)
-    return d.T @ d * ((V - 1) / V)
+    return d.T @ d * ((K - 1) / K)
+
+
+def _merged_block(blocks: list[tuple[NDArray[np.int64], NDArray[np.float64]]],
+                  ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Views' parts of ``H`` (unknowns (k,), block (k, k)) summed over the union of their unknowns."""
+    if len(blocks) == 1:
+        return blocks[0]
+    idx = np.unique(np.concatenate([i for i, _ in blocks])).astype(np.int64)
+    S = np.zeros((len(idx), len(idx)))
+    for i, B in blocks:
+        at = np.searchsorted(idx, i)
+        S[np.ix_(at, at)] += B
+    return idx, S
 
 
 def deletion_step(H_inv: NDArray[np.float64], idx: NDArray[np.int64], S: NDArray[np.float64],

@@ -22,7 +22,7 @@ from autoalign import __version__
 from autoalign.engine.objective import ViewTermsRecord
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult
-from autoalign.engine.uncertainty import BOUNDARY_BIAS_PX, Uncertainty
+from autoalign.engine.uncertainty import BOUNDARY_BIAS_PX, SAME_VIEWPOINT_DEG, Uncertainty
 from autoalign.geometry.camera import PIXEL_CONVENTION
 from autoalign.geometry.se3 import rotation_angle_deg, transform_points
 from autoalign.losses.depth import DepthTerms
@@ -110,12 +110,15 @@ def uncertainty_record(u: Uncertainty | None) -> dict[str, Any] | None:
             "ray": "the median view's direction (camera to object centre) in the model's axes",
             "weakly_observed": list(u.weak), "covariance": u.covariance,
             "covariance_of": "twist (v mm, w rad) in the model's axes, about the model centre; jackknife over "
-                             "views (each left out in turn, one Gauss-Newton step), scaled by views_spread_factor "
+                             f"viewpoints (the views within {SAME_VIEWPOINT_DEG:g} deg of one direction left out "
+                             "together, one Gauss-Newton step; a single viewpoint: the views' spread times their "
+                             "number), scaled by views_spread_factor "
                              "where polishes with a fifth of the views left out moved farther, plus the prior on a "
                              f"shift of every mask's outline ({BOUNDARY_BIAS_PX:g} px, and with the photos "
                              "outline_disagreement_px on top: sqrt of the sum of squares), weakly observed turns "
                              "raised to the spread of their loss profile's minimum over resampled views",
             "views_spread_factor": u.spread_factor,
+            "viewpoints": u.viewpoints,
             "outline_shift_per_px": u.bias_shift,
             "outline_disagreement_px": u.outline_disagreement_px,
             "outline_disagreement": "how far the masks' outlines lie outside the silhouettes at this pose, fitted "

@@ -24,7 +24,8 @@ from numpy.typing import NDArray
 
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.seed_region import SEED_RADIUS, SeedHold
-from autoalign.engine.uncertainty import SAME_AXIS, Uncertainty, direction_name, turn_sigma_deg
+from autoalign.engine.uncertainty import (MIN_VIEWPOINTS, SAME_AXIS, SAME_VIEWPOINT_DEG, Uncertainty, direction_name,
+                                         turn_sigma_deg)
 from autoalign.losses.depth import INLIER_SIGMAS, DepthTerms
 from autoalign.losses.region import EDGE_SUPPORTS
 
@@ -276,7 +277,13 @@ def _largest_weak(weak: list[str]) -> str:
 
 def _sigma_reasons(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.float64], ...],
                    turn_gap: float | None, symmetric: bool) -> list[str]:
-    """Why the pose is not well determined (large sigmas, or a nearly symmetric object); none if it is."""
+    """Why the pose is not well determined (views from one viewpoint, large sigmas, or a nearly
+    symmetric object); none if it is."""
+    if uncertainty.viewpoints is not None and uncertainty.viewpoints < MIN_VIEWPOINTS:
+        # ten frames of a still camera agree with each other whatever the pose's error: on the
+        # YCB-Video frames, poses 2-7 deg off had sigmas of 0.2-0.9 deg and were called ok
+        return [f"one viewpoint: its views see it from within {SAME_VIEWPOINT_DEG:g} deg of one direction, so their "
+                "agreement cannot show how far off it may be; add views from another side"]
     s_mm, s_deg = largest_sigmas(uncertainty, free_axes_m)
     if s_mm > LARGE_SIGMA_MM or s_deg > LARGE_SIGMA_DEG:
         return [f"weakly observed: sigma up to {s_mm:.2g} mm / {s_deg:.2g} deg"

@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from autoalign.engine.objective import Level
 from autoalign.engine.solver import FTOL, LevenbergMarquardt, Stop, minimise
-from autoalign.engine.uncertainty import Uncertainty, jackknife, uncertainty_of
+from autoalign.engine.uncertainty import Uncertainty, jackknife, uncertainty_of, viewpoint_groups, viewpoints_seen
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import apply_twist, transform_points
 from autoalign.io.instances import InstanceScenes
@@ -224,16 +224,16 @@ class JointProblem:
         return H, g, per_view
 
     def relative_to_cameras(self, x: JointState) -> Callable[[int, NDArray[np.float64]], NDArray[np.float64]]:
-        """For the views' jackknife: a deletion step of view ``v`` with each instance's twist taken
+        """For the views' jackknife: a deletion step of the views ``views`` with each instance's twist taken
         relative to the other views' cameras (what the labels written in the cameras' frames see).
         Left out, a view no longer pins its camera, which swings back (by 107 mm on the benchmark's
         5-object scene) and drags the others through the gauge on their mean; the objects follow
         them, by up to 2.8 mm in the world, and no label changes."""
         blocks = [camera_block(c, self.p) for c in self.centres_w(x)]
 
-        def seen_from(v: int, step: NDArray[np.float64]) -> NDArray[np.float64]:
+        def seen_from(views: NDArray[np.int64], step: NDArray[np.float64]) -> NDArray[np.float64]:
             cams = step[self.cams].reshape(-1, 6)
-            others = (cams.sum(axis=0) - cams[v]) / max(len(cams) - 1, 1)
+            others = (cams.sum(axis=0) - cams[views].sum(axis=0)) / max(len(cams) - len(views), 1)
             out = step.copy()
             for k, M in enumerate(blocks):
                 out[6 * k:6 * k + 6] += M @ others
@@ -306,13 +306,16 @@ def _covariances(problem: JointProblem, x: JointState,
     if problem.with_cameras:
         H[problem.cams, problem.cams] += problem.prior.system(x.d)[0]
     H_inv = np.linalg.pinv(H, rcond=1e-12, hermitian=True)
+    cameras = problem.cameras_of(x)
+    groups = viewpoint_groups(np.array([problem.p - cameras[im].centre for im in problem.ids]))
     cov = jackknife(H_inv, [_one_block(p) for p in parts], per_view,
-                    problem.relative_to_cameras(x) if problem.with_cameras else None)
+                    problem.relative_to_cameras(x) if problem.with_cameras else None, groups)
     votes = _scale_votes_spread(problem, x, point, g) if problem.with_scale else np.zeros_like(cov)
     cov = cov + votes
     n_band = sum(f.n_band for fits in point.ev.fits for f in fits)
     naive = H_inv * (2.0 * point.ev.value / max(n_band - problem.n, 1))
-    unc = [uncertainty_of(cov[6 * k:6 * k + 6, 6 * k:6 * k + 6], naive[6 * k:6 * k + 6, 6 * k:6 * k + 6], T[:3, :3])
+    unc = [replace(uncertainty_of(cov[6 * k:6 * k + 6, 6 * k:6 * k + 6], naive[6 * k:6 * k + 6, 6 * k:6 * k + 6],
+                                  T[:3, :3]), viewpoints=viewpoints_seen(groups, per_view[:, 6 * k:6 * k + 6]))
            for k, T in enumerate(x.poses)]
     return cov, votes, unc
 
