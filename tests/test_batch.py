@@ -61,6 +61,7 @@ def batch(tmp_path_factory) -> Path:
     return root
 
 
+@pytest.mark.slow
 def test_batch_on_a_local_dask_cluster(batch, tmp_path):
     import dask.distributed as distributed  # installed by the test command: a missing one must fail
 
@@ -80,6 +81,7 @@ def test_batch_on_a_local_dask_cluster(batch, tmp_path):
         assert rec["instances"][0]["verdict"] == "ok"
 
 
+@pytest.mark.slow
 def test_interrupted_batch_resumes_without_redoing(batch, tmp_path):
     """The first 12 scenes done (as an interrupted run leaves them), then the command on all 20:
     only the other 8 run, the first 12's outputs are untouched."""
@@ -226,6 +228,7 @@ def _complete_outputs(folder: Path) -> bool:
             and cv2.imread(str(folder / "overlay.png")) is not None)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("workers", [1, 2])
 @pytest.mark.parametrize("moment", ["0.3 s into the batch", "first scene done", "half the scenes done"])
 def test_ctrl_c_in_a_batch_exits_130_records_only_finished_scenes_and_leaves_no_process(batch, tmp_path, workers,
@@ -298,6 +301,7 @@ def test_ctrl_c_in_a_batch_exits_130_records_only_finished_scenes_and_leaves_no_
 N_TERM = 6
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("workers", "to"), [(2, "the command"), (2, "its process group"), (1, "the command")])
 def test_sigterm_to_a_batch_exits_143_leaves_no_process_and_a_rerun_finishes(batch, tmp_path, workers, to):
     """SIGTERM (what Slurm, Docker and ``timeout`` send) to ``refine --batch`` once a scene is done,
@@ -338,6 +342,7 @@ def test_sigterm_to_a_batch_exits_143_leaves_no_process_and_a_rerun_finishes(bat
         assert all(_complete_outputs(out / f"scene_{k:02d}") for k in range(N_TERM))
 
 
+@pytest.mark.slow
 def test_sigterm_to_simulate_with_workers_exits_143_leaves_no_process_and_a_rerun_finishes(tmp_path):
     """The same for ``simulate --workers 2`` (the study runs on the batch's engine): SIGTERM to the
     command once a trial is recorded: exit 143, no process of it alive 5 s later, and the same
@@ -398,6 +403,7 @@ def test_sigterm_to_a_program_using_run_tasks_stops_its_workers_before_it_ends(t
         assert 1 <= len(read_records(tmp_path / "out" / "trials.jsonl")) < 40
 
 
+@pytest.mark.slow
 def test_a_batch_started_again_with_other_options_is_refused(batch, tmp_path):
     """``--batch`` with ``--photos off``, then the same list and --out with ``--photos on
     --refine-cameras``: exit 2, one line naming batch.jsonl, what differs and the fix; nothing
@@ -443,6 +449,7 @@ def test_paths_in_a_batch_list_are_relative_to_the_list(batch, tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_a_dask_worker_killed_mid_scene_is_retried_and_recorded(batch, tmp_path):
     """SIGKILL of the Dask worker that is refining one scene: the scheduler runs that scene again on
     a worker that lives, it is finished and its record says a worker died under it; every other

@@ -18,6 +18,7 @@ from autoalign.experiments.scenes.make_example import DEFAULT_OUT, PARTS, main
 MODULE = [sys.executable, "-m", "autoalign.experiments.scenes.make_example"]
 
 
+@pytest.mark.slow
 def test_help_is_help_not_a_folder(tmp_path: Path) -> None:
     run = subprocess.run([*MODULE, "--help"], cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
@@ -25,6 +26,7 @@ def test_help_is_help_not_a_folder(tmp_path: Path) -> None:
     assert list(tmp_path.iterdir()) == []  # no folder named --help
 
 
+@pytest.mark.slow
 def test_an_existing_folder_is_refused_without_force(tmp_path: Path) -> None:
     """One line naming the folder and --force, exit 2, and the folder exactly as it was."""
     folder = tmp_path / "mine"
@@ -47,6 +49,7 @@ def test_the_default_folder_is_the_bundled_example_and_needs_force(capsys: pytes
     assert sorted(p.relative_to(DEFAULT_OUT).as_posix() for p in DEFAULT_OUT.rglob("*")) == before
 
 
+@pytest.mark.slow
 def test_force_reproduces_the_bundled_example_and_keeps_other_files(tmp_path: Path) -> None:
     """``--force`` into a folder holding an old example and a file of the user's: the user's file
     stays, and the example's files are those bundled (masks and model to the byte, poses and

@@ -209,6 +209,7 @@ def _grey_sphere() -> ColouredMesh:
     return ColouredMesh(V, np.asarray(sph.faces, dtype=np.int64), np.full((len(V), 3), 0.5, np.float32), False)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shift", [(0.0, 0.0), (0.0, -1.0), (3.0, -2.0), (6.0, 0.0)])
 def test_edge_distance_of_a_shifted_circle(shift: tuple[float, float]) -> None:
     """Photo = a grey sphere's rendering moved by ``shift`` px: the outline-to-edge distance is the
@@ -333,6 +334,7 @@ def test_large_photo_is_read_as_block_means(tmp_path: Path, size: tuple[int, int
     assert np.abs(photo.bgr - padded.reshape(h, 2, w, 2, 3).mean(axis=(1, 3))).max() <= 0.5
 
 
+@pytest.mark.slow
 def test_large_photo_is_checked_downscaled_with_the_full_size_distances(tmp_path: Path) -> None:
     """A 2400 x 1800 photo (4.3 megapixels, over MAX_IMAGE_PIXELS) of a textured sphere and a grey one
     on a dark floor, moved by (4, -2) px from the labels. Checked as shipped it is read at half size
@@ -472,6 +474,7 @@ def _by_obj(summaries) -> dict:
     return {s.obj_id: s for s in summaries}
 
 
+@pytest.mark.slow
 @needs_real
 def test_dataset_labels_give_small_feature_distance_for_textured_objects(real: Real) -> None:
     """LM-O's labels on 15 images (measured: duck 3.83 px [3.17, 4.62] over 47 matches, glue 3.52
@@ -596,6 +599,7 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+@pytest.mark.slow
 @needs_real
 def test_cli_check_writes_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "report"
@@ -623,6 +627,7 @@ def test_cli_check_writes_report(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert "median IoU" in text and "too few matches" in text and "images (1): 480" in text
 
 
+@pytest.mark.slow
 @needs_real
 def test_cli_check_against_a_reference(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """--against: the reference is checked on the same images, the comparison goes into check.json
@@ -657,6 +662,7 @@ def _run_cli(*args: str) -> subprocess.CompletedProcess:
                           timeout=300)
 
 
+@pytest.mark.slow
 @needs_real
 def test_cli_bad_number_in_the_reference_or_labels_stops_before_any_image(tmp_path: Path) -> None:
     """A NaN in --against (image 695 entry 2 cam_t_m2c) or an infinity in --labels: exit 2, one line

@@ -346,6 +346,7 @@ def test_bad_input_gives_one_line_error(case, data, tmp_path, capsys):
         assert not out.exists(), "a folder created for a failed run should be removed"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["scene_camera_missing", "mesh_garbage", "init_and_click"])
 def test_bad_input_subprocess(case, data, tmp_path):
     """The same in a real process: exit status 2 and exactly one line on stderr."""
@@ -461,6 +462,7 @@ def json_run(data):
     return p, out
 
 
+@pytest.mark.slow
 def test_refine_writes_valid_scene_gt(json_run, data):
     _, out = json_run
     gt = json.loads((out / "scene_gt.json").read_text())
@@ -606,6 +608,7 @@ def test_overlay_views_include_the_worst():
         assert worst in idx and len(idx) == min(12, n) and idx == sorted(set(idx))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed_args", [["--click", "CLICK"], []], ids=["click", "no-seed"])
 def test_click_and_no_seed_runs_find_the_pose(data, tmp_path, seed_args):
     """The real command with a click (deepest mask pixel of image 0) or no seed at all."""
@@ -738,6 +741,7 @@ def test_mesh_in_metres_loads_with_units_m(data, tmp_path):
     assert load_mesh(p, units="mm").diameter < 1.0  # --units mm keeps a really small object as it is
 
 
+@pytest.mark.slow
 def test_ctrl_c_at_any_moment_exits_130_and_writes_nothing(tmp_path):
     """SIGINT at moments spread over a run of the bundled example (imports, the backend's start-up,
     seeding, refinement): every run exits 130 with one line and no output. Before, an interrupt
@@ -786,6 +790,7 @@ def test_ctrl_c_at_any_moment_exits_130_and_writes_nothing(tmp_path):
         assert not out.exists() and stdout == "", delay
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("delay", [0.0, 0.05, 0.1])
 def test_ctrl_c_after_the_outputs_are_written_keeps_the_result(data, tmp_path, delay):
     """SIGINT just after ``wrote ...``: the outputs are complete, so the run keeps its own exit status

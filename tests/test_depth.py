@@ -109,6 +109,7 @@ def test_depth_joins_the_mask_term_in_refine(posed) -> None:
     assert errors["masks"][0] > 2 * errors["masks + depth"][0], errors
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not YCBV_RGBD.is_dir(), reason=f"no real RGB-D scene at {YCBV_RGBD}")
 def test_real_sensor_depth_pins_objects_the_masks_leave_far_along_the_ray() -> None:
     """YCB-Video frames, masks eroded by 4 px with 1 in 3 cut in half, a start 20 mm along the viewing
@@ -142,6 +143,7 @@ def test_real_sensor_depth_pins_objects_the_masks_leave_far_along_the_ray() -> N
         assert found["masks"][0] > 10.0, (entry["obj_id"], found)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not YCBV_RGBD.is_dir(), reason=f"no real RGB-D scene at {YCBV_RGBD}")
 def test_the_command_uses_the_scenes_depth_unless_told_off(tmp_path) -> None:
     """``autoalign refine`` on a copy of the YCB-Video scene with eroded masks: ``refine.json`` says what
@@ -189,6 +191,7 @@ def test_the_command_uses_the_scenes_depth_unless_told_off(tmp_path) -> None:
     assert errors["auto"] < 3.0 and errors["off"] > 10.0, errors
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not YCBV_RGBD.is_dir(), reason=f"no real RGB-D scene at {YCBV_RGBD}")
 def test_every_instance_of_a_scene_and_the_joint_stage_use_the_depth(tmp_path, refine_models_command) -> None:
     """``autoalign refine --models`` on the YCB-Video frames with eroded masks, every instance from a

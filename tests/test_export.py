@@ -172,6 +172,7 @@ def test_command_writes_a_bop_folder_with_coco(ex, tmp_path):
     assert n_ann == len(coco["annotations"]) > 0
 
 
+@pytest.mark.slow
 def test_bad_inputs_are_one_line_errors_and_write_nothing(ex, tmp_path):
     def run(scene, labels):
         out = tmp_path / "out"
@@ -194,6 +195,7 @@ def test_bad_inputs_are_one_line_errors_and_write_nothing(ex, tmp_path):
     assert "depth is 160x120 but the image is 320x240" in run(scene, scene / "scene_gt.json")
 
 
+@pytest.mark.slow
 def test_cameras_come_from_beside_the_labels_and_unscaled_ones_are_refused(ex, tmp_path):
     """refine writes the cameras it corrected or scaled beside its scene_gt.json: export takes those;
     a scene whose recon.json says its cameras have no metric scale is not exported with them."""
@@ -230,6 +232,7 @@ def _export(ex: Exported, scene: Path, labels: Path, out: Path) -> subprocess.Co
                           capture_output=True, text=True, timeout=600)
 
 
+@pytest.mark.slow
 def test_an_export_replaces_an_earlier_one_and_has_only_its_images(ex, tmp_path):
     """An export of all 8 images, then one of 4 of them into the same --out: the folder holds
     exactly the second (no mask/, mask_visib/ or rgb/ file of the other 4 beside a smaller
@@ -263,6 +266,7 @@ def test_an_export_replaces_an_earlier_one_and_has_only_its_images(ex, tmp_path)
     assert sorted(f.name for f in tmp_path.iterdir()) == ["bop", "half.json", "scene"]  # no temporary folder left
 
 
+@pytest.mark.slow
 def test_an_export_into_a_folder_it_did_not_make_is_refused(ex, tmp_path):
     """A non-empty --out without export.json (not an earlier export): exit 2, one line naming it,
     why and the fix; its files untouched. An earlier export's folder that holds an input (the

@@ -131,6 +131,7 @@ def pytest_unconfigure(config):
 """
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_worker_with_jax_and_a_big_heap_ends_quickly_without_keyboard_interrupt(tmp_path) -> None:
     """A pytest-xdist worker whose collections at exit (pytest makes five, after the worker said it

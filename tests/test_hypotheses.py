@@ -92,6 +92,7 @@ def test_orbit_is_empty_without_a_small_cyclic_group(deg: float) -> None:
     assert len(orbit(T_a, T_a @ _turn(deg, [0, 0, 1], [0, 0, 0]))) == 0
 
 
+@pytest.mark.slow
 def test_coarse_to_fine_scoring_keeps_the_best_of_full_scoring() -> None:
     mesh, _, _, scene = _trial("mug", 0)
     rast = SoftSilhouetteRasterizer(mesh.simplified(1500))
@@ -118,6 +119,7 @@ def test_the_climb_walks_back_turns_about_the_model_axes(name: str) -> None:
     assert shift < 1.0, shift
 
 
+@pytest.mark.slow
 def test_the_climb_moves_the_grid_poses_closer() -> None:
     mesh, sym, geo, scene = _trial("z_bracket", 0)
     rast = SoftSilhouetteRasterizer(mesh.simplified(1500))
@@ -128,6 +130,7 @@ def test_the_climb_moves_the_grid_poses_closer() -> None:
     assert err[1].min() < err[0].min() and np.median(err[1]) < np.median(err[0]), err
 
 
+@pytest.mark.slow
 def test_recentring_stays_near_the_seed_it_is_anchored_to() -> None:
     """Masks whose centroids pull away from the seed (here: the object really sits 1.5 radii from
     it) move the poses at most ANCHOR_REACH radii from an anchor through the whole search, and
@@ -174,6 +177,7 @@ def test_recentring_leaves_out_masks_on_another_object(monkeypatch: pytest.Monke
     assert off["every view"] > 3 * off["robust"], off
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,trial", [("pen", 1), ("hollow_frame", 1), ("gear_keyed", 1)])
 def test_search_finds_the_pose_it_used_to_miss(name: str, trial: int) -> None:
     mesh, sym, geo, scene = _trial(name, trial)
@@ -182,6 +186,7 @@ def test_search_finds_the_pose_it_used_to_miss(name: str, trial: int) -> None:
     assert e.pos_err_mm < 1.0 and e.rot_err_deg < 1.0, (e.pos_err_mm, e.rot_err_deg)
 
 
+@pytest.mark.slow
 def test_without_orbits_the_keyed_gear_fails() -> None:
     """The gear case above is real: without the orbit the search misses the gear's key. (The flat
     frame and the pen, which needed the flips, are found without them since the search keeps 16
@@ -211,6 +216,7 @@ def _calibration_instance(root, scene: int, name: str):
     return found.scenes[k], models.mesh(obj), Symmetries.from_info(models.info[obj]), seed, truth[k]
 
 
+@pytest.mark.slow
 def test_near_turns_leave_a_local_minimum_half_a_tooth_off(tmp_path) -> None:
     """On a scene of the calibration study a plain 10-tooth gear (D10) descended from its coarse
     start to half a tooth (18 deg) off and was ``ok``; the near turns' 10-20 deg probe finds the
@@ -229,6 +235,7 @@ def test_near_turns_leave_a_local_minimum_half_a_tooth_off(tmp_path) -> None:
     assert e.pos_err_mm < 1.0 and e.rot_err_deg < 1.0, (e.pos_err_mm, e.rot_err_deg)
 
 
+@pytest.mark.slow
 def test_near_turns_try_both_sides_of_a_keyed_gear(tmp_path, monkeypatch) -> None:
     """On a scene of the calibration study a keyed 12-tooth gear descended from its coarse start to
     half a tooth off. Its turns either way reach a tooth, and at 1/4 resolution the key, which
@@ -248,6 +255,7 @@ def test_near_turns_try_both_sides_of_a_keyed_gear(tmp_path, monkeypatch) -> Non
     assert abs(pose_errors(res.T_wm, T_gt, mesh.centre, None, sym).rot_err_deg - 30.0) < 2.0
 
 
+@pytest.mark.slow
 def test_pruning_saves_renders_not_answers() -> None:
     """Giving up hopeless hypotheses in the search (``abandon``) and polishing only the best
     finalist at full resolution cost nothing in the answer: the same pose, fewer renders.
@@ -299,6 +307,7 @@ def test_posed_hit_sums_match_casting_each_pose() -> None:
 REAL_SCENE = REAL_SCENES / "lmo_im0480_0695"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (REAL_SCENE / "gt_world.json").is_file(), reason=f"real scene {REAL_SCENE} not present")
 @pytest.mark.parametrize("obj_id", [1, 5])
 def test_search_finds_real_objects_not_their_half_turns(obj_id: int) -> None:

@@ -64,6 +64,7 @@ def test_jit_and_vmap_agree_with_eager():
     assert not np.allclose(batched[0], batched[1])
 
 
+@pytest.mark.slow
 def test_optimistix_solve_matches_autoalign_refine():
     """The same multi-view least squares (l2 loss, no robust weights) from a start 5 mm / 5 deg off:
     optimistix's LM lands within 0.01 mm and 0.01 deg of autoalign.refine solved to convergence

@@ -87,6 +87,7 @@ def mask_of(scene: Path, im: int, k: int) -> np.ndarray:
     return cv2.imread(str(scene / "mask_visib" / f"{im:06d}_{k:06d}.png"), cv2.IMREAD_GRAYSCALE) > 0
 
 
+@pytest.mark.slow
 def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
     shots = shots_dir(tmp_path)
     out = tmp_path / "session"
@@ -226,6 +227,7 @@ def _get(port: int, path: str, host: str = "127.0.0.1") -> tuple[int, bytes]:
     return r.status, r.read()
 
 
+@pytest.mark.slow
 def test_restart_two_tabs_binding_and_paths(labelled, tmp_path):
     out = tmp_path / "session"
     (labelled.scene / "escape").symlink_to("/etc/hostname")
@@ -325,6 +327,7 @@ def test_restart_two_tabs_binding_and_paths(labelled, tmp_path):
         (labelled.scene / "escape").unlink()
 
 
+@pytest.mark.slow
 def test_label_input_errors_are_one_line(labelled, tmp_path):
     def run(*args):
         return subprocess.run([sys.executable, "-m", "autoalign.cli.main", "label", *map(str, args), "--no-browser"],
@@ -362,6 +365,7 @@ def test_nudge_turns_about_the_object_centre_in_camera_axes():
     np.testing.assert_allclose(c2 - c, R_w2c.T @ [0.0, 0.0, 2.0], atol=1e-9)  # the centre only moves by the move
 
 
+@pytest.mark.slow
 def test_3d_view_draws_the_session_and_its_gizmo_moves_the_object(labelled, tmp_path):
     """In-process: the viser scene follows the session, and a drag of the gizmo becomes the instance's pose."""
     import time
@@ -419,6 +423,7 @@ def test_3d_view_draws_the_session_and_its_gizmo_moves_the_object(labelled, tmp_
         viewer.stop()
 
 
+@pytest.mark.slow
 def test_refine_together_puts_moved_instances_back_and_keeps_decisions(labelled, tmp_path):
     """In-process: two placed instances, one moved 3 mm and turned 3 degrees by hand; refining them
     together (occlusion-aware) brings both within 1 mm / 1 degree, judged, their decisions kept."""
@@ -444,6 +449,7 @@ def test_refine_together_puts_moved_instances_back_and_keeps_decisions(labelled,
     assert [i["source"] for i in saved["instances"]] == ["together", "together"]
 
 
+@pytest.mark.slow
 def test_click_where_the_mask_misses_the_object_places_it_from_the_photo(labelled, tmp_path):
     """In-process: instance 0's mask in a view loses the half of the object clicked; with the
     photos in rgb/ the click still means instance 0, and the placement ends within 1 mm / 1 deg.

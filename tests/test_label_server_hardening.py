@@ -354,6 +354,7 @@ def _urls(text: str) -> list[str]:
     return re.findall(r"\b(?:https?|wss?)://[^\s'\"()]+", text)
 
 
+@pytest.mark.slow
 def test_a_second_server_on_the_same_out_is_refused_and_the_first_keeps_its_work(served, tmp_path):
     """The issue's case: the first server has a change saved (revision 4); the second exits 2 naming
     the folder, the first's URL and pid, and writes nothing; the first carries on. Only the page's URL
@@ -392,6 +393,7 @@ def test_a_second_server_on_the_same_out_is_refused_and_the_first_keeps_its_work
     assert _urls(first.output) == [first.url] and "viser" not in first.output, first.output
 
 
+@pytest.mark.slow
 def test_a_lock_left_by_a_killed_server_is_taken_over(served, tmp_path):
     out = tmp_path / "session"
     with LabelServerProcess(served.scene, served.models, out, ("--no-3d",)) as killed:

@@ -91,6 +91,7 @@ def test_visible_silhouettes_match_open3d_at_the_true_poses(pair):
     assert np.min(alone.hard_iou(0)) < 0.95
 
 
+@pytest.mark.slow
 def test_derivatives_wrt_the_occluders_pose_match_finite_differences(pair):
     """The loss of the instance behind depends on the pose of the one in front; its analytic
     gradient w.r.t. that pose matches central differences (fixed weights)."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from autoalign.engine.objective import Level, SilhouetteObjective
 from autoalign.engine.solver import OPTIMIZERS, Stop, levenberg_marquardt
@@ -19,6 +20,7 @@ def _max_reprojection_px(T: np.ndarray, T_gt: np.ndarray, vertices_m: np.ndarray
     return max(float(np.linalg.norm(c.project(a) - c.project(b), axis=1).max()) for c in scene.cameras)
 
 
+@pytest.mark.slow
 def test_lm_stops_at_the_noise_floor_without_extra_renders() -> None:
     """At the true pose a step predicted to gain less than ``ftol`` of the objective is not tried:
     one render (the start's), no iteration.
@@ -46,6 +48,7 @@ def test_lm_stops_at_the_noise_floor_without_extra_renders() -> None:
         assert rotation_angle_deg(T[:3, :3], geo.T_gt[:3, :3]) < 0.01
 
 
+@pytest.mark.slow
 def test_lm_stops_after_an_accepted_step_that_gains_too_little() -> None:
     """At full resolution after the quarter-resolution level (as the engine runs them), LM stops once
     the next step is predicted to gain less than ``ftol`` of the objective: fewer accepted steps and

@@ -70,6 +70,7 @@ def test_disagreement_widens_the_outline_prior_along_its_shift():
     assert with_outline_disagreement(u, float("nan")) is u
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not YCBV_RGBD.is_dir(), reason=f"no real RGB-D scene at {YCBV_RGBD}")
 def test_few_viewpoints_masks_tight_against_the_photos_widen_the_sigma_along_the_ray(tmp_path, refine_models_command):
     """``autoalign refine --models`` on the YCB-Video frames (one viewpoint, the camera moves 5 mm)

@@ -20,6 +20,7 @@ def _from_checkout() -> bool:
     return Path(autoalign.__file__).resolve().is_relative_to(REPO)
 
 
+@pytest.mark.slow
 def test_wheel_holds_only_the_autoalign_namespace(tmp_path: Path) -> None:
     subprocess.run([sys.executable, "-m", "pip", "wheel", str(REPO), "--no-deps", "--no-build-isolation",
                     "-q", "-w", str(tmp_path)], check=True)

@@ -120,6 +120,7 @@ def test_check_and_overlays_take_str(scene: autoalign.Scene, tmp_path: Path) -> 
     assert (tmp_path / "o.png").is_file() and img.ndim == 3
 
 
+@pytest.mark.slow
 def test_batch_takes_str(tmp_path: Path) -> None:
     from autoalign.batch import read_records, read_scene_list, refine_many
 

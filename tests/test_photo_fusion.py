@@ -62,6 +62,7 @@ def test_a_mask_the_colours_show_eroded_is_held_to_the_typical_rates() -> None:
     assert np.abs(exact - sil).max() < 0.01  # the colours confirm this outline: the mask as it is
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["example", "mug"])
 def test_exact_masks_hold_against_the_photos(case: str) -> None:
     """The bundled example, and the refine study's mug with photos rendered by mitsuba: adding the

@@ -106,6 +106,7 @@ def _declared(m: ProceduralModel, R: np.ndarray) -> bool:
     return False
 
 
+@pytest.mark.slow
 def test_symmetry_labels_are_honest(models):
     """For many candidate rotations about the origin (cube group, n-fold turns about the axes):
     the surface maps onto itself (within faceting, < 0.3 mm) exactly when the rotation is in the

@@ -91,6 +91,7 @@ def _jac_image(sil: Silhouettes, i: int, k: int) -> np.ndarray:
 
 # ------------------------------------------------------------------------------ agreement with open3d
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", AGREEMENT_MODELS)
 def test_agrees_with_open3d_in_every_view(name):
     mesh, cams, T_wm, ref = _agreement_case(name)
@@ -132,6 +133,7 @@ def _supersampled_boundary_distance(mesh: Mesh, T_wm: np.ndarray, cam, mask: np.
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", AGREEMENT_MODELS)
 def test_soft_mask_is_a_blur_of_the_open3d_mask(name):
     mesh, cams, T_wm, ref = _agreement_case(name)
@@ -183,6 +185,7 @@ def test_without_jacobian_same_values():
 
 # ------------------------------------------------------------------------- derivatives vs finite differences
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["blob_a", "mug"])
 def test_twist_derivatives_match_central_differences(name):
     base = _mesh(name)

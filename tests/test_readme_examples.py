@@ -445,6 +445,7 @@ def test_the_test_command_is_what_ci_runs() -> None:
     assert run[-1] == block.code.strip()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("block", example_blocks(), ids=lambda b: b.id)
 def test_readme_example(block: Block, workdir: Path, capsys: pytest.CaptureFixture[str],
                         monkeypatch: pytest.MonkeyPatch) -> None:
@@ -480,6 +481,7 @@ def pytest_collection_modifyitems(session, config, items):
 """A pytest plugin printing each collected test that a skip mark skips in this environment."""
 
 
+@pytest.mark.slow
 def test_the_readme_counts_the_tests_that_need_the_shared_folder(tmp_path: Path) -> None:
     """The Tests section's count of the tests skipped without ``shared/real`` is right: the test
     files that use the shared folder are collected with it absent, and their skip marks evaluated."""
@@ -520,11 +522,13 @@ def test_stored_simulation_report_says_which_search_its_trials_ran() -> None:
             "trials and is 16 now)") in md
 
 
+@pytest.mark.slow
 def test_pytorch_loop_reaches_1mm_1deg():
     scope = run_block("from autoalign.torch import")
     assert scope["err_mm"] < 1.0 and scope["err_deg"] < 1.0, (scope["err_mm"], scope["err_deg"])
 
 
+@pytest.mark.slow
 def test_jax_solve_reaches_1mm_1deg():
     scope = run_block("import autoalign.jax as aj")
     assert scope["grad"].shape == (4, 4) and float(abs(scope["grad"]).sum()) > 0

@@ -44,6 +44,7 @@ def _recon(capture: Path, out: Path, *extra: str) -> subprocess.CompletedProcess
                            "--quiet", *extra], capture_output=True, text=True, timeout=900)
 
 
+@pytest.mark.slow
 def test_rgbd_stream_cameras_scale_table_and_proposals(rendered, stream, tmp_path):
     out = tmp_path / "scene"
     p = _recon(stream, out, "--intrinsics", str(stream / "intrinsics.json"), "--depth-scale", str(DEPTH_SCALE),
@@ -120,6 +121,7 @@ def check_proposals(rendered: Stream, out: Path, T: np.ndarray) -> None:
     assert len(ious) >= 10 and min(ious) >= 0.9, ious
 
 
+@pytest.mark.slow
 def test_rgb_only_is_flagged_as_without_scale(stream, tmp_path):
     capture = tmp_path / "rgb_only"
     shutil.copytree(stream / "rgb", capture)
@@ -129,6 +131,7 @@ def test_rgb_only_is_flagged_as_without_scale(stream, tmp_path):
     assert not json.loads((tmp_path / "scene" / "recon.json").read_text())["metric"]
 
 
+@pytest.mark.slow
 def test_bad_captures_are_one_line_errors_and_write_nothing(stream, tmp_path):
     def fails(capture, *extra) -> str:
         out = tmp_path / "out"
@@ -159,6 +162,7 @@ def test_bad_captures_are_one_line_errors_and_write_nothing(stream, tmp_path):
     assert "--propose needs depth" in fails(rgb_only, "--propose")
 
 
+@pytest.mark.slow
 def test_long_captures_map_keyframes_then_register_the_rest(tmp_path, monkeypatch):
     """Beyond EXHAUSTIVE_MAX frames only every KEYFRAME_EVERY-th frame (and the last) is mapped and
     the others are registered to its points by PnP: here a 120-frame stream (RGB) with the limit

@@ -44,22 +44,26 @@ def _study(meshes, kind: str, n: int) -> dict:
     return summarise(rows, *TOLERANCES[kind])
 
 
+@pytest.mark.slow
 def test_init_seed_reaches_1mm_1deg(meshes) -> None:
     s = _study(meshes, "init", 12)
     assert s["success"] >= 0.95, s
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["click", "none"])
 def test_click_and_no_seed_reach_1mm_1deg(meshes, kind: str) -> None:
     s = _study(meshes, kind, 4)
     assert s["success"] >= 0.9, s
 
 
+@pytest.mark.slow
 def test_thirty_percent_corrupted_masks_stay_within_2mm_2deg(meshes) -> None:
     s = _study(meshes, "corrupt", 4)
     assert s["success"] >= 0.9, s
 
 
+@pytest.mark.slow
 def test_the_full_resolution_budget_lets_a_slow_roll_converge(meshes) -> None:
     """The pen of the study's corrupted scene 19 turns slowly about its long axis at full
     resolution (the roll barely shows in the silhouettes): with a budget of 15 iterations there
@@ -94,6 +98,7 @@ def test_open_non_watertight_mesh() -> None:
     assert e_mm < 1.0 and e_deg < 1.0, (e_mm, e_deg)
 
 
+@pytest.mark.slow
 def test_dense_50k_face_mesh() -> None:
     mesh = blob_mesh(50000)
     assert len(mesh.faces) >= 50000
@@ -101,6 +106,7 @@ def test_dense_50k_face_mesh() -> None:
     assert e_mm < 1.0 and e_deg < 1.0, (e_mm, e_deg)
 
 
+@pytest.mark.slow
 def test_search_keeps_a_slowly_descending_hypothesis_under_eroded_masks() -> None:
     """The simulated mug (trial 0) with a quarter of its masks eroded: the only hypothesis near
     the true orientation starts 37 degrees off and descends by 1-2% per step at the search level.

@@ -35,6 +35,7 @@ def _halves_z(scene_name: str, obj_id: int) -> tuple[np.ndarray, list[float]]:
     return np.abs(d) / np.sqrt(np.diag(S)), [r.uncertainty.spread_factor for r in results]
 
 
+@pytest.mark.slow
 def test_refits_make_the_real_apes_halves_agree_within_their_sigmas(monkeypatch: pytest.MonkeyPatch) -> None:
     """The LM-O ape of ``lmo_im0480_0695`` (SAM masks of IoU 0.3-0.8): its halves end about 5 mm
     apart. With the Newton steps alone some axis is beyond 3 combined sigmas; the polishes move it

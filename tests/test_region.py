@@ -99,6 +99,7 @@ def test_region_target_completes_a_partial_mask():
     assert t[60, 95] < 0.05 and t[5, 5] == 0.0  # surroundings in the band, and beyond it
 
 
+@pytest.mark.slow
 def test_photos_alone_refine_every_object(photo_scene, starts):
     """No masks at all: from 10 mm / 15 deg off, each object ends within 1 mm / 1 deg, and more of
     the band's colours agree with its silhouette there than at the start."""
@@ -113,6 +114,7 @@ def test_photos_alone_refine_every_object(photo_scene, starts):
         assert np.median(res.photo.agreement) > np.median(at_start.agreement) + 0.02
 
 
+@pytest.mark.slow
 def test_photos_complete_masks_that_miss_half_the_object(photo_scene, starts):
     """Every mask cut to its left half: masks alone end off, with the photos within 2 mm / 2 deg."""
     k = 0
@@ -141,6 +143,7 @@ def _init_file(ps: PhotoScene, starts: list[np.ndarray], path: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_refine_models_without_masks(photo_scene, starts, tmp_path):
     """``autoalign refine --models --masks none --init``: every instance from the photos, the others
     left out of each one's colour models; refine.json records the region term per view."""
@@ -209,6 +212,7 @@ def test_verdict_reads_the_photo(iou, contrast, status, words):
     assert v.status == status and any(words in r for r in v.reasons), v
 
 
+@pytest.mark.slow
 def test_a_result_far_from_its_seed_is_flagged_with_the_distance(photo_scene, tmp_path):
     """``refine --init`` whose pose ends farther from the seed than ``--seed-radius``: `check`, with
     the distance in the reason, and refine.json records the radius and the move; within the

@@ -149,6 +149,7 @@ def test_init_poses_per_instance(multi):
 
 # ------------------------------------------------------------------------------- refinement
 
+@pytest.mark.slow
 def test_ignoring_other_masks_is_what_makes_occluded_instances_right(multi):
     """The same start with and without the ignored pixels: with them every instance lands within
     0.2 mm / 0.2 deg; compared with the whole visible mask, the hidden parts pull some off."""
@@ -168,6 +169,7 @@ def test_ignoring_other_masks_is_what_makes_occluded_instances_right(multi):
     assert worst[False][0] > 3 * worst[True][0], worst
 
 
+@pytest.mark.slow
 def test_refine_models_from_init_labels_every_instance(multi, tmp_path):
     out = tmp_path / "out"
     p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", str(multi.scene), "--models",
@@ -187,6 +189,7 @@ def test_refine_models_from_init_labels_every_instance(multi, tmp_path):
     assert overlay is not None and overlay.shape[0] > 300
 
 
+@pytest.mark.slow
 def test_instance_with_wrong_masks_is_flagged_and_exit_is_3(multi, tmp_path):
     """Instance 3's masks replaced by instance 1's in 60% of the views (a segmenter that labelled
     the wrong object): whatever pose it ends at, it is not 'ok', and the command exits 3."""
@@ -307,6 +310,7 @@ def test_a_turn_its_profile_widened_stays_weak_in_the_joint_stage():
     assert len(twice.weak_turn_axes) == 1
 
 
+@pytest.mark.slow
 def test_masks_failing_like_sam_leave_poses_right_or_flagged(tmp_path):
     """A five-object scene whose masks fail at the rates measured on the real scenes (42% of the
     masks: empty, another object's, a part missed, leaking, shifted): every instance is within
@@ -328,6 +332,7 @@ def test_masks_failing_like_sam_leave_poses_right_or_flagged(tmp_path):
     assert all(within(r) or r["verdict"] != "ok" for r in rows), rows
 
 
+@pytest.mark.slow
 def test_masks_failing_like_sam_without_a_seed_leave_poses_right_or_flagged(tmp_path):
     """The same kind of scene with no seed: the search finds every object (5 of 5 within 2 mm /
     2 deg measured), and none is wrong with verdict ok. With 8 hypotheses kept from the
@@ -339,6 +344,7 @@ def test_masks_failing_like_sam_without_a_seed_leave_poses_right_or_flagged(tmp_
     assert all(within(r) or r["verdict"] != "ok" for r in rows), rows
 
 
+@pytest.mark.slow
 def test_a_runner_up_with_the_better_iou_makes_the_result_ambiguous(tmp_path):
     """Without a seed, on masks failing like SAM's, a box whose small knob is its only asymmetry
     ends half a turn off, at a robust loss 9% lower than its right pose's, the runner-up, but at a
@@ -358,6 +364,7 @@ def test_a_runner_up_with_the_better_iou_makes_the_result_ambiguous(tmp_path):
     assert right or (res.ambiguous and runner.rot_err_deg < 2.0), (e.rot_err_deg, res.ambiguous, runner.rot_err_deg)
 
 
+@pytest.mark.slow
 def test_refine_cameras_corrects_perturbed_cameras(multi, tmp_path):
     """The scene's cameras turned by 1 deg and moved by 5 mm (about the scene centre), each its own
     way: with --refine-cameras the corrected cameras in the written scene_camera.json are several

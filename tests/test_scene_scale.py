@@ -161,6 +161,7 @@ def check_labels(root: Path, truth: list[np.ndarray], mm: float = 1.0, deg: floa
     return rec
 
 
+@pytest.mark.slow
 def test_refine_solves_the_scale_of_one_object_scene_from_init(tmp_path):
     """recon.json says the cameras are not metric: refine solves the scale by itself, within 0.5%,
     writes metric cameras, and the labels are within 1 mm / 1 deg in every view."""
@@ -173,6 +174,7 @@ def test_refine_solves_the_scale_of_one_object_scene_from_init(tmp_path):
     assert rec["scale"]["sigma_relative"] < 0.01
 
 
+@pytest.mark.slow
 def test_refine_solves_the_scale_without_a_seed(tmp_path):
     """Two objects, no --init, --solve-scale given explicitly (no recon.json)."""
     truth = unscaled_scene(tmp_path, 2, seed=5)
@@ -192,6 +194,7 @@ def test_solve_scale_needs_models(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_a_scale_that_does_not_settle_flags_every_instance(tmp_path, monkeypatch):
     """With one round allowed, a scene started 10% off cannot settle (the joint stage moves the
     scale by more than SCALE_SETTLED): every label's depth follows the scale, so every instance is
@@ -216,6 +219,7 @@ def test_a_scale_that_does_not_settle_flags_every_instance(tmp_path, monkeypatch
 EXAMPLE = Path(__file__).resolve().parents[1] / "autoalign" / "data" / "example"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("true_scale,photos", [(1.0, "on"), (1.0, "off"), (0.97, "on")])
 def test_the_bundled_example_gives_its_scale_with_photos_on_and_off(tmp_path, true_scale, photos):
     """The bundled example (masks and photos) with its cameras' translations written in a unit of
@@ -244,6 +248,7 @@ def test_the_bundled_example_gives_its_scale_with_photos_on_and_off(tmp_path, tr
         assert err.pos_err_mm < 1.0 and err.rot_err_deg < 1.0, (im, err)
 
 
+@pytest.mark.slow
 def test_objects_that_disagree_on_the_scale_are_never_ok(tmp_path):
     """Two objects whose masks disagree on the scene's scale by 4% (the second model file 4% smaller
     than the object its masks show): the scale solved between them puts every label mm off, and no
@@ -269,6 +274,7 @@ def test_objects_that_disagree_on_the_scale_are_never_ok(tmp_path):
         assert r["verdict"] != "ok" and any("disagree on the scene's scale" in x for x in r["reasons"]), r
 
 
+@pytest.mark.slow
 def test_the_scene_refined_with_photos_keeps_the_instances_own_masks():
     """What ``refine --models`` draws as each instance's mask (overlay.png's tint) is its mask as read,
     not the colour targets the photos made of it (which showed speckles the mask does not have)."""

@@ -4,6 +4,7 @@ only when it fits clearly better than the best pose within it, and is flagged ei
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from autoalign.engine.refine import RefineOptions, refine
 from autoalign.engine.seed_region import SEED_RADIUS, SeedRegion
@@ -33,6 +34,7 @@ def test_the_penalty_is_zero_inside_and_its_derivatives_match_finite_differences
     np.testing.assert_allclose(t.grad, num, rtol=1e-4, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_masks_pulling_to_a_far_basin_leave_the_result_within_the_seed_radius_and_flagged():
     """A mug 5 mm / 5 deg from its seed; in 3 of 4 views the mask is another object's, 45 mm away.
     The masks alone pull the mug beyond the seed's radius (25 mm / 30 deg) to a pose that fits them

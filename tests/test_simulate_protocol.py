@@ -79,6 +79,7 @@ def test_trials_are_deterministic_and_shared_across_conditions():
     assert not np.allclose(a.T_gt, d.T_gt)
 
 
+@pytest.mark.slow
 def test_initial_pose_noise_statistics():
     n = 1500
     offs, cos_rel, traces = [], [], []

@@ -82,6 +82,7 @@ def test_failed_trials_are_logged_and_retried(tmp_path):
     assert run_study(cfg, tmp_path, progress=False, task_fn=_fake).done == 1
 
 
+@pytest.mark.slow
 def test_kill_and_resume(tmp_path):
     script = tmp_path / "slow_study.py"
     script.write_text(textwrap.dedent(f"""
@@ -113,6 +114,7 @@ def test_kill_and_resume(tmp_path):
     assert recs[: len(first)] == first  # finished trials untouched
 
 
+@pytest.mark.slow
 def test_every_method_end_to_end(tmp_path):
     out = tmp_path / "study"
     code = simulate_main(["--out", str(out), "--model-ids", "1,5", "--method", "all,init", *TINY])
@@ -142,6 +144,7 @@ def test_every_method_end_to_end(tmp_path):
     assert simulate_main(["--out", str(out), "--report-only"]) == 0
 
 
+@pytest.mark.slow
 def test_worker_processes(tmp_path):
     cfg = StudyConfig(model_ids=(1, 5), trials=2, methods=("init",), views=4,
                       setup=ImageSetup(width=160, height=120, focal=150.0))
@@ -150,6 +153,7 @@ def test_worker_processes(tmp_path):
     assert len(read_records(tmp_path / "trials.jsonl")) == 4
 
 
+@pytest.mark.slow
 def test_dask_local_cluster(tmp_path):
     import dask.distributed as distributed  # installed by .ci/install (the [all] extras)
     cfg = StudyConfig(model_ids=(5,), trials=1, methods=("paper", "init"), views=6,
@@ -192,6 +196,7 @@ def test_no_trials_is_a_one_line_error_and_writes_nothing(tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_a_study_started_again_with_other_views_is_refused_and_its_report_says_its_views(tmp_path, capsys):
     """``simulate --views 12`` into a folder of 8-view trials: exit 2, one line naming the folder's
     file, what differs and the fix; nothing written. (Before: "already done", exit 0, and

@@ -196,6 +196,7 @@ def test_labels_10_mm_off_reach_the_same_solution_from_both_halves(synthetic: Sy
         assert err[0] < 0.5 and err[2] < 0.5 and err[1] < 0.5 and err[3] < 0.5, err
 
 
+@pytest.mark.slow
 def test_a_half_with_shifted_masks_is_far_off_in_sigma_units(synthetic: Synthetic) -> None:
     """Every odd view's masks 4 px to the right: half A (even views) stays on the truth, half B
     moves; measured 5.8 mm / 2.2 deg apart (L bracket, max |z| 16, chi-square 2000) and 1.3 mm /
@@ -269,6 +270,7 @@ def test_cli_instances_checks_only_those(synthetic: Synthetic, tmp_path: Path,
 # The command
 # ------------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_cli_split_half_json_table_and_report(synthetic: Synthetic, tmp_path: Path,
                                               capsys: pytest.CaptureFixture[str]) -> None:
     from autoalign.cli.main import main

@@ -30,6 +30,7 @@ def mesh(name: str):
     return mesh_from_trimesh(POOL[name].mesh, name)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["box_knob", "mug"])
 def test_gradcheck(name):
     """torch.autograd.gradcheck in double precision with a loose edge (sigma 2 px), on the 16
@@ -54,6 +55,7 @@ def twist_matrix(xi: torch.Tensor) -> torch.Tensor:
     return X
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["box_knob", "mug", "l_bracket"])
 def test_gradient_matches_finite_differences(name):
     """The loss's gradient w.r.t. a twist (through ``matrix_exp`` and the op's matrix gradient)
@@ -143,6 +145,7 @@ def test_bad_inputs_are_clear_errors():
         silhouettes(m, torch.eye(4, dtype=torch.float64), cams + other)
 
 
+@pytest.mark.slow
 def test_region_loss_fits_a_pose_from_photos_alone(tmp_path):
     """RegionLoss (the photos as evidence, no masks): its targets are autoalign's own region
     targets (same function, same pose), and torch.optim (Adam on a twist, the targets learned

@@ -40,6 +40,7 @@ def test_bootstrap_spread_is_small_where_the_views_agree_and_large_where_they_sp
     assert spread > 1.0, spread
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("k", range(4))
 def test_roll_sigma_covers_a_roll_the_masks_disagree_on(k):
     """A flashlight (its button the only sign of its roll), outlines wiggled by about 1 px, whose
