@@ -89,3 +89,24 @@ def test_jit_arrays_compile_one_kernel_whatever_the_numpy_alignment() -> None:
         assert len(hashes) == 4 and len(set(hashes)) == 1, hashes
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
+
+
+@pytest.mark.parametrize("value,threads", [("3", 3), ("1", 1), ("", None)])
+def test_autoalign_threads_sets_drjits_thread_count(value: str, threads: int | None) -> None:
+    """``AUTOALIGN_THREADS`` is the thread count drjit renders with (a fresh process); unset or
+    empty, drjit keeps its own (every core)."""
+    env = {k: v for k, v in os.environ.items() if k != "AUTOALIGN_THREADS"}
+    if value:
+        env["AUTOALIGN_THREADS"] = value
+    code = ("from autoalign.runtime.backend import drjit; import os; "
+            "print(drjit().thread_count(), os.cpu_count())")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    got, cores = map(int, out.stdout.split())
+    assert got == (threads if threads is not None else cores)
+
+
+@pytest.mark.parametrize("value", ["0", "two", "-1", "1.5"])
+def test_a_bad_autoalign_threads_is_a_one_line_error(value: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("AUTOALIGN_THREADS", value)
+    with pytest.raises(BackendError, match=f"AUTOALIGN_THREADS={value}: not a positive whole number"):
+        backend.thread_count()
