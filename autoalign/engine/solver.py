@@ -299,10 +299,10 @@ class LevenbergMarquardt:
 
 @dataclass
 class GaussNewton:
-    """Gauss-Newton steps ``H step = -g`` (least squares, clipped to ``max_step`` mm and degrees) with
-    step halving (up to ``halvings`` times) until the objective does not increase."""
+    """Gauss-Newton steps ``H step = -g`` (least squares, clipped to ``max_step`` mm and degrees; None:
+    not clipped) with step halving (up to ``halvings`` times) until the objective does not increase."""
 
-    max_step: tuple[float, float] = (30.0, 20.0)
+    max_step: tuple[float, float] | None = (30.0, 20.0)
     halvings: int = 12
 
     def init(self) -> None:
@@ -310,7 +310,9 @@ class GaussNewton:
 
     def step(self, problem: Problem[X, P], x: X, point: P, state: None) -> Outcome[X, P]:
         H, g = problem.normal_equations(x, point)
-        step = clip_step(-np.linalg.lstsq(H, g, rcond=1e-10)[0], *self.max_step)
+        step = -np.linalg.lstsq(H, g, rcond=1e-10)[0]
+        if self.max_step is not None:
+            step = clip_step(step, *self.max_step)
         for k in range(self.halvings):
             x_new = problem.retract(x, step)
             trial = problem.evaluate(x_new, point)

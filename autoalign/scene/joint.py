@@ -263,14 +263,16 @@ def refine_jointly(found: InstanceScenes, pyramids: list[MeshPyramid], poses: li
                    with_cameras: bool = False, level: Level = LEVEL, prior: CameraPrior | None = None,
                    detail: MeshDetail = MeshDetail(), robust: bool = True, with_scale: bool = False,
                    depth: DepthNoise | None = None,
-                   scale_from: list[bool] | None = None, progress: Progress | None = None) -> JointRefinement:
+                   scale_from: list[bool] | None = None, progress: Progress | None = None,
+                   rule: StepRule | None = None) -> JointRefinement:
     """Refine the poses of all instances of ``found`` (their meshes: ``pyramids``, drawn at
     ``detail.fine``) together from ``poses`` (world from model, mm), occlusion-aware, with
     ``with_cameras`` a correction of every camera and with ``with_scale`` the scene's scale
     (``robust``: views weighted by their fit, as in :class:`~autoalign.engine.refine.RefineOptions`;
     ``depth``: the sensor's noise, for the instances whose scenes have measured depth). ``scale_from`` (per instance, default all): the
     instances whose fit decides the scale; the others move with it but do not pull it.
-    Levenberg-Marquardt (:func:`~autoalign.engine.solver.minimise`) with IRLS view weights."""
+    Levenberg-Marquardt (:func:`~autoalign.engine.solver.minimise`; or the step ``rule`` given) with
+    IRLS view weights."""
     objective = OcclusionObjective(found, pyramids, robust, detail, depth)
     centres_m = objective.centres_m
     p = np.mean([transform_points(T, c[None])[0] for T, c in zip(poses, centres_m)], axis=0)
@@ -284,7 +286,8 @@ def refine_jointly(found: InstanceScenes, pyramids: list[MeshPyramid], poses: li
 
     if progress is not None:
         progress(stage, 0, level.max_iters)
-    rule = LevenbergMarquardt(level.ftol if level.ftol is not None else FTOL, max_step=None, floor_of_trace=False)
+    if rule is None:
+        rule = LevenbergMarquardt(level.ftol if level.ftol is not None else FTOL, max_step=None, floor_of_trace=False)
     sol = minimise(problem, x0, rule, level.max_iters, report)
     if progress is not None:
         progress(stage, level.max_iters, level.max_iters)

@@ -38,9 +38,11 @@ from autoalign.engine.hypotheses import turn_scores
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult, refine
 from autoalign.engine.seed_region import SEED_RADIUS
+from autoalign.engine.solver import GaussNewton, StepRule
 from autoalign.engine.uncertainty import (with_outline_disagreement, with_outline_shift, with_scale_sigma,
                                          with_spread_factor, with_turn_floors)
 from autoalign.geometry.se3 import pose_change, symmetric_pose_change, transform_points
+from autoalign.errors import AutoalignError
 from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
 from autoalign.losses.region import RegionOptions
@@ -189,6 +191,20 @@ def _all_flagged(results: list[InstanceResult], reason: str) -> list[InstanceRes
                                        reasons=r.verdict.reasons + [reason])) for r in results]
 
 
+def joint_rule(opts: RefineOptions) -> StepRule | None:
+    """The joint stage's step rule for ``opts.optimizer`` (``None``: its Levenberg-Marquardt). The
+    joint stage solves the instances' L2 mask residuals together (the occlusion-aware objective):
+    a loss or an optimiser it cannot honour is an error, not a stage silently run otherwise."""
+    fix = "leave it out, or refine one object at a time with --model"
+    if opts.loss != "l2":
+        raise AutoalignError(f"--loss {opts.loss}: the objects of --models are refined together with the l2 loss "
+                             f"only (their residuals are solved jointly); {fix}")
+    if opts.optimizer not in ("lm", "gn"):
+        raise AutoalignError(f"--optimizer {opts.optimizer}: the objects of --models are refined together by least "
+                             f"squares (lm or gn) only; {fix}")
+    return GaussNewton(max_step=None) if opts.optimizer == "gn" else None
+
+
 def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArray[np.float64]],
                  options: RefineOptions | None = None, refine_cameras: bool = False, solve_scale: bool = False,
                  progress: Progress | None = None, seed_radius: tuple[float, float] = SEED_RADIUS) -> SceneRefinement:
@@ -204,6 +220,7 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
     scaled by a first guess (:func:`~autoalign.scene.scale.scale_from_masks`); the scale is solved
     with the poses (see module doc)."""
     opts = options or RefineOptions()
+    rule = joint_rule(opts) if len(found.instances) > 1 or refine_cameras or solve_scale else None
     given_seeds = dict(seeds)  # a result farther than seed_radius from its seed is flagged (not with a scale to solve)
     scale, scale_sigma, settled = 1.0, 0.0, not solve_scale
     rounds = SCALE_ROUNDS if solve_scale else 1
@@ -231,13 +248,14 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
             given = others_left_out(found, models, {r.instance.index: r.result.T_wm for r in alone})
             found, photo_alone = region_targets(given, models, start, opts.region, opts.detail, leave_out=False)
         attempt = (refine_jointly(found, pyramids, start, with_cameras=True, detail=opts.detail, robust=opts.robust,
-                                  with_scale=solve_scale, depth=opts.depth, scale_from=scale_from, progress=progress)
+                                  with_scale=solve_scale, depth=opts.depth, scale_from=scale_from, progress=progress,
+                                  rule=rule)
                    if refine_cameras else None)
         if attempt is not None and corrections_accepted(attempt.view_misfit_before, attempt.view_misfit_after):
             joint = attempt
         else:
             joint = refine_jointly(found, pyramids, start, detail=opts.detail, robust=opts.robust, with_scale=solve_scale,
-                                   depth=opts.depth, scale_from=scale_from, progress=progress)
+                                   depth=opts.depth, scale_from=scale_from, progress=progress, rule=rule)
         if solve_scale:
             found = found.through({**scaled_cameras(found.camera_by_id, joint.scale), **joint.cameras})
             scale, scale_sigma = scale * joint.scale, joint.scale_sigma
