@@ -174,9 +174,11 @@ def _add_algorithm_arguments(p: argparse.ArgumentParser) -> None:
     alg = p.add_argument_group("algorithm")
     alg.add_argument("--loss", choices=LOSSES, default="l2",
                      help="silhouette loss per view: l2 = squared pixel differences (default, fastest to "
-                          "converge), bce = binary cross-entropy, iou = 1 - soft IoU, dice = 1 - soft Dice")
+                          "converge), bce = binary cross-entropy, iou = 1 - soft IoU, dice = 1 - soft Dice; the "
+                          "objects of --models refined together take l2 only")
     alg.add_argument("--optimizer", choices=OPTIMIZERS, default="lm",
-                     help="lm = Levenberg-Marquardt (default), gn = Gauss-Newton, adam = first-order Adam")
+                     help="lm = Levenberg-Marquardt (default), gn = Gauss-Newton, adam = first-order Adam (not for "
+                          "the objects of --models refined together)")
     alg.add_argument("--refine-cameras", action="store_true",
                      help="with --models: also correct every camera's pose (a silhouette bundle adjustment: "
                           "the objects seen together pin each camera down, a prior keeps corrections small); "
