@@ -3,7 +3,8 @@ depth and hits, pixel centres in autoalign's convention), the object's outline i
 (``outline``), the band of pixels near it (``band``), soft edge values and their derivatives
 (``soft_edge``), all chained by ``SoftSilhouetteRasterizer`` (``soft_silhouette``: soft masks of
 many views at once with their Jacobians with respect to the pose twist), cameras batched for drjit
-(``camera_batch``) and the chain rule to a 4x4 pose for the PyTorch and JAX ops (``pose_jacobian``).
+(``camera_batch``), the chain rule to a 4x4 pose for the PyTorch and JAX ops (``pose_jacobian``) and
+labels rendered into photos, coloured (``label_rendering``).
 
 May import: ``autoalign.geometry``, ``autoalign.runtime``, ``autoalign.errors``.
 """

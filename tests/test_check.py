@@ -77,7 +77,7 @@ from autoalign.quality.label_compare import (
     compare_views,
     comparison_figure,
 )
-from autoalign.quality.label_rendering import PlacedMesh, render_labels
+from autoalign.rasterizers.label_rendering import PlacedMesh, render_labels
 from autoalign.quality.scene_check import check_scene, select_images
 from autoalign.quality.sift import photo_sift
 

@@ -17,7 +17,7 @@ from autoalign.experiments.studies.shared_data import REAL_SCENES
 from autoalign.geometry.se3 import make_pose
 from autoalign.io.bop import read_cameras, read_labels
 from autoalign.io.models import ColouredMesh, ModelSet
-from autoalign.quality.label_rendering import PlacedMesh, cast_labels, render_labels
+from autoalign.rasterizers.label_rendering import PlacedMesh, cast_labels, render_labels
 from autoalign.rasterizers.ray_casting import RayCaster
 
 REAL = REAL_SCENES / "lmo_im0480_0695"

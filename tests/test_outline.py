@@ -1,4 +1,4 @@
-"""The masks' outline offset from a silhouette (``autoalign.quality.outline``), and the prior it widens."""
+"""The masks' outline offset from a silhouette (``autoalign.losses.outline_offset``), and the prior it widens."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from autoalign.engine.uncertainty import BOUNDARY_BIAS_PX, uncertainty_of, with_
 from autoalign.experiments.studies.shared_data import YCBV_RGBD
 from autoalign.geometry.camera import Camera
 from autoalign.io.bop import Scene
-from autoalign.quality.outline import outline_offset, shared_outline_offset
+from autoalign.losses.outline_offset import outline_offset, shared_outline_offset
 
 SHAPE = (240, 320)
 

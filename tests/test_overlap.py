@@ -1,11 +1,11 @@
-"""The one hard-mask IoU (``autoalign.quality.overlap``) against pycocotools' own, and its edge cases."""
+"""The one hard-mask IoU (``autoalign.losses.overlap``) against pycocotools' own, and its edge cases."""
 
 from __future__ import annotations
 
 import numpy as np
 from pycocotools import mask as coco_mask
 
-from autoalign.quality.overlap import iou_from_counts, mask_iou
+from autoalign.losses.overlap import iou_from_counts, mask_iou
 
 
 def test_mask_iou_matches_pycocotools():

@@ -76,8 +76,8 @@ def test_check_renders_the_dot_opencv_projects_to_ij_at_pixel_ij(seed):
     """The check's renderer (``render_labels``, mitsuba) keeps the same convention as the refine's
     (above): a 0.05 px sphere at the point OpenCV projects to (j, i) lights pixel (row i, col j)
     only, and the ray it casts through pixel (i, j) projects to (j, i) in ``cv2.projectPoints``."""
-    from autoalign.io.models import ColouredMesh
-    from autoalign.quality.label_rendering import PlacedMesh, pixel_rays, render_labels
+    from autoalign.geometry.mesh import ColouredMesh
+    from autoalign.rasterizers.label_rendering import PlacedMesh, pixel_rays, render_labels
 
     rng = np.random.default_rng(seed)
     K, R, t = _bop_camera(rng)

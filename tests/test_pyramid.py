@@ -1,7 +1,7 @@
 """One mesh-detail pyramid per model (issue 27): the model set keeps one per object, each image
 resolution gets the detail its :class:`MeshDetail` gives, and every IoU that is reported of a pose
 (``refine``'s before and after, what the overlay prints, what the label page shows) is one number:
-:func:`~autoalign.quality.overlap.view_ious` of the pyramid's full-resolution silhouettes."""
+:func:`~autoalign.losses.overlap.view_ious` of the pyramid's full-resolution silhouettes."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from autoalign.geometry.se3 import make_pose
 from autoalign.io.instances import read_instance_scenes, read_instances
 from autoalign.io.models import ModelSet
 from autoalign.label.page_geometry import SilhouetteRenderer, fit
-from autoalign.quality.overlap import view_ious
+from autoalign.losses.overlap import view_ious
 from autoalign.rasterizers.pyramid import MeshDetail
 
 W, H, VIEWS = 320, 240, 6

@@ -24,7 +24,7 @@ from autoalign.experiments.benchmarks.bench_pipeline import (
 from autoalign.experiments.scenes.stream import DEPTH_SCALE, Stream, render_stream
 from autoalign.experiments.scenes.synthetic import raycast_visible_masks
 from autoalign.io.bop import read_cameras
-from autoalign.quality.overlap import mask_iou
+from autoalign.losses.overlap import mask_iou
 
 FRAMES = 30
 

@@ -4,6 +4,6 @@ seeds from a click or the visual hull (``seeding``), orientation hypotheses (``h
 pose's uncertainty (``uncertainty``) and ``refine()`` itself (``refine``: seed -> search -> polish
 -> disambiguate).
 
-May import: ``geometry``, ``io``, ``runtime``, ``errors``, ``autoalign.losses`` (the mask term),
-``autoalign.rasterizers`` (the soft silhouettes), ``quality.overlap`` (IoU).
+May import: ``geometry``, ``io``, ``runtime``, ``errors``, ``autoalign.losses`` (the mask term, IoU),
+``autoalign.rasterizers`` (the soft silhouettes).
 """

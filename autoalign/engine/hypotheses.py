@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from autoalign.geometry.se3 import invert, make_pose, so3_exp, so3_log
 from autoalign.io.bop import Scene
-from autoalign.quality.overlap import iou_from_counts
+from autoalign.losses.overlap import iou_from_counts
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
 

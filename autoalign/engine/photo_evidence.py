@@ -27,8 +27,8 @@ from autoalign.errors import AutoalignError
 from autoalign.geometry.se3 import pose_change
 from autoalign.io.bop import Scene
 from autoalign.losses.region import RegionOptions, region_target
-from autoalign.quality.outline import shared_outline_offset
-from autoalign.quality.overlap import view_ious
+from autoalign.losses.outline_offset import shared_outline_offset
+from autoalign.losses.overlap import view_ious
 from autoalign.rasterizers.pyramid import MeshPyramid
 
 R = TypeVar("R")

@@ -49,7 +49,7 @@ from autoalign.io.bop import Scene
 from autoalign.losses import targets_in_crops
 from autoalign.losses.depth import DepthTerms
 from autoalign.losses.silhouette import boundary_bias_grads
-from autoalign.quality.overlap import iou_from_counts, view_ious
+from autoalign.losses.overlap import iou_from_counts, view_ious
 from autoalign.rasterizers.pyramid import MeshPyramid
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
@@ -128,7 +128,7 @@ class RefineResult:
         T_wm: world-from-model pose (4x4, mm).
         T_init: the starting pose of the winning hypothesis (a scored, polished orientation, or the seed).
         iou_before / iou_after: per-view hard-mask IoU at full resolution
-            (:func:`~autoalign.quality.overlap.view_ious`; with measured depth, ``iou_after`` also
+            (:func:`~autoalign.losses.overlap.view_ious`; with measured depth, ``iou_after`` also
             leaves out the pixels the depth shows hidden behind an unmodelled occluder).
         iterations: optimiser iterations of the winner from its start, every level it went through
             (the hypothesis search's included).
@@ -184,7 +184,7 @@ def _final_loss(obj: SilhouetteObjective, T: NDArray[np.float64], level: Level,
 
 
 def _hard_ious_of(ev: Evaluation, scene: Scene) -> NDArray[np.float64]:
-    """:func:`~autoalign.quality.overlap.view_ious` from the hard masks of a full-resolution
+    """:func:`~autoalign.losses.overlap.view_ious` from the hard masks of a full-resolution
     evaluation, without casting them again (the scene's ignored pixels are already off the
     evaluation's silhouettes and never on the instance's own mask)."""
     sil = ev.silhouettes

@@ -403,7 +403,7 @@ def with_outline_disagreement(u: Uncertainty, offset_px: float) -> Uncertainty:
     """``u`` (with the outline prior) with the measured disagreement about where the outline lies
     added to that prior: ``offset_px`` is the shift the masks' outlines share outside the
     silhouettes of a pose fitted with the photos as well
-    (:func:`~autoalign.quality.outline.shared_outline_offset`). The masks and the colours then
+    (:func:`~autoalign.losses.outline_offset.shared_outline_offset`). The masks and the colours then
     disagree by that much, and the pose lies somewhere between the two: which one is right, the
     fit cannot tell (a mask eroded by 4 px against a photo whose colour runs on into a neighbour of
     the same colour), so the shared shift's variance becomes ``BOUNDARY_BIAS_PX^2 + offset_px^2``.

@@ -102,6 +102,18 @@ class Mesh:
         return np.asarray(pts, dtype=np.float64)
 
 
+@dataclass
+class ColouredMesh:
+    """A triangle mesh in its model frame (mm) with one RGB colour (0..1) per vertex, as its file
+    gives them (for rendering labels against photos; :class:`Mesh` is the welded one for refining)."""
+
+    vertices: NDArray[np.float64]
+    faces: NDArray[np.int64]
+    colours: NDArray[np.float32]
+    has_colours: bool
+    path: Path | None = None
+
+
 def _diameter(V: NDArray[np.float64], max_points: int = 2500) -> float:
     """Largest vertex-to-vertex distance (exact on up to ``max_points`` convex-hull vertices)."""
     try:

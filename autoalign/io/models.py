@@ -20,22 +20,11 @@ from numpy.typing import NDArray
 
 from autoalign.errors import AutoalignError
 from autoalign.io.bop import read_json_file, whole_number_keys
-from autoalign.geometry.mesh import Mesh, load_mesh
+from autoalign.geometry.mesh import ColouredMesh, Mesh, load_mesh
 from autoalign.rasterizers.pyramid import MeshPyramid
 
 GREY = (0.5, 0.5, 0.5)
 """Colour (RGB, 0..1) of a mesh without vertex colours."""
-
-
-@dataclass
-class ColouredMesh:
-    """A triangle mesh in its model frame (mm) with one RGB colour (0..1) per vertex."""
-
-    vertices: NDArray[np.float64]
-    faces: NDArray[np.int64]
-    colours: NDArray[np.float32]
-    has_colours: bool
-    path: Path | None = None
 
 
 def load_coloured_mesh(path: str | Path) -> ColouredMesh:

@@ -16,7 +16,7 @@ from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import make_pose, so3_exp
 from autoalign.io.bop import Scene
 from autoalign.io.models import ModelSet
-from autoalign.quality.overlap import view_ious
+from autoalign.losses.overlap import view_ious
 from autoalign.rasterizers.pyramid import MeshDetail
 
 CONTOUR_EPS_PX = 0.5
@@ -53,7 +53,7 @@ def outlines(silhouettes: dict[int, NDArray[np.bool_]]) -> Outlines:
 
 def fit(scene: Scene, silhouettes: dict[int, NDArray[np.bool_]]) -> dict[int, float]:
     """Per-view hard IoU of the silhouettes with ``scene``'s masks
-    (:func:`~autoalign.quality.overlap.view_ious`), by image id."""
+    (:func:`~autoalign.losses.overlap.view_ious`), by image id."""
     ious = view_ious([silhouettes[im] for im in scene.image_ids], scene)
     return {im: float(v) for im, v in zip(scene.image_ids, ious)}
 

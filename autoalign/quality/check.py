@@ -31,7 +31,7 @@ Conventions (as the BOP files):
   Keypoint positions (OpenCV) use the same convention.
 
 The check is split by job: the photos read at a scale (:mod:`~autoalign.io.photos`), the labels'
-rendering (:mod:`~autoalign.quality.label_rendering`), SIFT (:mod:`~autoalign.quality.sift`), the
+rendering (:mod:`~autoalign.rasterizers.label_rendering`), SIFT (:mod:`~autoalign.quality.sift`), the
 bootstrap intervals (:mod:`~autoalign.quality.stats`), the records (:mod:`~autoalign.quality.check_report`),
 the scene's inputs and loop (:mod:`~autoalign.quality.scene_check`) and the figure
 (:mod:`~autoalign.quality.figures`); this module checks one image and summarises the instances.
@@ -48,7 +48,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.io.bop import Label
-from autoalign.io.models import ColouredMesh
+from autoalign.geometry.mesh import ColouredMesh
 from autoalign.quality.check_report import (
     BBOX_MARGIN_PX,
     CONTEXT_PX,
@@ -64,8 +64,8 @@ from autoalign.quality.edge_distance import (
     outline_pixels,
     photo_edges,
 )
-from autoalign.quality.label_rendering import PlacedMesh, Rendering, render_labels
-from autoalign.quality.overlap import iou_from_counts
+from autoalign.rasterizers.label_rendering import PlacedMesh, Rendering, render_labels
+from autoalign.losses.overlap import iou_from_counts
 from autoalign.quality.sift import (
     MAX_SIFT_PIXELS,
     UPSAMPLE,

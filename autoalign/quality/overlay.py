@@ -138,7 +138,7 @@ def render_overlay(scene: Scene, rasterizer: SoftSilhouetteRasterizer, T_before:
             (:meth:`MeshPyramid.fine <autoalign.rasterizers.pyramid.MeshPyramid.fine>`).
         T_before / T_after: world-from-model poses (4x4, mm) drawn in red / green.
         ious_before / ious_after: per-view IoU at ``T_before`` / ``T_after``
-            (:func:`~autoalign.quality.overlap.view_ious`; ``ious_after`` chooses the worst view).
+            (:func:`~autoalign.losses.overlap.view_ious`; ``ious_after`` chooses the worst view).
         max_views: at most this many tiles.
     """
     before_ious = np.asarray(ious_before, dtype=np.float64).ravel()

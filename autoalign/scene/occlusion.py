@@ -39,7 +39,7 @@ from autoalign.geometry.se3 import transform_points
 from autoalign.io.instances import InstanceScenes
 from autoalign.losses import robust_view_weights
 from autoalign.losses.depth import MAX_SAMPLES, DepthNoise, DepthTerms, depth_terms
-from autoalign.quality.overlap import iou_from_counts
+from autoalign.losses.overlap import iou_from_counts
 from autoalign.rasterizers.camera_batch import CameraBatch
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.rasterizers.soft_silhouette import Silhouettes

@@ -18,7 +18,7 @@ from autoalign.engine.photo_evidence import PhotoEvidence, photo_targets
 from autoalign.io.instances import InstanceScenes
 from autoalign.io.models import ModelSet
 from autoalign.losses.region import RegionOptions
-from autoalign.quality.label_rendering import PlacedMesh, cast_labels
+from autoalign.rasterizers.label_rendering import PlacedMesh, cast_labels
 from autoalign.rasterizers.pyramid import MeshDetail
 
 

@@ -46,8 +46,8 @@ from autoalign.errors import AutoalignError
 from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
 from autoalign.losses.region import RegionOptions
-from autoalign.quality.outline import shared_outline_offset
-from autoalign.quality.overlap import view_ious
+from autoalign.losses.outline_offset import shared_outline_offset
+from autoalign.losses.overlap import view_ious
 from autoalign.quality.verdict import Verdict, judge
 from autoalign.rasterizers.pyramid import MeshPyramid
 from autoalign.scene.cameras import corrections_accepted

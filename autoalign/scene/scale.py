@@ -115,7 +115,7 @@ def scale_by_overlap(found: InstanceScenes, models: ModelSet, init_path: str | o
     start within about 10% on real masks (the alone stage lost every object of a real LM-O scene
     started 10% off), which the masks' areas do not give when the masks miss parts."""
     from autoalign.io.instances import read_init_poses
-    from autoalign.quality.overlap import mask_iou
+    from autoalign.losses.overlap import mask_iou
 
     factors = np.exp(np.arange(np.log(0.6), np.log(1.6), np.log(1.02))) if factors is None else factors
     rasts = {inst.index: models.pyramid(inst.obj_id).at(resolution) for inst in found.instances}

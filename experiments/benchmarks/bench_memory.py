@@ -92,8 +92,8 @@ def write_photos(root: Path, tm: "trimesh.Trimesh", T_wm: np.ndarray, small: Sce
     detail as a photo does."""
     import trimesh
 
-    from autoalign.io.models import ColouredMesh
-    from autoalign.quality.label_rendering import PlacedMesh, render_labels
+    from autoalign.geometry.mesh import ColouredMesh
+    from autoalign.rasterizers.label_rendering import PlacedMesh, render_labels
 
     V, F = trimesh.remesh.subdivide_to_size(tm.vertices, tm.faces, 3.0)
     freqs, phases = rng.normal(size=(3, 6, 3)) / 6.0, rng.uniform(0.0, 2 * np.pi, (3, 6))

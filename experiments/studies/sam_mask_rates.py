@@ -28,7 +28,7 @@ from autoalign.geometry.camera import Camera
 from autoalign.geometry.mesh import load_mesh
 from autoalign.geometry.se3 import invert, make_pose
 from autoalign.io.bop import read_cameras, read_mask
-from autoalign.quality.outline import OCCLUSION_PX, ON_OBJECT_IOU, outline_offset
+from autoalign.losses.outline_offset import OCCLUSION_PX, ON_OBJECT_IOU, outline_offset
 
 
 def scene_rates(scene: Path) -> list[dict]:

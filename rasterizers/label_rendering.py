@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from autoalign.geometry.camera import K_from_opencv
 from autoalign.geometry.se3 import make_pose
-from autoalign.io.models import ColouredMesh
+from autoalign.geometry.mesh import ColouredMesh
 from autoalign.rasterizers.ray_casting import RayCaster, RayHits
 
 Box = tuple[int, int, int, int]

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.io.bop import Scene
-from autoalign.quality.overlap import mask_iou
+from autoalign.losses.overlap import mask_iou
 
 ON_OBJECT_IOU = 0.5
 """A mask whose IoU with the silhouette is below this is on another object, or misses most of
