@@ -27,7 +27,7 @@ from autoalign.geometry.se3 import (
 )
 from autoalign.io.bop import read_scene, with_depth
 from autoalign.losses.depth import DepthNoise, DepthTerms, depth_terms
-from autoalign.quality.verdict import judge
+from autoalign.quality.verdict import PoseEvidence, judge
 from autoalign.rasterizers.ray_casting import RayCaster
 
 W, H = 320, 240
@@ -227,10 +227,11 @@ def test_the_verdict_weighs_the_depth_against_the_masks() -> None:
     disagrees fails a pose the masks fit; a view with too few samples says nothing."""
     ids = list(range(6))
     partial, fitting, w = np.full(6, 0.43), np.full(6, 0.95), np.ones(6)
-    assert judge(partial, w, ids).status == "failed"
-    supported = judge(partial, w, ids, depth=_depth_record(0.97))
+    assert judge(PoseEvidence(partial, w, ids)).status == "failed"
+    supported = judge(PoseEvidence(partial, w, ids, depth=_depth_record(0.97)))
     assert supported.status == "ok" and "the measured depth agrees" in supported.reasons[0]
-    contradicted = judge(fitting, w, ids, depth=_depth_record(0.1))
+    contradicted = judge(PoseEvidence(fitting, w, ids, depth=_depth_record(0.1)))
     assert contradicted.status == "failed" and "the measured depth disagrees" in contradicted.reasons[0]
-    assert judge(fitting, w, ids, depth=_depth_record(0.1, used=10)).status == "ok"  # too few samples to judge
-    assert judge(partial, w, ids, depth=_depth_record(0.6)).status == "failed"  # neither supports nor contradicts
+    # too few samples to judge; then a share that neither supports nor contradicts
+    assert judge(PoseEvidence(fitting, w, ids, depth=_depth_record(0.1, used=10))).status == "ok"
+    assert judge(PoseEvidence(partial, w, ids, depth=_depth_record(0.6))).status == "failed"

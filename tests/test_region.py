@@ -204,11 +204,11 @@ def test_photo_of_another_size_is_refused(photo_scene, tmp_path):
 ])
 def test_verdict_reads_the_photo(iou, contrast, status, words):
     from autoalign.engine.photo_evidence import PhotoEvidence
-    from autoalign.quality.verdict import judge
+    from autoalign.quality.verdict import PoseEvidence, judge
 
     n = 10
     photo = None if contrast is None else PhotoEvidence(np.full(n, 20.0), np.full(n, 0.9), np.full(n, contrast), 3)
-    v = judge(np.full(n, iou), np.ones(n), list(range(n)), photo=photo)
+    v = judge(PoseEvidence(np.full(n, iou), np.ones(n), list(range(n)), photo=photo))
     assert v.status == status and any(words in r for r in v.reasons), v
 
 

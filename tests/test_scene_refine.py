@@ -43,7 +43,7 @@ from autoalign.io.instances import (
     read_instance_scenes,
     read_instances,
 )
-from autoalign.quality.verdict import CHECK_IOU, NEAR_SYMMETRY_GAP, judge
+from autoalign.quality.verdict import CHECK_IOU, NEAR_SYMMETRY_GAP, PoseEvidence, judge
 
 N_OBJ, N_VIEWS, W, H = 5, 24, 480, 360
 
@@ -213,21 +213,22 @@ def test_instance_with_wrong_masks_is_flagged_and_exit_is_3(multi, tmp_path):
 
 def test_verdict_rules():
     ids = list(range(10))
-    good = judge(np.full(10, 0.95), np.ones(10), ids)
+    good = judge(PoseEvidence(np.full(10, 0.95), np.ones(10), ids))
     assert good.status == "ok" and good.reasons == []
-    loose = judge(np.full(10, 0.7), np.ones(10), ids)
+    loose = judge(PoseEvidence(np.full(10, 0.7), np.ones(10), ids))
     assert loose.status == "check"
     w = np.ones(10)
     w[:4] = 0.05
-    some = judge(np.r_[np.full(4, 0.3), np.full(6, 0.95)], w, ids)  # a minority of wrong masks: noted, not doubted
+    # a minority of wrong masks: noted, not doubted
+    some = judge(PoseEvidence(np.r_[np.full(4, 0.3), np.full(6, 0.95)], w, ids))
     assert some.status == "ok" and some.set_aside == [0, 1, 2, 3] and "down-weighted" in some.reasons[0]
     w[:6] = 0.05
-    most = judge(np.r_[np.full(6, 0.9), np.full(4, 0.95)], w, ids)
+    most = judge(PoseEvidence(np.r_[np.full(6, 0.9), np.full(4, 0.95)], w, ids))
     assert most.status == "check" and most.set_aside == [0, 1, 2, 3, 4, 5] and "more than 50%" in most.reasons[-1]
-    assert judge(np.full(10, 0.3), np.ones(10), ids).status == "failed"
-    assert judge(np.full(2, 0.99), np.ones(2), ids[:2]).status == "failed"
-    assert judge(np.full(10, 0.95), np.ones(10), ids, ambiguous=True).status == "check"
-    assert judge(np.full(10, 0.95), np.ones(10), ids, ambiguous=True, symmetric=True).status == "ok"
+    assert judge(PoseEvidence(np.full(10, 0.3), np.ones(10), ids)).status == "failed"
+    assert judge(PoseEvidence(np.full(2, 0.99), np.ones(2), ids[:2])).status == "failed"
+    assert judge(PoseEvidence(np.full(10, 0.95), np.ones(10), ids, ambiguous=True)).status == "check"
+    assert judge(PoseEvidence(np.full(10, 0.95), np.ones(10), ids, ambiguous=True, symmetric=True)).status == "ok"
 
 
 def test_nearly_symmetric_is_a_reason_unless_turning_clearly_worsens_the_fit():
@@ -240,25 +241,28 @@ def test_nearly_symmetric_is_a_reason_unless_turning_clearly_worsens_the_fit():
     u = Uncertainty(cov, np.full(3, 0.1), np.array([0.06, 0.06, 0.3]), ["turn about model z: 0.3 deg"],
                     [np.array([0.0, 0.0, 1.0])])
     fit = (np.full(10, 0.95), np.ones(10), ids)
-    assert judge(*fit, uncertainty=u).status == "check"  # not tried: cautious
-    assert judge(*fit, uncertainty=u, turn_gap=0.5 * NEAR_SYMMETRY_GAP).status == "check"
-    assert judge(*fit, uncertainty=u, turn_gap=2 * NEAR_SYMMETRY_GAP).status == "ok"
-    assert judge(*fit, uncertainty=u, free_axes_m=(np.array([0.0, 0.0, 1.0]),)).status == "ok"  # a true symmetry
+    assert judge(PoseEvidence(*fit, uncertainty=u)).status == "check"  # not tried: cautious
+    assert judge(PoseEvidence(*fit, uncertainty=u, turn_gap=0.5 * NEAR_SYMMETRY_GAP)).status == "check"
+    assert judge(PoseEvidence(*fit, uncertainty=u, turn_gap=2 * NEAR_SYMMETRY_GAP)).status == "ok"
+    # a true symmetry
+    assert judge(PoseEvidence(*fit, uncertainty=u, free_axes_m=(np.array([0.0, 0.0, 1.0]),))).status == "ok"
     # declared symmetries explain a turn that fits as well (a hexagonal bar's 60 deg): the gap says nothing
-    assert judge(*fit, symmetric=True, uncertainty=u, turn_gap=0.0).status == "ok"
+    assert judge(PoseEvidence(*fit, symmetric=True, uncertainty=u, turn_gap=0.0)).status == "ok"
     # a weak turn whose sigma reaches NEAR_SYMMETRY_DEG: the descent can stop degrees off in it, whatever the gap
     from autoalign.quality.verdict import NEAR_SYMMETRY_DEG
 
     loose = Uncertainty(np.diag([0.01, 0.01, 0.01, 1e-6, 1e-6, np.radians(NEAR_SYMMETRY_DEG * 1.1) ** 2]),
                         np.full(3, 0.1), np.array([0.06, 0.06, 1.1]), [], [np.array([0.0, 0.0, 1.0])])
-    v = judge(*fit, uncertainty=loose, turn_gap=2 * NEAR_SYMMETRY_GAP)
+    v = judge(PoseEvidence(*fit, uncertainty=loose, turn_gap=2 * NEAR_SYMMETRY_GAP))
     assert v.status == "check" and "the turn about model z (1.1 deg)" in v.reasons[-1]
-    assert judge(*fit, symmetric=True, uncertainty=loose, turn_gap=0.0).status == "check"  # but not the sigma
+    # but not the sigma
+    assert judge(PoseEvidence(*fit, symmetric=True, uncertainty=loose, turn_gap=0.0)).status == "check"
     # the views' spread decides it, not the prior on a shared outline shift (the large-sigma rule counts that)
     spread = np.diag([0.01, 0.01, 0.01, 1e-6, 1e-6, np.radians(0.8) ** 2])
     prior = replace(loose, spread=spread)
-    assert judge(*fit, uncertainty=prior, turn_gap=2 * NEAR_SYMMETRY_GAP).status == "ok"
-    assert judge(*fit, uncertainty=replace(prior, spread=loose.covariance), turn_gap=2 * NEAR_SYMMETRY_GAP).status == "check"
+    assert judge(PoseEvidence(*fit, uncertainty=prior, turn_gap=2 * NEAR_SYMMETRY_GAP)).status == "ok"
+    assert judge(PoseEvidence(*fit, uncertainty=replace(prior, spread=loose.covariance),
+                              turn_gap=2 * NEAR_SYMMETRY_GAP)).status == "check"
 
 
 def test_partial_masks_with_views_that_agree_are_check_not_failed():
@@ -266,10 +270,10 @@ def test_partial_masks_with_views_that_agree_are_check_not_failed():
     fit the pose well: `check`, with the agreeing views named; with only 2 agreeing, `failed`."""
     ids = list(range(10))
     w = np.r_[np.full(6, 0.05), np.ones(4)]
-    v = judge(np.r_[np.full(6, 0.3), np.full(4, 0.92)], w, ids)
+    v = judge(PoseEvidence(np.r_[np.full(6, 0.3), np.full(4, 0.92)], w, ids))
     assert v.status == "check" and "4 of 10 views fit it well" in v.reasons[0]
     w2 = np.r_[np.full(8, 0.05), np.ones(2)]
-    assert judge(np.r_[np.full(8, 0.3), np.full(2, 0.92)], w2, ids).status == "failed"
+    assert judge(PoseEvidence(np.r_[np.full(8, 0.3), np.full(2, 0.92)], w2, ids)).status == "failed"
 
 
 def test_loose_median_is_judged_by_the_views_whose_masks_agree():
@@ -280,12 +284,12 @@ def test_loose_median_is_judged_by_the_views_whose_masks_agree():
     iou = np.r_[np.full(4, 0.5), 0.7, 0.78, np.full(4, 0.9)]
     w = np.r_[np.full(4, 0.2), np.full(6, 1.53)]
     assert np.median(iou) < CHECK_IOU
-    v = judge(iou, w, ids)
+    v = judge(PoseEvidence(iou, w, ids))
     assert v.status == "ok" and "the 6 of 10 views whose masks agree with the pose fit it well" in v.reasons[0]
     assert v.set_aside == [0, 1, 2, 3]
-    loose = judge(np.r_[np.full(4, 0.5), np.full(6, 0.7)], w, ids)  # the views that agree fit loosely too
+    loose = judge(PoseEvidence(np.r_[np.full(4, 0.5), np.full(6, 0.7)], w, ids))  # the views that agree fit loosely too
     assert loose.status == "check" and "loose fit" in loose.reasons[0]
-    few = judge(np.r_[np.full(6, 0.6), np.full(4, 0.9)], np.r_[np.full(6, 0.4), np.full(4, 1.9)], ids)
+    few = judge(PoseEvidence(np.r_[np.full(6, 0.6), np.full(4, 0.9)], np.r_[np.full(6, 0.4), np.full(4, 1.9)], ids))
     assert few.status == "check" and "loose fit" in few.reasons[0]  # 4 of 10 agree
 
 
@@ -300,10 +304,10 @@ def test_a_turn_its_profile_widened_stays_weak_in_the_joint_stage():
     u = with_covariance(Uncertainty(spread, np.zeros(3), np.zeros(3)), spread)
     assert u.weak_turn_axes == []
     fit = (np.full(10, 0.95), np.ones(10), ids)
-    assert judge(*fit, uncertainty=u).status == "ok"
+    assert judge(PoseEvidence(*fit, uncertainty=u)).status == "ok"
     floored = with_turn_floors(u, [TurnFloor(np.array([0.0, 0.0, 1.0]), np.radians(1.5) ** 2)])
     assert len(floored.weak_turn_axes) == 1 and np.isclose(floored.sigma_deg[2], 1.5)
-    v = judge(*fit, uncertainty=floored, turn_gap=2 * NEAR_SYMMETRY_GAP)
+    v = judge(PoseEvidence(*fit, uncertainty=floored, turn_gap=2 * NEAR_SYMMETRY_GAP))
     assert v.status == "check" and "nearly symmetric: the turn about model z (1.5 deg)" in v.reasons[-1]
     # a floor about a turn already weak is not named twice
     twice = with_turn_floors(floored, [TurnFloor(np.array([0.0, 0.01, 1.0]) / np.hypot(0.01, 1.0), 0.0)])

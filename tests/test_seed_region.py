@@ -12,7 +12,7 @@ from autoalign.experiments.scenes.synthetic import perturb_pose, random_rotation
 from autoalign.experiments.studies.refine_study import study_meshes
 from autoalign.geometry.se3 import apply_twist, make_pose, pose_change, transform_points
 from autoalign.io.bop import Scene
-from autoalign.quality.verdict import judge
+from autoalign.quality.verdict import PoseEvidence, judge
 
 
 def test_the_penalty_is_zero_inside_and_its_derivatives_match_finite_differences():
@@ -63,6 +63,6 @@ def test_masks_pulling_to_a_far_basin_leave_the_result_within_the_seed_radius_an
     assert held.seed_hold.far_loss > 0.5 * held.seed_hold.near_loss  # the far pose fits only a little better
     mm, deg = pose_change(seed, held.T_wm, mesh.centre)
     assert mm <= SEED_RADIUS[0] * 1.02 and deg <= SEED_RADIUS[1] * 1.02, (mm, deg)
-    v = judge(held.iou_after, held.weights, held.image_ids, uncertainty=held.uncertainty,
-              seed_move=(mm, deg), seed_hold=held.seed_hold)
+    v = judge(PoseEvidence(held.iou_after, held.weights, held.image_ids, uncertainty=held.uncertainty,
+              seed_move=(mm, deg), seed_hold=held.seed_hold))
     assert v.status != "ok" and any("kept the best pose within it" in r for r in v.reasons), v.reasons

@@ -155,7 +155,7 @@ def test_outline_shift_moves_the_pose_as_predicted_and_is_in_the_sigma(k):
     term predicts (within 30%), and a mask 2 px tight (1.7 times the prior's sigma) leaves the pose within
     3 sigma along the ray and not ok: the sigma is that of the shared shift, not of pixel noise."""
     from autoalign.experiments.studies.sam_failures import shift_outline
-    from autoalign.quality.verdict import judge
+    from autoalign.quality.verdict import PoseEvidence, judge
 
     mesh = study_meshes()[k]
     rng = np.random.default_rng([29, k])
@@ -180,7 +180,7 @@ def test_outline_shift_moves_the_pose_as_predicted_and_is_in_the_sigma(k):
             err = centre(r.T_wm) - centre(T)
             assert abs(err @ ray) < 3.0 * r.uncertainty.sigma_ray_mm, (err @ ray, r.uncertainty.sigma_ray_mm)
             assert r.uncertainty.sigma_ray_mm > 10 * r.uncertainty.sigma_across_mm
-            assert judge(r.iou_after, r.weights, r.image_ids, uncertainty=r.uncertainty).status != "ok"
+            assert judge(PoseEvidence(r.iou_after, r.weights, r.image_ids, uncertainty=r.uncertainty)).status != "ok"
 
 
 def test_sigmas_along_and_across_the_ray():
@@ -279,7 +279,7 @@ def test_views_from_one_viewpoint_are_not_ok():
     The same object from ten directions is ok."""
     from autoalign.experiments.scenes.synthetic import default_K
     from autoalign.geometry.camera import look_at
-    from autoalign.quality.verdict import judge
+    from autoalign.quality.verdict import PoseEvidence, judge
 
     mesh = study_meshes()[0]
     rng = np.random.default_rng(41)
@@ -292,7 +292,7 @@ def test_views_from_one_viewpoint_are_not_ok():
         r = refine(scene, mesh, perturb_pose(T, 3.0, 3.0, rng, mesh.centre))
         assert r.uncertainty.viewpoints == expected
         assert float(np.median(r.iou_after)) > 0.97
-        v = judge(r.iou_after, r.weights, r.image_ids, uncertainty=r.uncertainty, turn_gap=r.turn_gap)
+        v = judge(PoseEvidence(r.iou_after, r.weights, r.image_ids, uncertainty=r.uncertainty, turn_gap=r.turn_gap))
         if expected == 1:
             assert v.status == "check" and any(s.startswith("one viewpoint") for s in v.reasons), v
         else:

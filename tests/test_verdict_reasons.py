@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from autoalign.engine.uncertainty import uncertainty_of
-from autoalign.quality.verdict import judge
+from autoalign.quality.verdict import PoseEvidence, judge
 
 
 def test_a_weak_pose_names_its_largest_turn_and_shift_only() -> None:
@@ -17,7 +17,7 @@ def test_a_weak_pose_names_its_largest_turn_and_shift_only() -> None:
     cov[3:, 3:] = Q @ np.diag([np.radians(6.0), np.radians(3.0), np.radians(1.5)]) ** 2 @ Q.T
     u = uncertainty_of(cov, cov, np.eye(3))
     assert len(u.weak) == 6
-    verdict = judge(np.full(10, 0.95), np.ones(10), list(range(10)), uncertainty=u)
+    verdict = judge(PoseEvidence(np.full(10, 0.95), np.ones(10), list(range(10)), uncertainty=u))
     reason = next(r for r in verdict.reasons if r.startswith("weakly observed"))
     assert u.weak[0] in reason and next(w for w in u.weak if w.startswith("shift")) in reason
     assert "4 more in refine.json" in reason and len(reason) < 220, reason

@@ -155,15 +155,16 @@ def _object_report(job: FolderJob, scene: Any, mesh: Any, result: Any, seed: Any
                    log: RunLog) -> RefineReport:
     """The report of one object's refinement (:class:`~autoalign.jobs.report.RefineReport`)."""
     from autoalign.jobs.report import RefineReport, RunnerUp
-    from autoalign.quality.verdict import judge
+    from autoalign.quality.verdict import PoseEvidence, judge
 
     ids = [int(i) for i in result.image_ids or scene.image_ids]
     from autoalign.geometry.se3 import pose_change
 
     seed_move = None if seed.pose is None else pose_change(seed.pose, result.T_wm, mesh.centre)
-    verdict = judge(result.iou_after, result.weights, ids, scene.empty, bool(result.ambiguous),
-                    uncertainty=result.uncertainty, turn_gap=result.turn_gap, depth=result.depth, photo=result.photo,
-                    seed_move=seed_move, seed_radius=job.seed_radius_mm_deg, seed_hold=result.seed_hold)
+    verdict = judge(PoseEvidence(result.iou_after, result.weights, ids, scene.empty, bool(result.ambiguous),
+                                 uncertainty=result.uncertainty, turn_gap=result.turn_gap, depth=result.depth,
+                                 photo=result.photo, seed_move=seed_move, seed_radius=job.seed_radius_mm_deg,
+                                 seed_hold=result.seed_hold))
     if seed_move is not None:
         seed.moved = seed_move
         seed.radius = job.seed_radius_mm_deg

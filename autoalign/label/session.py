@@ -29,7 +29,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -63,10 +63,6 @@ from autoalign.label.scene import SessionScene
 from autoalign.label.session_file import SessionFile
 from autoalign.label.state import SessionState
 from autoalign.label.undo import UndoHistory
-from autoalign.quality.verdict import judge
-
-if TYPE_CHECKING:
-    from autoalign.scene.joint import JointRefinement
 
 __all__ = ["LabelSession", "Progress"]  # Progress: for the server's jobs
 
@@ -76,15 +72,6 @@ def judged_refinement(result: RefineResult, scene: Scene, models: ModelSet, obj_
     from autoalign.scene.refine import verdict_of
 
     return Judgement(verdict_of(result, scene.empty, models, obj_id), result.uncertainty)
-
-
-def judged_jointly(joint: JointRefinement, k: int, scene: Scene, models: ModelSet, obj_id: int) -> Judgement:
-    """The verdict on the ``k``-th object (``obj_id``, in ``scene``) of a joint refinement, and its uncertainty."""
-    unc = joint.uncertainties[k]
-    verdict = judge(joint.evaluation.hard_iou(k), joint.evaluation.weights[k], scene.image_ids, scene.empty, False,
-                    models.symmetric(obj_id), unc, models.continuous_axes(obj_id), None,
-                    None if joint.evaluation.depth is None else joint.evaluation.depth[k])
-    return Judgement(verdict, unc)
 
 
 class LabelSession(SessionScene):
@@ -245,11 +232,11 @@ class LabelSession(SessionScene):
             self._store_pose(index, inst.obj_id, result.T_wm, "refine", self._judged(index, inst.obj_id, result))
 
     def refine_together(self, progress: Progress | None = None) -> None:
-        """Refine every placed instance that is not rejected together, occlusion-aware
-        (:func:`~autoalign.scene.joint.refine_jointly`: in each view a pixel belongs to the nearest
-        of their surfaces, so the contour between two objects moves with both), and judge each."""
-        from autoalign.scene.joint import refine_jointly
-        from autoalign.scene.photos import region_targets
+        """Refine every placed instance that is not rejected together, as ``autoalign refine --models``
+        does from ``--init`` poses where they are placed (:func:`~autoalign.scene.refine.refine_scene`:
+        each alone from its pose, then all of them occlusion-aware, with the scene's depth and photos,
+        each judged as the command judges it), so that the page and the command agree."""
+        from autoalign.scene.refine import refine_scene
 
         with self._render:
             with self.state.lock:
@@ -257,17 +244,13 @@ class LabelSession(SessionScene):
             if len(chosen) < 2:
                 raise AutoalignError("refining together needs two or more placed instances that are not rejected; "
                                      "place more, or refine the one from where it is")
-            scenes = [self.scene_of(i.index) for i in chosen]
-            together = replace(self.found, instances=[Instance(i.index, i.obj_id) for i in chosen], scenes=scenes)
-            if self.options.region is not None:  # the photos as targets learned at the placed poses, as refine does
-                together, _ = region_targets(together, self.models, [i.T_wm for i in chosen], self.options.region,
-                                             self.options.detail)
-                scenes = together.scenes
-            joint = refine_jointly(together, [self.models.pyramid(i.obj_id) for i in chosen], [i.T_wm for i in chosen],
-                                   detail=self.options.detail, robust=self.options.robust, progress=progress)
-            for k, (inst, scene) in enumerate(zip(chosen, scenes)):
-                judged = judged_jointly(joint, k, scene, self.models, inst.obj_id)
-                self._store_pose(inst.index, inst.obj_id, joint.poses[k], "together", judged)
+            together = replace(self.found, instances=[Instance(i.index, i.obj_id) for i in chosen],
+                               scenes=[self.scene_of(i.index) for i in chosen])
+            refined = refine_scene(together, self.models, {i.index: i.T_wm.copy() for i in chosen}, self.options,
+                                   progress=progress)
+            for r in refined.results:
+                self._store_pose(r.instance.index, r.instance.obj_id, r.result.T_wm, "together",
+                                 Judgement(r.verdict, r.result.uncertainty))
 
     def nudge(self, index: int, image_id: int, move_mm: list[float], turn_deg: list[float]) -> None:
         """Move instance ``index`` by ``move_mm`` and turn it by ``turn_deg`` (rotation vector) about

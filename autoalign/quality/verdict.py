@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.engine.photo_evidence import PhotoEvidence
+from autoalign.engine.refine import RefineResult
 from autoalign.engine.seed_region import SEED_RADIUS, SeedHold
 from autoalign.engine.uncertainty import (MIN_VIEWPOINTS, SAME_AXIS, SAME_VIEWPOINT_DEG, Uncertainty, direction_name,
                                          turn_sigma_deg)
@@ -299,15 +300,11 @@ def _sigma_reasons(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.float
     return []
 
 
-def judge(iou_after: NDArray[np.float64], weights: NDArray[np.float64], image_ids: list[int],
-          empty_ids: tuple[int, ...] = (), ambiguous: bool = False, symmetric: bool = False,
-          uncertainty: Uncertainty | None = None, free_axes_m: tuple[NDArray[np.float64], ...] = (),
-          turn_gap: float | None = None, depth: DepthTerms | None = None,
-          photo: PhotoEvidence | None = None, seed_move: tuple[float, float] | None = None,
-          seed_radius: tuple[float, float] = SEED_RADIUS, seed_hold: SeedHold | None = None) -> Verdict:
-    """The verdict on one pose from its per-view IoU and robust weights (see the module doc).
+@dataclass(frozen=True)
+class PoseEvidence:
+    """What the verdict weighs for one refined pose (:func:`judge`).
 
-    Args:
+    Attributes:
         iou_after: (N,) hard IoU per used view.
         weights: (N,) final robust weights (mean 1).
         image_ids: the N views' image ids.
@@ -315,7 +312,8 @@ def judge(iou_after: NDArray[np.float64], weights: NDArray[np.float64], image_id
         ambiguous: another, clearly different pose fits almost as well.
         symmetric: the model has declared symmetries, which explain such a runner-up and a small
             ``turn_gap`` (neither is then a reason to check).
-        uncertainty: the pose's covariance (:mod:`autoalign.engine.uncertainty`); large sigmas are a reason.
+        uncertainty: the pose's covariance (:mod:`autoalign.engine.uncertainty`); large sigmas, or a
+            single viewpoint, are a reason.
         free_axes_m: the model's axes of continuous symmetry, about which any turn is as good.
         turn_gap: how much better the pose fits than its turns about weakly observed axes (see
             :func:`nearly_symmetric`).
@@ -327,6 +325,40 @@ def judge(iou_after: NDArray[np.float64], weights: NDArray[np.float64], image_id
         seed_hold: the masks pulled the pose beyond the seed's radius
             (:class:`~autoalign.engine.seed_region.SeedHold`): a reason to check either way.
     """
+
+    iou_after: NDArray[np.float64]
+    weights: NDArray[np.float64]
+    image_ids: list[int]
+    empty_ids: tuple[int, ...] = ()
+    ambiguous: bool = False
+    symmetric: bool = False
+    uncertainty: Uncertainty | None = None
+    free_axes_m: tuple[NDArray[np.float64], ...] = ()
+    turn_gap: float | None = None
+    depth: DepthTerms | None = None
+    photo: PhotoEvidence | None = None
+    seed_move: tuple[float, float] | None = None
+    seed_radius: tuple[float, float] = SEED_RADIUS
+    seed_hold: SeedHold | None = None
+
+    @classmethod
+    def of(cls, result: RefineResult, empty_ids: tuple[int, ...] = (), symmetric: bool = False,
+           free_axes_m: tuple[NDArray[np.float64], ...] = (), seed_move: tuple[float, float] | None = None,
+           seed_radius: tuple[float, float] = SEED_RADIUS) -> PoseEvidence:
+        """The evidence a refinement's ``result`` carries, with what only its caller knows: the
+        scene's empty masks, the model's symmetries and how far the pose ended from a given seed."""
+        return cls(result.iou_after, result.weights, list(result.image_ids), tuple(empty_ids),
+                   bool(result.ambiguous), symmetric, result.uncertainty, free_axes_m, result.turn_gap,
+                   result.depth, result.photo, seed_move, seed_radius, result.seed_hold)
+
+
+def judge(evidence: PoseEvidence) -> Verdict:
+    """The verdict on one pose from its evidence (see the module doc and :class:`PoseEvidence`)."""
+    e = evidence
+    iou_after, weights, image_ids, empty_ids = e.iou_after, e.weights, e.image_ids, e.empty_ids
+    ambiguous, symmetric, uncertainty, free_axes_m = e.ambiguous, e.symmetric, e.uncertainty, e.free_axes_m
+    turn_gap, depth, photo = e.turn_gap, e.depth, e.photo
+    seed_move, seed_radius, seed_hold = e.seed_move, e.seed_radius, e.seed_hold
     iou = np.asarray(iou_after, dtype=np.float64)
     w = np.asarray(weights, dtype=np.float64)
     reasons: list[str] = []

@@ -48,7 +48,7 @@ from autoalign.io.models import ModelSet
 from autoalign.losses.region import RegionOptions
 from autoalign.losses.outline_offset import shared_outline_offset
 from autoalign.losses.overlap import view_ious
-from autoalign.quality.verdict import Verdict, judge
+from autoalign.quality.verdict import PoseEvidence, Verdict, judge
 from autoalign.rasterizers.pyramid import MeshPyramid
 from autoalign.scene.cameras import corrections_accepted
 from autoalign.scene.joint import JointRefinement, refine_jointly
@@ -83,9 +83,8 @@ def verdict_of(result: RefineResult, empty: tuple[int, ...], models: ModelSet, o
     how far it ended from it (:func:`~autoalign.quality.verdict.judge`)."""
     seed_move = None if seed is None else symmetric_pose_change(seed, result.T_wm, models.mesh(obj_id).centre,
                                                                 *models.symmetries(obj_id))
-    return judge(result.iou_after, result.weights, result.image_ids, empty, result.ambiguous, models.symmetric(obj_id),
-                 result.uncertainty, models.continuous_axes(obj_id), result.turn_gap, result.depth, result.photo,
-                 seed_move, seed_radius, result.seed_hold)
+    return judge(PoseEvidence.of(result, empty, models.symmetric(obj_id), models.continuous_axes(obj_id), seed_move,
+                                 seed_radius))
 
 
 def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArray[np.float64]],

@@ -32,7 +32,7 @@ from autoalign.geometry.se3 import apply_twist, make_pose, pose_change, transfor
 from autoalign.io.bop import Scene, read_scene, with_depth
 from autoalign.io.evidence import read_evidence
 from autoalign.io.models import ModelSet
-from autoalign.quality.verdict import judge
+from autoalign.quality.verdict import PoseEvidence, judge
 
 ERODE_PX = 4
 STARTS = 3
@@ -126,9 +126,8 @@ def run(data: Path, masks_kinds: tuple[str, ...] = MASKS, depths: tuple[bool, ..
                     wall = time.perf_counter() - t0
                     e = pose_errors(res.T_wm, T, mesh.centre, None, sym)
                     along = float((transform_points(res.T_wm, mesh.centre[None])[0] - c) @ c / np.linalg.norm(c))
-                    verdict = judge(res.iou_after, res.weights, res.image_ids, sc.empty, res.ambiguous,
-                                    bool(sym.discrete or sym.continuous), res.uncertainty, (), res.turn_gap, res.depth,
-                                    seed_move=pose_change(res.T_wm, T0, mesh.centre))
+                    verdict = judge(PoseEvidence.of(res, sc.empty, bool(sym.discrete or sym.continuous),
+                                                    seed_move=pose_change(res.T_wm, T0, mesh.centre)))
                     rows.append({"obj_id": obj, "start": start, "masks": masks, "depth": depth,
                                  "err_mm": float(e.pos_err_mm), "err_deg": float(e.rot_err_deg), "along_ray_mm": along,
                                  "sigma_ray_mm": res.uncertainty.sigma_ray_mm, "weak": res.uncertainty.weak,
