@@ -102,3 +102,28 @@ def test_few_viewpoints_masks_tight_against_the_photos_widen_the_sigma_along_the
             assert inst["verdict"] != "ok", (inst["obj_id"], e)
             assert abs(along) <= 3.0 * u["sigma_along_ray_mm"], (inst["obj_id"], along, u["sigma_along_ray_mm"])
     assert far >= 1  # the mug, at least: the case the disagreement is for (not a test that cannot fail)
+
+
+def test_the_covariance_is_reported_as_the_sum_of_its_parts() -> None:
+    """An uncertainty with the views' spread, the outline prior, the photos' disagreement (3 px) and a
+    solved scale (1%, 800 mm away): its components are each what was added, they sum to the
+    covariance, and refine.json's record gives each one's sigmas."""
+    from autoalign.engine.uncertainty import with_scale_sigma
+    from autoalign.jobs.report import uncertainty_record
+
+    rng = np.random.default_rng(2)
+    A = rng.normal(size=(6, 6))
+    spread = A @ A.T * 1e-3
+    shift_w = np.array([0.5, -0.2, 2.0, 0.0, 0.001, 0.0])
+    u = uncertainty_of(spread, spread, np.eye(3), shift_w, np.array([0.0, 0.0, 1.0]))
+    u = with_scale_sigma(with_outline_disagreement(u, 3.0), 0.01, 800.0)
+    parts = u.components()
+    np.testing.assert_allclose(parts["views"], spread, atol=1e-12)
+    np.testing.assert_allclose(parts["outline_prior"], BOUNDARY_BIAS_PX ** 2 * np.outer(shift_w, shift_w), atol=1e-12)
+    np.testing.assert_allclose(parts["outline_disagreement"], 9.0 * np.outer(shift_w, shift_w), atol=1e-12)
+    np.testing.assert_allclose(parts["scale"][2, 2], 8.0 ** 2, rtol=1e-9)  # 1% of 800 mm along the ray (z)
+    np.testing.assert_allclose(sum(parts.values()), u.covariance, atol=1e-12)
+    rec = uncertainty_record(u)["covariance_components"]
+    assert set(rec) == {"views", "outline_prior", "outline_disagreement", "scale"}
+    assert rec["scale"]["sigma_mm"][2] == pytest.approx(8.0)
+    assert rec["outline_disagreement"]["sigma_mm"][2] == pytest.approx(6.0)  # 3 px of 2 mm each

@@ -150,6 +150,19 @@ class Uncertainty:
         there is no spread apart from it."""
         return self.covariance if self.spread is None else self.spread
 
+    def components(self) -> dict[str, NDArray[np.float64]]:
+        """:attr:`covariance` as the sum it is made of (6x6 each, model axes): ``views`` (the views'
+        spread, scaled by :attr:`spread_factor`, with the turn profiles' floors), ``outline_prior``
+        (:data:`BOUNDARY_BIAS_PX` on a shift every mask's outline shares), ``outline_disagreement``
+        (with the photos: the masks' offset from the fitted outlines, on the same shift) and
+        ``scale`` (a solved scene scale along the ray: what is left)."""
+        shift = np.outer(self.bias_shift, self.bias_shift)
+        parts = {"views": self.views_spread,
+                 "outline_prior": BOUNDARY_BIAS_PX ** 2 * shift if self.spread is not None else 0.0 * shift,
+                 "outline_disagreement": (self.outline_disagreement_px or 0.0) ** 2 * shift}
+        parts["scale"] = self.covariance - sum(parts.values())
+        return parts
+
 
 def _into_model(R_wm: NDArray[np.float64]) -> NDArray[np.float64]:
     """The 6x6 map of a world-frame twist into the model's axes (``v_m = R^T v``, ``w_m = R^T w``)."""
@@ -164,7 +177,9 @@ def _to_model(cov_w: NDArray[np.float64], R_wm: NDArray[np.float64]) -> NDArray[
     return A @ cov_w @ A.T
 
 
-def _sigmas(cov: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def axis_sigmas(cov: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Sigmas of a 6x6 twist covariance along (mm) and about (degrees) its three axes (a negative
+    diagonal, rounding, as zero)."""
     d = np.sqrt(np.maximum(np.diag(cov), 0.0))
     return d[:3], np.degrees(d[3:])
 
@@ -379,10 +394,10 @@ def uncertainty_of(cov_w: NDArray[np.float64], naive_w: NDArray[np.float64], R_w
     comparison; ``view_dir_w``: the median view's unit direction (world), for the sigmas along
     and across it."""
     noise = _to_model(cov_w, R_wm)
-    n_mm, n_deg = _sigmas(_to_model(naive_w, R_wm))
+    n_mm, n_deg = axis_sigmas(_to_model(naive_w, R_wm))
     # the turns the views' geometry barely fixes (what a nearly symmetric object can hide), before
     # the outline shift's prior, which inflates every direction it moves and hides the ratio
-    u = Uncertainty(noise, *_sigmas(noise), [], _weak_turn_axes(noise), n_mm, n_deg, spread=noise)
+    u = Uncertainty(noise, *axis_sigmas(noise), [], _weak_turn_axes(noise), n_mm, n_deg, spread=noise)
     shift = np.zeros(6) if bias_shift_w is None else _into_model(R_wm) @ np.asarray(bias_shift_w, dtype=np.float64)
     d_m = None if view_dir_w is None else R_wm.T @ np.asarray(view_dir_w, dtype=np.float64)
     return with_outline_shift(u, shift, d_m, bias_px)
@@ -429,7 +444,7 @@ def with_scale_sigma(u: Uncertainty, sigma_relative: float, distance_mm: float) 
 def with_covariance(u: Uncertainty, cov_m: NDArray[np.float64]) -> Uncertainty:
     """``u`` with the model-frame covariance ``cov_m`` and what it says (sigmas, weak directions,
     sigmas along and across ``u.view_dir_m``)."""
-    s_mm, s_deg = _sigmas(cov_m)
+    s_mm, s_deg = axis_sigmas(cov_m)
     along, across = _ray_sigmas(cov_m, u.view_dir_m) if u.view_dir_m is not None else (None, None)
     return replace(u, covariance=cov_m, sigma_mm=s_mm, sigma_deg=s_deg, weak=[t for t, _ in _weak(cov_m)],
                    sigma_ray_mm=along, sigma_across_mm=across)

@@ -22,7 +22,7 @@ from autoalign import __version__
 from autoalign.engine.objective import ViewTermsRecord
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult
-from autoalign.engine.uncertainty import BOUNDARY_BIAS_PX, SAME_VIEWPOINT_DEG, Uncertainty
+from autoalign.engine.uncertainty import BOUNDARY_BIAS_PX, SAME_VIEWPOINT_DEG, Uncertainty, axis_sigmas
 from autoalign.geometry.camera import PIXEL_CONVENTION
 from autoalign.geometry.se3 import rotation_angle_deg, transform_points
 from autoalign.losses.depth import DepthTerms
@@ -117,6 +117,11 @@ def uncertainty_record(u: Uncertainty | None) -> dict[str, Any] | None:
                              f"shift of every mask's outline ({BOUNDARY_BIAS_PX:g} px, and with the photos "
                              "outline_disagreement_px on top: sqrt of the sum of squares), weakly observed turns "
                              "raised to the spread of their loss profile's minimum over resampled views",
+            "covariance_components": {name: dict(zip(("sigma_mm", "sigma_deg"), axis_sigmas(part)))
+                                      for name, part in u.components().items()},
+            "covariance_components_are": "the covariance as a sum: the views' spread (times views_spread_factor, "
+                                         "with the turn profiles), the outline prior, the photos' outline "
+                                         "disagreement and a solved scale's share; sigmas of each alone",
             "views_spread_factor": u.spread_factor,
             "viewpoints": u.viewpoints,
             "outline_shift_per_px": u.bias_shift,
