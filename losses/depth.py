@@ -27,6 +27,8 @@ from numpy.typing import NDArray
 
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.mesh import Mesh
+from autoalign.losses.silhouette import ViewTerms
+from autoalign.losses.term import Fragments, LevelViews, TermValues
 from autoalign.rasterizers.ray_casting import RayCaster
 
 CAUCHY_C = 2.5
@@ -35,6 +37,8 @@ INLIER_SIGMAS = 3.0
 """A residual within this many sigmas agrees with the measurement (:attr:`DepthTerms.inliers`)."""
 MAX_SAMPLES = 4000
 """At most about this many pixels of a view are cast: the term's cost stays small next to the mask's."""
+SAMPLES_MIN = 250
+"""Below full resolution the term samples fewer pixels (in proportion to the level's scale), but at least these."""
 
 
 @dataclass(frozen=True)
@@ -163,3 +167,30 @@ def depth_terms(caster: RayCaster, mesh: Mesh, T_wm: NDArray[np.float64], camera
         out.rms_mm[k] = float(np.sqrt(np.mean(r * r)))
         out.inliers[k] = float(np.mean(np.abs(r) < INLIER_SIGMAS * sigma))
     return out
+
+
+class DepthTerm:
+    """The depth term (module doc) as an evidence term: the level's views' measured depth against the
+    mesh at the fragments' pose, cast at the level's detail; the pixels it finds hidden by an
+    unmodelled occluder are off for the terms after it (the masks do not see the object there)."""
+
+    name = "depth"
+
+    def __init__(self, noise: DepthNoise) -> None:
+        self.noise = noise
+
+    def residuals(self, fragments: Fragments) -> TermValues:
+        f = fragments
+        return self.at(f.rasterizer.caster, f.rasterizer.mesh, f.T_wm, f.centre_w, f.views, f.scale)
+
+    def at(self, caster: RayCaster, mesh: Mesh, T_wm: NDArray[np.float64], centre_w: NDArray[np.float64],
+           views: LevelViews, scale: float) -> TermValues:
+        """The term for a mesh at ``T_wm`` in ``views`` (with measured depth) at a level of ``scale``."""
+        if views.depths is None:
+            raise ValueError("the views have no measured depth")
+        d = depth_terms(caster, mesh, T_wm, views.full_cameras, views.depths, centre_w, self.noise,
+                        max(SAMPLES_MIN, int(MAX_SAMPLES * scale)), views.full_masks)
+        hidden = None
+        if d.hidden.any():
+            hidden = [d.hidden_mask(k, (c.height, c.width), scale) for k, c in enumerate(views.cameras)]
+        return TermValues(self.name, ViewTerms(d.loss, d.grad, d.gn), hidden=hidden, measured=d)

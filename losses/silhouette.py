@@ -16,12 +16,13 @@ _EPS = 1e-9
 
 @dataclass
 class ViewTerms:
-    """Per-view loss terms. ``loss``: (N,); ``grad``: (N, 6); ``gn``: (N, 6, 6); ``iou``: (N,) soft IoU."""
+    """Per-view loss terms. ``loss``: (N,); ``grad``: (N, 6); ``gn``: (N, 6, 6); ``iou``: (N,) soft IoU
+    (``None``: a term that measures no overlap, such as the depth term)."""
 
     loss: NDArray[np.float64]
     grad: NDArray[np.float64]
     gn: NDArray[np.float64]
-    iou: NDArray[np.float64]
+    iou: NDArray[np.float64] | None = None
 
 
 def targets_in_crops(targets: list[NDArray[np.float32]], sil: Silhouettes) -> NDArray[np.float64]:

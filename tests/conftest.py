@@ -11,6 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 
@@ -60,3 +61,34 @@ def refine_models_command(tmp_path: Path) -> Callable[[Path, Path, list[dict]], 
         assert p.returncode in (0, 3), p.stderr
         return json.loads((out / "refine.json").read_text())
     return run
+
+
+def open3d_depth(mesh: Any, T_wm: np.ndarray, cam: Any) -> np.ndarray:
+    """Depth (mm along the optical axis, 0: no hit) of pixel (i, j) through OpenCV's (u, v) = (j, i),
+    ray-cast by open3d (independent of our caster and of our pixel convention)."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    V = mesh.vertices @ T_wm[:3, :3].T + T_wm[:3, 3]
+    scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+    j, i = np.meshgrid(np.arange(cam.width), np.arange(cam.height))
+    d_cam = np.stack([j.ravel(), i.ravel(), np.ones(j.size)], 1) @ np.linalg.inv(cam.K_opencv).T  # unit z
+    rays = np.concatenate([np.tile(cam.centre, (len(d_cam), 1)), d_cam @ cam.R_w2c], 1).astype(np.float32)
+    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().reshape(cam.height, cam.width)
+    return np.where(np.isfinite(t), t, 0.0).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def box_with_depth() -> tuple[Any, np.ndarray, list, list[np.ndarray]]:
+    """A box (mesh, world-from-model pose) in 4 views of 320x240 at about 400 mm, and its depth in
+    each (:func:`open3d_depth`)."""
+    from autoalign.experiments.scenes.procedural_models import procedural_models
+    from autoalign.experiments.scenes.synthetic import default_K, ring_cameras
+    from autoalign.geometry.mesh import mesh_from_trimesh
+    from autoalign.geometry.se3 import make_pose, so3_exp
+
+    mesh = mesh_from_trimesh(procedural_models()[1].mesh, "box")
+    cams = ring_cameras(4, np.random.default_rng(3), dist_range=(380.0, 420.0), K=default_K(320, 240, 380.0),
+                        width=320, height=240)
+    T = make_pose(so3_exp(np.array([0.3, -0.2, 0.5])), -mesh.centre)
+    return mesh, T, cams, [open3d_depth(mesh, T, c) for c in cams]

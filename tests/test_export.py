@@ -36,7 +36,7 @@ from autoalign.experiments.scenes.synthetic import (
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import make_pose
 from autoalign.io.bop import read_labels
-from autoalign.io.export import bop_files, coco_annotations, export_frames
+from autoalign.io.export import export_frames
 from autoalign.io.models import ModelSet
 
 W, H, VIEWS = 320, 240, 8

@@ -5,7 +5,6 @@ run no longer ends with a KeyboardInterrupt in jax's gc callback."""
 from __future__ import annotations
 
 import re
-import shutil
 import subprocess
 import sys
 from pathlib import Path

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from autoalign.experiments.studies.exact_masks_photos import example_case, photo_moves, study_case
-from autoalign.losses.region import MASK_MISS, MASK_TRUST, RegionOptions, mask_rates, region_target
+from autoalign.losses.region import MASK_MISS, MASK_TRUST, mask_rates, region_target
 
 
 def _disk(shape: tuple[int, int], centre: tuple[float, float], r: float) -> np.ndarray:

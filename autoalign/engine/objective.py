@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -12,16 +12,20 @@ from numpy.typing import NDArray
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import transform_points
 from autoalign.io.bop import Scene
-from autoalign.losses import LOSSES, ViewTerms, robust_view_weights, targets_in_crops
-from autoalign.losses.depth import MAX_SAMPLES, DepthNoise, DepthTerms, depth_terms
+from autoalign.losses import ViewTerms, robust_view_weights
+from autoalign.losses.depth import DepthNoise, DepthTerm, DepthTerms
+from autoalign.losses.mask_term import MaskTerm
+from autoalign.losses.term import (
+    Fragments,
+    LevelViews,
+    Term,
+    TermValues,
+    ViewTermsRecord,
+    evaluate_terms,
+    sum_terms,
+)
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.rasterizers.soft_silhouette import Silhouettes
-
-if TYPE_CHECKING:
-    from autoalign.engine.seed_region import PriorTerm, SeedRegion
-
-DEPTH_SAMPLES_MIN = 250
-"""Below full resolution the depth term samples fewer pixels (in proportion), but at least these."""
 
 
 @dataclass(frozen=True)
@@ -45,44 +49,13 @@ class Level:
     ftol: float | None = None
 
 
-@dataclass(frozen=True)
-class LevelViews:
-    """The views of one resolution level: cameras, area-resampled targets in [0, 1], per-view
-    target sums, and the pixels not compared (``None``: all are), all at that resolution; and the
-    same views' full-resolution cameras, masks and measured depth (``None``: no depth term)."""
-
-    cameras: list[Camera]
-    targets: list[NDArray[np.float32]]
-    totals: NDArray[np.float64]
-    ignore: list[NDArray[np.bool_]] | None
-    full_cameras: list[Camera]
-    full_masks: list[NDArray[np.float32]]
-    depths: list[NDArray[np.float32]] | None = None
-
-
-@dataclass
-class ViewTermsRecord:
-    """Each evidence term per view at one pose: the mask term's loss (area-normalised L2), the depth
-    term's (mean robust loss in noise units; ``None`` without depth), the view's robust weight, and
-    the depth's share of the view's loss (0-1; ``None`` without depth)."""
-
-    mask_loss: NDArray[np.float64]
-    depth_loss: NDArray[np.float64] | None
-    weights: NDArray[np.float64]
-
-    @property
-    def depth_share(self) -> NDArray[np.float64] | None:
-        if self.depth_loss is None:
-            return None
-        total = self.mask_loss + self.depth_loss
-        return np.where(total > 0, self.depth_loss / np.maximum(total, 1e-300), 0.0)
-
-
 @dataclass
 class Evaluation:
-    """Objective value and derivatives at one pose. ``value = sum_i w_i loss_i``; ``grad``/``gn``
-    alike. ``terms`` are the views' whole terms (mask plus depth), ``depth`` the depth's own part
-    (``None`` without depth); ``prior`` a term on the pose alone (:class:`~autoalign.engine.seed_region.SeedRegion`)."""
+    """Objective value and derivatives at one pose. ``value = sum_i w_i loss_i`` plus the terms on
+    the pose alone; ``grad``/``gn`` alike. ``terms`` are the views' whole terms (every per-view term
+    summed, :func:`~autoalign.losses.term.sum_terms`), ``values`` each term's own
+    (:class:`~autoalign.losses.term.TermValues`), ``silhouettes`` the render with the pixels not
+    compared off."""
 
     value: float
     grad: NDArray[np.float64]
@@ -90,44 +63,68 @@ class Evaluation:
     terms: ViewTerms
     weights: NDArray[np.float64]
     silhouettes: Silhouettes
-    depth: DepthTerms | None = None
-    prior: PriorTerm | None = None  # the seed region's penalty, included in value, grad and gn
+    values: tuple[TermValues, ...] = ()
+
+    @property
+    def depth(self) -> DepthTerms | None:
+        """The depth term's measurements (``None``: masks only)."""
+        return next((v.measured for v in self.values if isinstance(v.measured, DepthTerms)), None)
 
     def record(self) -> ViewTermsRecord:
-        """Each term per view (:class:`ViewTermsRecord`)."""
-        depth = None if self.depth is None else self.depth.loss
-        return ViewTermsRecord(self.terms.loss - (0.0 if depth is None else depth), depth, self.weights)
+        """Each per-view term's loss per view (:class:`~autoalign.losses.term.ViewTermsRecord`)."""
+        return ViewTermsRecord.of(self.values, self.weights)
+
+
+def view_terms(loss: str, depth: DepthNoise | None, scene: Scene) -> tuple[Term, ...]:
+    """The evidence terms every view of ``scene`` is compared with, in order: the depth term (with a
+    sensor's ``depth`` noise and measured depth) before the mask term (``loss``), which does not
+    compare the pixels the depth shows hidden. The one list of per-view terms."""
+    terms: list[Term] = []
+    if depth is not None and scene.depths is not None:
+        terms.append(DepthTerm(depth))
+    terms.append(MaskTerm(loss))
+    return tuple(terms)
 
 
 class SilhouetteObjective:
-    """Weighted multi-view silhouette loss of one scene, with resampled targets per scale.
+    """Weighted multi-view evidence of one object in one scene, with resampled targets per scale.
 
     Args:
         pyramid: the object's mesh and its simplified versions (:class:`~autoalign.rasterizers.pyramid.MeshPyramid`).
         scene: cameras and target masks.
-        loss: one of :data:`autoalign.losses.LOSSES`.
+        loss: one of :data:`autoalign.losses.LOSSES`, the mask term's.
         robust: re-weight views with Cauchy weights on ``1 - IoU`` (see :func:`~autoalign.losses.robust_view_weights`).
         detail: the mesh's detail at each level's resolution (:class:`~autoalign.rasterizers.pyramid.MeshDetail`).
         depth: the depth sensor's noise: with it, and the scene's measured depth
             (:attr:`~autoalign.io.bop.Scene.depths`), each view's term adds the depth term
             (:mod:`autoalign.losses.depth`) to the mask term; ``None``: masks only.
+
+    The terms are :func:`view_terms`, plus those on the pose alone given to :meth:`with_pose_term`.
     """
 
     def __init__(self, pyramid: MeshPyramid, scene: Scene, loss: str = "l2", robust: bool = True,
                  detail: MeshDetail = MeshDetail(), depth: DepthNoise | None = None) -> None:
-        if loss not in LOSSES:
-            raise ValueError(f"unknown loss {loss!r}; choose one of {sorted(LOSSES)}")
         self.pyramid = pyramid
         self.detail = detail
         self.depth = depth
         self.centre_m = pyramid.mesh.centre  # the point twists turn about, model frame (mm)
         self.scene = scene
         self.loss_name = loss
-        self.loss_fn = LOSSES[loss]
         self.robust = robust
+        self.terms: tuple[Term, ...] = view_terms(loss, depth, scene)
         self._levels: dict[tuple[float, int | None], LevelViews] = {}
-        self.renders = 0
-        self.region: SeedRegion | None = None  # while set, poses are held within it (engine.refine)
+        self._renders = [0]  # shared with the objectives made by with_pose_term
+
+    @property
+    def renders(self) -> int:
+        """Soft renders so far, by this objective and those made from it by :meth:`with_pose_term`."""
+        return self._renders[0]
+
+    def with_pose_term(self, term: Term) -> "SilhouetteObjective":
+        """The same objective (its views and render count shared) with ``term`` on the pose added."""
+        held = copy.copy(self)
+        held.terms = self.terms + (term,)
+        return held
 
     def at_scale(self, scale: float, max_views: int | None = None) -> LevelViews:
         """The views at ``scale`` (cached), at most ``max_views`` of them spread through the scene
@@ -144,13 +141,12 @@ class SilhouetteObjective:
 
             tg = [resampled(m, c) for m, c in zip(scene.masks, cams)]
             ignore = None if scene.ignore is None else [resampled(g, c) > 0.5 for g, c in zip(scene.ignore, cams)]
-            depths = scene.depths if self.depth is not None else None
             self._levels[key] = LevelViews(cams, tg, np.array([float(t.sum()) for t in tg]), ignore, scene.cameras,
-                                           scene.masks, depths)
+                                           scene.masks, scene.depths)
         return self._levels[key]
 
     def subset(self, idx: list[int] | NDArray[np.int64]) -> "SilhouetteObjective":
-        """The same objective on the views at positions ``idx`` (no seed region), with the
+        """The same objective on the views at positions ``idx`` (no terms on the pose), with the
         resampled targets of every view at each scale already computed taken from this one."""
         idx = [int(i) for i in idx]
         sub = SilhouetteObjective(self.pyramid, self.scene.subset(idx), self.loss_name, self.robust, self.detail,
@@ -168,53 +164,40 @@ class SilhouetteObjective:
         self.scene = replace(self.scene, cameras=list(cameras))
         self._levels.clear()
 
-    def evaluate(self, T_wm: NDArray[np.float64], level: Level, weights: NDArray[np.float64] | None = None,
-                 with_derivatives: bool = True) -> Evaluation:
-        """Render at ``level`` and compare. Without ``weights`` they are computed here (robust or 1)."""
+    def fragments(self, T_wm: NDArray[np.float64], level: Level, with_derivatives: bool = True) -> Fragments:
+        """One render at ``level`` (:class:`~autoalign.losses.term.Fragments`), the scene's ignored pixels off."""
         views = self.at_scale(level.scale, level.max_views)
         rasterizer = self.pyramid.at(level.scale, self.detail)
         sil = rasterizer.render(T_wm, views.cameras, level.sigma, with_jacobian=with_derivatives)
-        self.renders += 1
-        depth = None
-        if views.depths is not None:
-            depth = depth_terms(rasterizer.caster, rasterizer.mesh, T_wm, views.full_cameras, views.depths,
-                                transform_points(T_wm, self.centre_m[None])[0], self.depth,
-                                max(DEPTH_SAMPLES_MIN, int(MAX_SAMPLES * level.scale)), views.full_masks)
-        ignore = self._ignored(views, depth, level.scale)
-        if ignore is not None:
-            sil = sil.without(targets_in_crops(ignore, sil) > 0.5)
-        terms = self.loss_fn(sil, targets_in_crops(views.targets, sil), views.totals)
-        if depth is not None:
-            terms = ViewTerms(terms.loss + depth.loss, terms.grad + depth.grad, terms.gn + depth.gn, terms.iou)
-        prior = None if self.region is None else self.region.term(T_wm)
-        return replace(self.combine(terms, sil, weights, prior), depth=depth)
+        self._renders[0] += 1
+        frags = Fragments(T_wm, transform_points(T_wm, self.centre_m[None])[0], level.scale, views, sil, rasterizer)
+        return frags if views.ignore is None else frags.hiding(views.ignore)
 
-    @staticmethod
-    def _ignored(views: LevelViews, depth: DepthTerms | None, scale: float) -> list[NDArray[np.bool_]] | None:
-        """The pixels not compared with the masks: those the scene ignores, and those the measured
-        depth shows hidden by an unmodelled occluder (the visible mask is empty there, and the
-        silhouette must not be pulled out of them)."""
-        if depth is None or not depth.hidden.any():
-            return views.ignore
-        hidden = [depth.hidden_mask(k, (c.height, c.width), scale) for k, c in enumerate(views.cameras)]
-        return hidden if views.ignore is None else [a | b for a, b in zip(views.ignore, hidden)]
+    def evaluate(self, T_wm: NDArray[np.float64], level: Level, weights: NDArray[np.float64] | None = None,
+                 with_derivatives: bool = True) -> Evaluation:
+        """Render at ``level`` once and evaluate every term; without ``weights`` they are computed here (robust or 1)."""
+        frags, values = evaluate_terms(self.terms, self.fragments(T_wm, level, with_derivatives))
+        return self.combine(values, frags.silhouettes, weights)
 
-    def combine(self, terms: ViewTerms, sil: Silhouettes, weights: NDArray[np.float64] | None = None,
-                prior: PriorTerm | None = None) -> Evaluation:
-        """Weighted sums of per-view terms, plus ``prior``; without ``weights`` they are computed from the fit."""
+    def combine(self, values: tuple[TermValues, ...], sil: Silhouettes,
+                weights: NDArray[np.float64] | None = None) -> Evaluation:
+        """The terms summed (:func:`~autoalign.losses.term.sum_terms`), the per-view part weighted;
+        without ``weights`` they are computed from the fit."""
+        terms, pose = sum_terms(values)
         if weights is None:
             weights = self.view_weights(terms)
         value = float(weights @ terms.loss)
         grad = np.einsum("i,ij->j", weights, terms.grad)
         gn = np.einsum("i,ijk->jk", weights, terms.gn)
-        if prior is not None:
-            value, grad, gn = value + prior.value, grad + prior.grad, gn + prior.gn
-        return Evaluation(value, grad, gn, terms, weights, sil, prior=prior)
+        if pose is not None:
+            value, grad, gn = value + pose.value, grad + pose.grad, gn + pose.gn
+        return Evaluation(value, grad, gn, terms, weights, sil, values)
 
     def reweighted(self, ev: Evaluation) -> Evaluation:
         """The same render with weights re-computed from its own fit (IRLS step; no new render)."""
-        return replace(self.combine(ev.terms, ev.silhouettes, prior=ev.prior), depth=ev.depth) if self.robust else ev
+        return self.combine(ev.values, ev.silhouettes) if self.robust else ev
 
     def view_weights(self, terms: ViewTerms) -> NDArray[np.float64]:
         """Per-view weights for the current fit (:func:`~autoalign.losses.robust_view_weights`; 1 if not robust)."""
+        assert terms.iou is not None
         return robust_view_weights(terms.iou) if self.robust else np.ones(len(terms.iou))

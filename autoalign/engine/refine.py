@@ -21,12 +21,7 @@ from autoalign.engine.hypotheses import (
     poses_at,
     turn_scores,
 )
-from autoalign.engine.objective import (
-    Evaluation,
-    Level,
-    SilhouetteObjective,
-    ViewTermsRecord,
-)
+from autoalign.engine.objective import Evaluation, Level, SilhouetteObjective
 from autoalign.engine.options import (  # noqa: F401 - the engine's settings, importable from here too
     DEFAULT_SCHEDULE,
     DisambiguationOptions,
@@ -49,6 +44,7 @@ from autoalign.io.bop import Scene
 from autoalign.losses import targets_in_crops
 from autoalign.losses.depth import DepthTerms
 from autoalign.losses.silhouette import boundary_bias_grads
+from autoalign.losses.term import ViewTermsRecord
 from autoalign.losses.overlap import iou_from_counts, view_ious
 from autoalign.rasterizers.pyramid import MeshPyramid
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
@@ -146,7 +142,7 @@ class RefineResult:
             Near 0 the object is nearly symmetric about such an axis.
         depth: the depth term at the result, per view (``None``: masks only; :mod:`autoalign.losses.depth`).
         terms: each evidence term's loss per view at the result, with the view weights
-            (:class:`~autoalign.engine.objective.ViewTermsRecord`).
+            (:class:`~autoalign.losses.term.ViewTermsRecord`).
         photo: the region term's evidence at the result (``None``: photos not used;
             :class:`~autoalign.engine.photo_evidence.PhotoEvidence`). With photos the terms compare
             the silhouettes with the region targets (the photo's posteriors fused with the mask);
@@ -490,15 +486,13 @@ def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best:
     move = pose_change(anchor, h.T_final, obj.centre_m)
     if opts.seed_radius is None or (move[0] <= opts.seed_radius[0] and move[1] <= opts.seed_radius[1]):
         return best, ev, None, None
-    obj.region = SeedRegion(anchor, obj.centre_m, opts.seed_radius, STIFFNESS * len(obj.scene))
+    held = obj.with_pose_term(SeedRegion(anchor, obj.centre_m, opts.seed_radius, STIFFNESS * len(obj.scene)))
     full = Level(1.0, opts.schedule[-1].sigma, 0)
     candidates = []
-    try:  # the whole schedule, which the far pose's pull may take to the region's edge, and the last level alone
-        for levels in (opts.schedule, opts.schedule[-1:]):
-            T, traces = run_schedule(obj, anchor, levels, opts.optimizer, progress, "within the seed's radius")
-            candidates.append((T, traces, levels))
-    finally:
-        obj.region = None
+    # the whole schedule, which the far pose's pull may take to the region's edge, and the last level alone
+    for levels in (opts.schedule, opts.schedule[-1:]):
+        T, traces = run_schedule(held, anchor, levels, opts.optimizer, progress, "within the seed's radius")
+        candidates.append((T, traces, levels))
     evs = [obj.evaluate(T, full) for T, _, _ in candidates]
     k = int(np.argmin([e.value for e in evs]))
     (T_near, traces, levels), ev_near = candidates[k], evs[k]

@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.geometry.se3 import so3_log, transform_points
+from autoalign.losses.term import Fragments, PoseTerms, TermValues
 
 SEED_RADIUS = (25.0, 30.0)
 """The stated uncertainty of a given seed pose (mm at the model's centre, degrees) unless the person
@@ -35,16 +36,6 @@ mask loss is at most 1 (area-normalised) and below 0.05 at a good fit."""
 
 
 @dataclass(frozen=True)
-class PriorTerm:
-    """A term on the pose alone: ``value`` (0.5 * sum of its squared residuals), ``grad`` (6,) and
-    ``gn`` (6, 6) with respect to the twist."""
-
-    value: float
-    grad: NDArray[np.float64]
-    gn: NDArray[np.float64]
-
-
-@dataclass(frozen=True)
 class SeedRegion:
     """The poses within ``radius`` (mm at the centre, degrees) of ``T_seed`` (world from model),
     ``centre_m`` the model's centre (mm), ``weight`` the penalty's scale (``STIFFNESS`` x views)."""
@@ -53,8 +44,13 @@ class SeedRegion:
     centre_m: NDArray[np.float64]
     radius: tuple[float, float]
     weight: float
+    name = "seed"
 
-    def term(self, T_wm: NDArray[np.float64]) -> PriorTerm:
+    def residuals(self, fragments: Fragments) -> TermValues:
+        """The region's penalty as an evidence term on the pose alone."""
+        return TermValues(self.name, pose=self.term(fragments.T_wm))
+
+    def term(self, T_wm: NDArray[np.float64]) -> PoseTerms:
         """The penalty at ``T_wm`` and its derivatives (zero inside the region)."""
         grad, gn, value = np.zeros(6), np.zeros((6, 6)), 0.0
         s = float(np.sqrt(self.weight))
@@ -72,7 +68,7 @@ class SeedRegion:
             J = np.zeros(6)
             J[3:] = s / limit * w / angle  # d angle / d w: the turn's own axis (exp(dw) R, small dw)
             value, grad, gn = value + 0.5 * e * e, grad + J * e, gn + np.outer(J, J)
-        return PriorTerm(value, grad, gn)
+        return PoseTerms(value, grad, gn)
 
 
 @dataclass

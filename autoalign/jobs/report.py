@@ -19,13 +19,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign import __version__
-from autoalign.engine.objective import ViewTermsRecord
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult
 from autoalign.engine.uncertainty import BOUNDARY_BIAS_PX, SAME_VIEWPOINT_DEG, Uncertainty, axis_sigmas
 from autoalign.geometry.camera import PIXEL_CONVENTION
 from autoalign.geometry.se3 import rotation_angle_deg, transform_points
 from autoalign.losses.depth import DepthTerms
+from autoalign.losses.term import ViewTermsRecord
 from autoalign.quality.verdict import Verdict, low_weight_ids
 from autoalign.scene.joint import JointRefinement
 
@@ -46,12 +46,16 @@ def floats(a: Any) -> Any:
 
 
 def terms_record(terms: ViewTermsRecord | None) -> dict[str, Any] | None:
-    """Each evidence term per view of ``image_ids``: the mask term's and the depth term's loss, the
-    view's robust weight and the depth's share of the view's loss (``None`` entries: no depth)."""
+    """Each per-view evidence term per view of ``image_ids``: its loss (``mask_loss``, ``depth_loss``,
+    ...), the view's robust weight, and, with more than one term, each one's share of the view's loss
+    (``depth_share``, ...)."""
     if terms is None:
         return None
-    return {"mask_loss": terms.mask_loss, "depth_loss": terms.depth_loss, "weight": terms.weights,
-            "depth_share": terms.depth_share}
+    out: dict[str, Any] = {f"{name}_loss": loss for name, loss in terms.losses.items()}
+    out["weight"] = terms.weights
+    if len(terms.losses) > 1:
+        out.update({f"{name}_share": share for name, share in terms.shares().items()})
+    return out
 
 
 def photo_record(photo: PhotoEvidence | None) -> dict[str, Any] | None:

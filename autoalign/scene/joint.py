@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.engine.objective import Level
-from autoalign.engine.solver import FTOL, LevenbergMarquardt, Stop, minimise
+from autoalign.engine.solver import FTOL, LevenbergMarquardt, Stop, StepRule, minimise
 from autoalign.engine.uncertainty import Uncertainty, jackknife, uncertainty_of, viewpoint_groups, viewpoints_seen
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import apply_twist, transform_points

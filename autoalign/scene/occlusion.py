@@ -27,19 +27,14 @@ from typing import Any, Callable, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.engine.objective import (
-    DEPTH_SAMPLES_MIN,
-    Level,
-    LevelViews,
-    SilhouetteObjective,
-    ViewTermsRecord,
-)
+from autoalign.engine.objective import Level, SilhouetteObjective
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import transform_points
 from autoalign.io.instances import InstanceScenes
 from autoalign.losses import robust_view_weights
-from autoalign.losses.depth import MAX_SAMPLES, DepthNoise, DepthTerms, depth_terms
+from autoalign.losses.depth import DepthNoise, DepthTerm, DepthTerms
 from autoalign.losses.overlap import iou_from_counts
+from autoalign.losses.term import LevelViews, ViewTermsRecord
 from autoalign.rasterizers.camera_batch import CameraBatch
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.rasterizers.soft_silhouette import Silhouettes
@@ -96,10 +91,12 @@ class JointEvaluation:
         return _instance_values(self.fits, self.weights)
 
     def record(self, i: int) -> ViewTermsRecord:
-        """Instance ``i``'s terms per view (:class:`~autoalign.engine.objective.ViewTermsRecord`)."""
-        d = None if self.depth is None or self.depth[i] is None else self.depth[i].loss
+        """Instance ``i``'s terms per view (:class:`~autoalign.losses.term.ViewTermsRecord`)."""
         loss = np.array([f.loss for f in self.fits[i]])
-        return ViewTermsRecord(loss - (0.0 if d is None else d), d, self.weights[i])
+        if self.depth is None or self.depth[i] is None:
+            return ViewTermsRecord({"mask": loss}, self.weights[i])
+        d = self.depth[i].loss
+        return ViewTermsRecord({"depth": d, "mask": loss - d}, self.weights[i])
 
     def reweighted(self) -> "JointEvaluation":
         """The same fits with the weights computed from their own IoU (an IRLS step; none if not robust)."""
@@ -206,15 +203,15 @@ class OcclusionObjective:
         if self.depth is None or all(sc.depths is None for sc in self.scenes):
             return None
         out: list[DepthTerms | None] = []
+        term = DepthTerm(self.depth)
         for i, (sc, rast) in enumerate(zip(self.scenes, self.rasterizers)):
             if sc.depths is None:
                 out.append(None)
                 continue
-            cams = [self.cameras[g] for g in self.views_of[i]]
             centre = transform_points(poses[i], self.centres_m[i][None])[0]
-            d = self._last.get(("depth", i), keys[i], lambda: depth_terms(
-                rast.caster, rast.mesh, poses[i], cams, sc.depths, centre, self.depth,
-                max(DEPTH_SAMPLES_MIN, int(MAX_SAMPLES * level.scale)), sc.masks))
+            views = self.objectives[i].at_scale(level.scale)
+            d = self._last.get(("depth", i), keys[i],
+                               lambda: term.at(rast.caster, rast.mesh, poses[i], centre, views, level.scale).measured)
             for k, f in enumerate(fits[i]):
                 grad, gn = f.grad.copy(), f.gn.copy()
                 grad[:6] += d.grad[k]

@@ -30,6 +30,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -49,6 +50,9 @@ from autoalign.geometry.mesh import mesh_from_trimesh
 from autoalign.geometry.se3 import make_pose, rotation_angle_deg
 from autoalign.io.atomic_files import write_json_atomic
 from autoalign.io.bop import Scene, scene_gt_dict
+
+if TYPE_CHECKING:
+    import trimesh
 
 ENLARGE = 6.25  # 640 x 480 -> 4000 x 3000
 # The commands with the downscaling switched off: the pixel budget lifted before main runs.

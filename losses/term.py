@@ -1,0 +1,150 @@
+"""Evidence terms: everything a pose is compared with, in one shape.
+
+One render of the object at a pose (:class:`Fragments`) feeds every term, as a rasterizer's
+fragments feed any of PyTorch3D's shaders. A term (:class:`Term`) reads the fragments, never the
+scene folder, and gives its residuals in least-squares form, as ICG's modalities give their
+gradient and Hessian to one optimiser: per view (:class:`~autoalign.losses.silhouette.ViewTerms`,
+weighed by the views' robust weights) or on the pose alone (:class:`PoseTerms`), with what it
+measured. :func:`evaluate_terms` runs them and :func:`sum_terms` is the one place they are summed.
+
+A term may find pixels that something no model holds hides from the camera (the depth term's
+unmodelled occluders, :attr:`TermValues.hidden`): the terms after it see the fragments without them.
+Twists are ``(v [mm], w [rad])`` in the world frame about ``Fragments.centre_w``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.geometry.camera import Camera
+from autoalign.losses.silhouette import ViewTerms, targets_in_crops
+from autoalign.rasterizers.soft_silhouette import Silhouettes, SoftSilhouetteRasterizer
+
+
+@dataclass(frozen=True)
+class LevelViews:
+    """The views of one resolution level: cameras, area-resampled targets in [0, 1], per-view
+    target sums, and the pixels not compared (``None``: all are), all at that resolution; and the
+    same views' full-resolution cameras, masks and measured depth (mm, 0 = none; ``None``: no depth)."""
+
+    cameras: list[Camera]
+    targets: list[NDArray[np.float32]]
+    totals: NDArray[np.float64]
+    ignore: list[NDArray[np.bool_]] | None
+    full_cameras: list[Camera]
+    full_masks: list[NDArray[np.float32]]
+    depths: list[NDArray[np.float32]] | None = None
+
+
+@dataclass(frozen=True)
+class Fragments:
+    """One render of one object at one pose and one resolution level: what every term reads.
+
+    Attributes:
+        T_wm: world-from-model pose (4x4, mm).
+        centre_w: the point twists turn about (world frame, mm).
+        scale: the level's resolution relative to the input.
+        views: the level's views (:class:`LevelViews`).
+        silhouettes: the soft silhouettes in those views, the pixels not compared already off.
+        rasterizer: what rendered them, at the level's detail (its mesh and ray caster).
+    """
+
+    T_wm: NDArray[np.float64]
+    centre_w: NDArray[np.float64]
+    scale: float
+    views: LevelViews
+    silhouettes: Silhouettes
+    rasterizer: SoftSilhouetteRasterizer
+
+    def hiding(self, hidden: list[NDArray[np.bool_]]) -> "Fragments":
+        """These fragments with the pixels ``hidden`` (one image per view, at the level's resolution) off."""
+        return replace(self, silhouettes=self.silhouettes.without(targets_in_crops(hidden, self.silhouettes) > 0.5))
+
+
+@dataclass(frozen=True)
+class PoseTerms:
+    """A term on the pose alone: ``value`` (0.5 * its squared residuals), ``grad`` (6,) and ``gn`` (6, 6)
+    with respect to the twist."""
+
+    value: float
+    grad: NDArray[np.float64]
+    gn: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class TermValues:
+    """What one term gave at one render.
+
+    Attributes:
+        name: the term's name (``mask``, ``depth``, ``seed``), as reports write it.
+        views: its per-view values (``iou`` is ``None`` for a term that measures no overlap), or ``None``.
+        pose: its value on the pose alone, or ``None``.
+        hidden: per view, the pixels (level resolution) it found hidden by something unmodelled.
+        measured: the term's own record of what it measured (e.g. :class:`~autoalign.losses.depth.DepthTerms`).
+    """
+
+    name: str
+    views: ViewTerms | None = None
+    pose: PoseTerms | None = None
+    hidden: list[NDArray[np.bool_]] | None = None
+    measured: object = None
+
+
+class Term(Protocol):
+    """One kind of evidence: its ``name`` and its residuals at one render."""
+
+    name: str
+
+    def residuals(self, fragments: Fragments) -> TermValues:
+        """The term at the fragments' pose: values, gradients and Gauss-Newton blocks."""
+        ...
+
+
+def evaluate_terms(terms: tuple[Term, ...], fragments: Fragments) -> tuple[Fragments, tuple[TermValues, ...]]:
+    """Every term at one render, in order; the fragments the last term saw (hidden pixels off) and the values."""
+    values = []
+    for term in terms:
+        v = term.residuals(fragments)
+        if v.hidden is not None:
+            fragments = fragments.hiding(v.hidden)
+        values.append(v)
+    return fragments, tuple(values)
+
+
+def sum_terms(values: tuple[TermValues, ...]) -> tuple[ViewTerms, PoseTerms | None]:
+    """The terms summed: per view (the IoU is the overlap term's), and on the pose."""
+    per_view = [v.views for v in values if v.views is not None]
+    if not per_view:
+        raise ValueError("no term compares the views")
+    loss, grad, gn = per_view[0].loss, per_view[0].grad, per_view[0].gn
+    for t in per_view[1:]:
+        loss, grad, gn = loss + t.loss, grad + t.grad, gn + t.gn
+    iou = next((t.iou for t in per_view if t.iou is not None), None)
+    if iou is None:
+        raise ValueError("no term measures the overlap the view weights read")
+    on_pose = [v.pose for v in values if v.pose is not None]
+    pose = None
+    for p in on_pose:
+        pose = p if pose is None else PoseTerms(pose.value + p.value, pose.grad + p.grad, pose.gn + p.gn)
+    return ViewTerms(loss, grad, gn, iou), pose
+
+
+@dataclass
+class ViewTermsRecord:
+    """Each per-view term's loss at one pose, by name (views in order), with the views' robust weights."""
+
+    losses: dict[str, NDArray[np.float64]]
+    weights: NDArray[np.float64]
+
+    def shares(self) -> dict[str, NDArray[np.float64]]:
+        """Each term's share of its view's loss (0-1; 0 where the view's loss is 0)."""
+        total = sum(self.losses.values())
+        return {name: np.where(total > 0, loss / np.maximum(total, 1e-300), 0.0) for name, loss in self.losses.items()}
+
+    @classmethod
+    def of(cls, values: tuple[TermValues, ...], weights: NDArray[np.float64]) -> "ViewTermsRecord":
+        return cls({v.name: v.views.loss for v in values if v.views is not None}, weights)
