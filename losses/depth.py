@@ -28,13 +28,21 @@ from numpy.typing import NDArray
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.mesh import Mesh
 from autoalign.losses.silhouette import ViewTerms
-from autoalign.losses.term import Fragments, LevelViews, TermValues
+from autoalign.losses.term import Fragments, LevelViews, Stance, TermEvidence, TermValues
 from autoalign.rasterizers.ray_casting import RayCaster
 
 CAUCHY_C = 2.5
 """Residuals are down-weighted beyond this many sigmas (Cauchy: weight ``1 / (1 + (r / c sigma)^2)``)."""
 INLIER_SIGMAS = 3.0
 """A residual within this many sigmas agrees with the measurement (:attr:`DepthTerms.inliers`)."""
+SUPPORTS = 0.8
+"""Median share (over the views) of the object's depth samples within ``INLIER_SIGMAS`` sigma of the
+measurement at or above which the depth supports the pose. On the real YCB-Video frames the
+dataset's labels give 0.97-1.0 and the same poses moved 5 mm along the ray 0.83-0.96, 10 mm 0.02-0.14."""
+CONTRADICTS = 0.5
+"""Below this median share the measured depth contradicts the pose, and fails it whatever the masks say."""
+MIN_SAMPLES_TO_JUDGE = 50
+"""A view with fewer depth samples on the object says nothing about it."""
 MAX_SAMPLES = 4000
 """At most about this many pixels of a view are cast: the term's cost stays small next to the mask's."""
 SAMPLES_MIN = 250
@@ -79,6 +87,24 @@ class DepthTerms:
     inliers: NDArray[np.float64]
     occluders: list[tuple[NDArray[np.int64], NDArray[np.int64]]]
     stride: NDArray[np.int64]
+
+    def evidence(self) -> TermEvidence | None:
+        """What the depth says of the pose (:class:`~autoalign.losses.term.TermEvidence`): the median over
+        the views with at least ``MIN_SAMPLES_TO_JUDGE`` samples of the share within ``INLIER_SIGMAS``
+        sigma; ``None`` without such views."""
+        judged = self.used >= MIN_SAMPLES_TO_JUDGE
+        if not judged.any():
+            return None
+        agree = float(np.median(self.inliers[judged]))
+        within = f"a median {agree:.0%} of the object's depth samples within {INLIER_SIGMAS:g} sigma"
+        if agree >= SUPPORTS:
+            stance, reason = Stance.SUPPORTS, f"the measured depth agrees: {within}"
+        elif agree < CONTRADICTS:
+            stance, reason = Stance.CONTRADICTS, f"the measured depth disagrees: {within} (< {CONTRADICTS:.0%})"
+        else:
+            stance, reason = Stance.NEUTRAL, f"the measured depth neither confirms nor contradicts the pose: {within}"
+        return TermEvidence("depth", stance, agree, reason, fails=True,
+                            reliability=np.where(judged, self.inliers, np.nan))
 
     def hidden_mask(self, k: int, shape: tuple[int, int], scale: float) -> NDArray[np.bool_]:
         """View ``k``'s pixels, at ``scale`` of the full resolution (``shape`` (h, w) there), that

@@ -14,8 +14,9 @@ Twists are ``(v [mm], w [rad])`` in the world frame about ``Fragments.centre_w``
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass, replace
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -92,6 +93,45 @@ class TermValues:
     pose: PoseTerms | None = None
     hidden: list[NDArray[np.bool_]] | None = None
     measured: object = None
+
+
+class Stance(enum.Enum):
+    """What a kind of evidence says of a pose, on its own."""
+
+    SUPPORTS = "supports"  # it agrees: masks that cover the silhouette loosely are no reason to check
+    NEUTRAL = "neutral"  # it neither confirms nor contradicts the pose
+    CONTRADICTS = "contradicts"  # it disagrees: the pose fails (a measurement) or is to be checked (an appearance)
+
+
+@dataclass(frozen=True)
+class TermEvidence:
+    """What one kind of evidence saw at the result, in the terms the verdict and the report read
+    (:func:`~autoalign.quality.verdict.judge`): no rule in the verdict names a kind.
+
+    Attributes:
+        name: the term's name (``depth``, ``photo``).
+        stance: what it says of the pose (:class:`Stance`).
+        agreement: its median measure of agreement over the views that measured it (the depth: the
+            share of samples within its noise; the photo: the edge contrast across the outline).
+        reason: the stance in words, as a verdict's reason gives it.
+        fails: whether its contradiction fails the pose (a measurement that disagrees) rather than
+            asks for a look (an appearance that may deceive).
+        sees_outline: it sees the object's outline itself (the photo): masks that do not match a pose
+            it does not contradict ask for a look, not a failure.
+        reliability: per view its own measure of agreement (NaN: it measured nothing there).
+    """
+
+    name: str
+    stance: Stance
+    agreement: float
+    reason: str
+    fails: bool = False
+    sees_outline: bool = False
+    reliability: NDArray[np.float64] | None = None
+
+    def record(self) -> dict[str, Any]:
+        """As ``refine.json`` writes it."""
+        return {"term": self.name, "stance": self.stance.value, "agreement": self.agreement, "reason": self.reason}
 
 
 class Term(Protocol):

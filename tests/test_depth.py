@@ -24,6 +24,7 @@ from autoalign.geometry.se3 import (
 )
 from autoalign.io.bop import read_scene, with_depth
 from autoalign.losses.depth import DepthNoise, DepthTerms, depth_terms
+from autoalign.losses.term import TermEvidence
 from autoalign.quality.verdict import PoseEvidence, judge
 from autoalign.rasterizers.ray_casting import RayCaster
 
@@ -188,12 +189,14 @@ def test_every_instance_of_a_scene_and_the_joint_stage_use_the_depth(tmp_path, r
             assert inst["verdict"] != "failed", inst["reasons"]
 
 
-def _depth_record(share: float, views: int = 6, used: int = 800) -> DepthTerms:
-    """A depth term of ``views`` views whose ``share`` of ``used`` samples each agree with the measurement."""
+def _depth_evidence(share: float, views: int = 6, used: int = 800) -> tuple[TermEvidence, ...]:
+    """What a depth term of ``views`` views says whose ``share`` of ``used`` samples each agree with
+    the measurement (nothing, with too few samples)."""
     none = np.zeros(0, np.int64)
-    return DepthTerms(np.zeros(views), np.zeros((views, 6)), np.zeros((views, 6, 6)), np.full(views, used),
-                      np.zeros(views, np.int64), np.ones(views), np.full(views, share), [(none, none)] * views,
-                      np.ones(views, np.int64))
+    found = DepthTerms(np.zeros(views), np.zeros((views, 6)), np.zeros((views, 6, 6)), np.full(views, used),
+                       np.zeros(views, np.int64), np.ones(views), np.full(views, share), [(none, none)] * views,
+                       np.ones(views, np.int64)).evidence()
+    return () if found is None else (found,)
 
 
 def test_the_verdict_weighs_the_depth_against_the_masks() -> None:
@@ -202,10 +205,10 @@ def test_the_verdict_weighs_the_depth_against_the_masks() -> None:
     ids = list(range(6))
     partial, fitting, w = np.full(6, 0.43), np.full(6, 0.95), np.ones(6)
     assert judge(PoseEvidence(partial, w, ids)).status == "failed"
-    supported = judge(PoseEvidence(partial, w, ids, depth=_depth_record(0.97)))
+    supported = judge(PoseEvidence(partial, w, ids, terms=_depth_evidence(0.97)))
     assert supported.status == "ok" and "the measured depth agrees" in supported.reasons[0]
-    contradicted = judge(PoseEvidence(fitting, w, ids, depth=_depth_record(0.1)))
+    contradicted = judge(PoseEvidence(fitting, w, ids, terms=_depth_evidence(0.1)))
     assert contradicted.status == "failed" and "the measured depth disagrees" in contradicted.reasons[0]
     # too few samples to judge; then a share that neither supports nor contradicts
-    assert judge(PoseEvidence(fitting, w, ids, depth=_depth_record(0.1, used=10))).status == "ok"
-    assert judge(PoseEvidence(partial, w, ids, depth=_depth_record(0.6))).status == "failed"
+    assert judge(PoseEvidence(fitting, w, ids, terms=_depth_evidence(0.1, used=10))).status == "ok"
+    assert judge(PoseEvidence(partial, w, ids, terms=_depth_evidence(0.6))).status == "failed"

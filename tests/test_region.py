@@ -208,7 +208,8 @@ def test_verdict_reads_the_photo(iou, contrast, status, words):
 
     n = 10
     photo = None if contrast is None else PhotoEvidence(np.full(n, 20.0), np.full(n, 0.9), np.full(n, contrast), 3)
-    v = judge(PoseEvidence(np.full(n, iou), np.ones(n), list(range(n)), photo=photo))
+    said = None if photo is None else photo.evidence()
+    v = judge(PoseEvidence(np.full(n, iou), np.ones(n), list(range(n)), terms=() if said is None else (said,)))
     assert v.status == status and any(words in r for r in v.reasons), v
 
 

@@ -175,7 +175,8 @@ class SilhouetteObjective:
 
     def evaluate(self, T_wm: NDArray[np.float64], level: Level, weights: NDArray[np.float64] | None = None,
                  with_derivatives: bool = True) -> Evaluation:
-        """Render at ``level`` once and evaluate every term; without ``weights`` they are computed here (robust or 1)."""
+        """Render at ``level`` once and evaluate every term; without ``weights`` they are computed
+        here (robust or 1)."""
         frags, values = evaluate_terms(self.terms, self.fragments(T_wm, level, with_derivatives))
         return self.combine(values, frags.silhouettes, weights)
 

@@ -44,7 +44,7 @@ from autoalign.io.bop import Scene
 from autoalign.losses import targets_in_crops
 from autoalign.losses.depth import DepthTerms
 from autoalign.losses.silhouette import boundary_bias_grads
-from autoalign.losses.term import ViewTermsRecord
+from autoalign.losses.term import TermEvidence, ViewTermsRecord
 from autoalign.losses.overlap import iou_from_counts, view_ious
 from autoalign.rasterizers.pyramid import MeshPyramid
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
@@ -170,6 +170,13 @@ class RefineResult:
     terms: ViewTermsRecord | None = None
     photo: PhotoEvidence | None = None
     seed_hold: SeedHold | None = None
+
+    def evidence(self) -> tuple[TermEvidence, ...]:
+        """What each kind of evidence beside the masks says of the pose, in the order it was measured
+        (:class:`~autoalign.losses.term.TermEvidence`; a kind that measured nothing is left out)."""
+        found = (None if self.depth is None else self.depth.evidence(),
+                 None if self.photo is None else self.photo.evidence())
+        return tuple(e for e in found if e is not None)
 
 
 def _final_loss(obj: SilhouetteObjective, T: NDArray[np.float64], level: Level,

@@ -13,6 +13,7 @@ Standard library only at import (the command's start-up stays fast); the rest lo
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -161,10 +162,8 @@ def _object_report(job: FolderJob, scene: Any, mesh: Any, result: Any, seed: Any
     from autoalign.geometry.se3 import pose_change
 
     seed_move = None if seed.pose is None else pose_change(seed.pose, result.T_wm, mesh.centre)
-    verdict = judge(PoseEvidence(result.iou_after, result.weights, ids, scene.empty, bool(result.ambiguous),
-                                 uncertainty=result.uncertainty, turn_gap=result.turn_gap, depth=result.depth,
-                                 photo=result.photo, seed_move=seed_move, seed_radius=job.seed_radius_mm_deg,
-                                 seed_hold=result.seed_hold))
+    verdict = judge(replace(PoseEvidence.of(result, tuple(scene.empty), seed_move=seed_move,
+                                            seed_radius=job.seed_radius_mm_deg), image_ids=ids))
     if seed_move is not None:
         seed.moved = seed_move
         seed.radius = job.seed_radius_mm_deg

@@ -275,6 +275,7 @@ class RefineReport:
                            for k, h in enumerate(r.hypotheses)],
             "ambiguous": bool(r.ambiguous), "turn_gap": r.turn_gap, "depth": depth_record(r.depth),
             "photo": photo_record(r.photo), "terms": terms_record(r.terms),
+            "evidence": [e.record() for e in r.evidence()],
             "runner_up": None if self.runner_up is None else self.runner_up.to_json(),
             "options": self.options, "history": r.history, "outputs": dict(OUTPUTS),
             "warnings": self.warnings + self.notes(),
@@ -328,6 +329,7 @@ class InstanceReport:
             "empty_masks": self.empty,
             "ambiguous": bool(res.ambiguous), "symmetric": self.symmetric, "turn_gap": res.turn_gap,
             "depth": depth_record(res.depth), "photo": photo_record(res.photo), "terms": terms_record(res.terms),
+            "evidence": [e.record() for e in res.evidence()],
             "iterations": res.iterations, "renders": res.renders,
             "timings": {**res.timings, "instance": self.seconds},
         }

@@ -4,15 +4,16 @@ person only needs to look at the flagged ones.
 The rules read the fit itself, never a ground truth: the IoU of the silhouette with the masks
 (median over the views, since real segmenter masks fail in some views), how many views the
 robust weights set aside, whether another pose fits as well, how many views had no mask, how
-large the pose's sigmas are, with measured depth, how much of the object's surface agrees
-with it, and with the photos as evidence, whether the photo's colours change across the outline.
-Depth is independent of the masks: where it agrees, a partial mask does not fail the pose; where it
-disagrees, the pose fails whatever the masks say. The photo alike, more weakly: where its colours
-clearly change across the outline, a loose fit to the masks (or the colour targets) is no reason
-to check; where they do not change at all, the pose is checked, and failed if the masks disagree
-too; in between, masks that disagree make the pose `check`, not `failed` (masks are the weakest
-evidence: on the real LM-O scenes the glue's SAM masks lie mostly on other objects, IoU 0.17 with
-a label 2.8% of its diameter from the dataset's).
+large the pose's sigmas are, and what each other kind of evidence says of the pose on its own
+(:class:`~autoalign.losses.term.TermEvidence`, which each kind states in its own module: the
+measured depth in :mod:`autoalign.losses.depth`, the photo in :mod:`autoalign.engine.photo_evidence`).
+Evidence that supports the pose keeps masks that cover it loosely from flagging it. Evidence that
+contradicts it fails it when it is a measurement (the depth: whatever the masks say), and asks for
+a look when it is an appearance (the photo's colours not changing across the outline). Evidence
+that sees the outline itself and neither confirms nor contradicts the pose turns masks that
+disagree into `check`, not `failed` (masks are the weakest evidence: on the real LM-O scenes the
+glue's SAM masks lie mostly on other objects, IoU 0.17 with a label 2.8% of its diameter from the
+dataset's).
 """
 
 from __future__ import annotations
@@ -22,13 +23,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineResult
 from autoalign.engine.seed_region import SEED_RADIUS, SeedHold
 from autoalign.engine.uncertainty import (MIN_VIEWPOINTS, SAME_AXIS, SAME_VIEWPOINT_DEG, Uncertainty, direction_name,
                                          turn_sigma_deg)
-from autoalign.losses.depth import INLIER_SIGMAS, DepthTerms
-from autoalign.losses.region import EDGE_SUPPORTS
+from autoalign.losses.term import Stance, TermEvidence
 
 FAILED_IOU = 0.5
 """Median IoU below this: the silhouette does not match the masks; the pose is taken as wrong."""
@@ -50,23 +49,6 @@ LARGE_SIGMA_MM = 2.0
 LARGE_SIGMA_DEG = 2.0
 """... and so does an orientation sigma above this (degrees, about any direction that is not an
 axis of continuous symmetry of the model)."""
-DEPTH_SUPPORTS = 0.8
-"""Median share (over the views) of the object's depth samples within ``INLIER_SIGMAS`` sigma of the
-measurement at or above which the depth supports the pose. On the real YCB-Video frames the
-dataset's labels give 0.97-1.0 and the same poses moved 5 mm along the ray 0.83-0.96, 10 mm 0.02-0.14."""
-DEPTH_CONTRADICTS = 0.5
-"""Below this median share the measured depth contradicts the pose."""
-PHOTO_SUPPORTS = EDGE_SUPPORTS
-"""Median edge contrast (over the views) at or above which the photo supports the pose
-(:class:`~autoalign.losses.region.RegionTarget`; measured: :data:`~autoalign.losses.region.EDGE_SUPPORTS`):
-on the real LM-O photos the photo rarely supports a pose and the masks decide."""
-PHOTO_CONTRADICTS = 0.1
-"""Below this median edge contrast the photo contradicts the pose (its colours do not change across
-the outline): synthetic 0.07-0.13 at 10 mm / 10 deg off; real LM-O never below 0.16 at the
-dataset's labels (no false alarm measured), but 0.10-0.24 at 10 mm off (most such poses not caught
-by the photo: the masks and the depth must)."""
-MIN_DEPTH_SAMPLES = 50
-"""A view with fewer depth samples on the object says nothing about it."""
 NEAR_SYMMETRY_GAP = 0.02
 """A weakly observed turn names the object nearly symmetric (a reason to check) unless turning the
 pose about it clearly worsens the fit: by this much mean hard IoU at 1/4 resolution ..."""
@@ -111,25 +93,6 @@ class Verdict:
     set_aside: list[int] = field(default_factory=list)
 
 
-def depth_agreement(depth: DepthTerms | None) -> float | None:
-    """The median over the views with at least ``MIN_DEPTH_SAMPLES`` depth samples on the object of
-    the share within ``INLIER_SIGMAS`` sigma of the measurement; ``None`` without such views."""
-    if depth is None:
-        return None
-    shares = depth.inliers[depth.used >= MIN_DEPTH_SAMPLES]
-    return float(np.median(shares)) if len(shares) else None
-
-
-def photo_contrast(photo: PhotoEvidence | None) -> float | None:
-    """The median over the views of the photo's edge contrast across the outline; ``None`` without
-    photos or views to measure it in."""
-    if photo is None:
-        return None
-    c = np.asarray(photo.edge_contrast, dtype=np.float64)
-    c = c[np.isfinite(c)]
-    return float(np.median(c)) if len(c) else None
-
-
 def largest_sigmas(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.float64], ...] = ()) -> tuple[float, float]:
     """The largest position sigma (mm) and orientation sigma (degrees) over all directions, the
     turns about ``free_axes_m`` (unit, model frame: axes of continuous symmetry) left out."""
@@ -164,12 +127,14 @@ def nearly_symmetric(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.flo
 
 @dataclass
 class _Fit:
-    """What the masks' IoU, the depth and the photo say of the pose together (:func:`_fit_against_the_evidence`)."""
+    """What the masks' IoU and the other evidence say of the pose together (:func:`_fit_against_the_evidence`):
+    the reasons, whether it failed, whether loose masks are explained, and whether evidence that
+    cannot fail it alone contradicts it (a look)."""
 
     reasons: list[str]
     failed: bool
     supported: bool
-    photo_contradicts: bool
+    look: bool
 
 
 @dataclass(frozen=True)
@@ -200,35 +165,23 @@ def agreeing_views(iou: NDArray[np.float64], weights: NDArray[np.float64]) -> Ag
     return AgreeingViews(int(agree.sum()), len(iou), float(np.median(iou[agree])) if agree.any() else None)
 
 
-def _fit_against_the_evidence(med: float, depth: DepthTerms | None, photo: PhotoEvidence | None,
+def _fit_against_the_evidence(med: float, terms: tuple[TermEvidence, ...],
                               agreeing: AgreeingViews = AgreeingViews()) -> _Fit:
-    """The fit's reasons: the median mask IoU ``med`` read against the depth, the photo and the views
-    whose masks agree (see the module doc)."""
-    reasons: list[str] = []
-    failed = False
-    agree = depth_agreement(depth)
-    supported = agree is not None and agree >= DEPTH_SUPPORTS
-    if agree is not None and agree < DEPTH_CONTRADICTS:
-        reasons.append(f"the measured depth disagrees: a median {agree:.0%} of the object's depth samples within "
-                       f"{INLIER_SIGMAS:g} sigma (< {DEPTH_CONTRADICTS:.0%})")
-        failed = True
-    contrast = photo_contrast(photo)
-    photo_supports = contrast is not None and contrast >= PHOTO_SUPPORTS
-    photo_contradicts = contrast is not None and contrast < PHOTO_CONTRADICTS
-    if photo_contradicts:
-        reasons.append(f"the photo disagrees: its colours barely change across the outline (median edge contrast "
-                       f"{contrast:.2f} < {PHOTO_CONTRADICTS})")
-    if supported and med < CHECK_IOU:
-        reasons.append(f"the masks cover the silhouette loosely (median IoU {med:.2f}), but the measured depth "
-                       f"agrees: a median {agree:.0%} of the object's depth samples within {INLIER_SIGMAS:g} sigma")
-    elif photo_supports and med < CHECK_IOU:
-        reasons.append(f"the masks and colours cover the silhouette loosely (median IoU {med:.2f}), but the photo's "
-                       f"colours change across the outline (median edge contrast {contrast:.2f})")
-        supported = True
-    elif med < FAILED_IOU and contrast is not None and not photo_contradicts:
-        # the masks are the weakest evidence: against a photo that does not contradict it, a look, not a failure
-        reasons.append(f"silhouettes do not match the masks (median IoU {med:.2f} < {FAILED_IOU}), and the photo "
-                       f"neither confirms nor contradicts the pose (median edge contrast {contrast:.2f})")
+    """The fit's reasons: the median mask IoU ``med`` read against what each other kind of evidence
+    says (``terms``, in the order they were measured) and the views whose masks agree (module doc)."""
+    contradicting = [t for t in terms if t.stance is Stance.CONTRADICTS]
+    reasons = [t.reason for t in contradicting]
+    failed = any(t.fails for t in contradicting)
+    look = any(not t.fails for t in contradicting)
+    support = next((t for t in terms if t.stance is Stance.SUPPORTS), None)
+    undecided = next((t for t in terms if t.stance is Stance.NEUTRAL and t.sees_outline), None)
+    supported = support is not None
+    if support is not None and med < CHECK_IOU:
+        reasons.append(f"the masks cover the silhouette loosely (median IoU {med:.2f}), but {support.reason}")
+    elif med < FAILED_IOU and undecided is not None:
+        # the masks are the weakest evidence: against an outline seen otherwise that does not contradict it, a look
+        reasons.append(f"silhouettes do not match the masks (median IoU {med:.2f} < {FAILED_IOU}), and "
+                       f"{undecided.reason}")
     elif med < FAILED_IOU and agreeing.fit_well(AGREEING_SHARE):
         # partial masks or masks on another object in most views: the rest still fit the pose well
         reasons.append(f"most masks disagree with the pose (median IoU {med:.2f}), but {agreeing.count} of "
@@ -247,7 +200,7 @@ def _fit_against_the_evidence(med: float, depth: DepthTerms | None, photo: Photo
     elif med < CHECK_IOU:
         reasons.append(f"loose fit: median IoU {med:.2f} < {CHECK_IOU}; compare the outline with the photo in "
                        "overlay.png: a right pose means loose masks, a wrong one a seed to give again")
-    return _Fit(reasons, failed, supported, photo_contradicts)
+    return _Fit(reasons, failed, supported, look)
 
 
 def _seed_reasons(seed_move: tuple[float, float] | None, seed_radius: tuple[float, float],
@@ -317,9 +270,8 @@ class PoseEvidence:
         free_axes_m: the model's axes of continuous symmetry, about which any turn is as good.
         turn_gap: how much better the pose fits than its turns about weakly observed axes (see
             :func:`nearly_symmetric`).
-        depth: the depth term at the pose (:class:`~autoalign.losses.depth.DepthTerms`), if measured.
-        photo: the region term's evidence at the pose (:class:`~autoalign.engine.photo_evidence.PhotoEvidence`),
-            if the photos were used.
+        terms: what each other kind of evidence says of the pose, in the order they were measured
+            (:class:`~autoalign.losses.term.TermEvidence`: the depth, the photo).
         seed_move: how far the pose ended from a given seed pose (mm at the model's centre, degrees;
             :func:`~autoalign.geometry.se3.pose_change`); beyond ``seed_radius`` it is a reason to check.
         seed_hold: the masks pulled the pose beyond the seed's radius
@@ -335,8 +287,7 @@ class PoseEvidence:
     uncertainty: Uncertainty | None = None
     free_axes_m: tuple[NDArray[np.float64], ...] = ()
     turn_gap: float | None = None
-    depth: DepthTerms | None = None
-    photo: PhotoEvidence | None = None
+    terms: tuple[TermEvidence, ...] = ()
     seed_move: tuple[float, float] | None = None
     seed_radius: tuple[float, float] = SEED_RADIUS
     seed_hold: SeedHold | None = None
@@ -349,7 +300,7 @@ class PoseEvidence:
         scene's empty masks, the model's symmetries and how far the pose ended from a given seed."""
         return cls(result.iou_after, result.weights, list(result.image_ids), tuple(empty_ids),
                    bool(result.ambiguous), symmetric, result.uncertainty, free_axes_m, result.turn_gap,
-                   result.depth, result.photo, seed_move, seed_radius, result.seed_hold)
+                   result.evidence(), seed_move, seed_radius, result.seed_hold)
 
 
 def judge(evidence: PoseEvidence) -> Verdict:
@@ -357,7 +308,7 @@ def judge(evidence: PoseEvidence) -> Verdict:
     e = evidence
     iou_after, weights, image_ids, empty_ids = e.iou_after, e.weights, e.image_ids, e.empty_ids
     ambiguous, symmetric, uncertainty, free_axes_m = e.ambiguous, e.symmetric, e.uncertainty, e.free_axes_m
-    turn_gap, depth, photo = e.turn_gap, e.depth, e.photo
+    turn_gap = e.turn_gap
     seed_move, seed_radius, seed_hold = e.seed_move, e.seed_radius, e.seed_hold
     iou = np.asarray(iou_after, dtype=np.float64)
     w = np.asarray(weights, dtype=np.float64)
@@ -369,10 +320,9 @@ def judge(evidence: PoseEvidence) -> Verdict:
         reasons.append(f"only {len(iou)} view(s) with a mask (at least {MIN_VIEWS} needed): add masks or views")
         failed = True
     med = float(np.median(iou)) if len(iou) else 0.0
-    fit = _fit_against_the_evidence(med, depth, photo, agreeing_views(iou, w))
+    fit = _fit_against_the_evidence(med, e.terms, agreeing_views(iou, w))
     reasons += fit.reasons
     failed = failed or fit.failed
-    supported, photo_contradicts = fit.supported, fit.photo_contradicts
     if low:
         reasons.append(f"{len(low)} view(s) down-weighted, their masks disagree with the others: image ids "
                        + ", ".join(map(str, low[:12])) + (" ..." if len(low) > 12 else ""))
@@ -390,8 +340,8 @@ def judge(evidence: PoseEvidence) -> Verdict:
     uncertain = bool(sigma_reasons)
     if failed:
         status = "failed"
-    elif ((med < CHECK_IOU and not supported) or too_many or (ambiguous and not symmetric) or uncertain
-          or photo_contradicts or far):
+    elif ((med < CHECK_IOU and not fit.supported) or too_many or (ambiguous and not symmetric) or uncertain
+          or fit.look or far):
         status = "check"
         if too_many:
             reasons.append(f"{len(set_aside)} of {n_all} views set aside (more than {SET_ASIDE_FRACTION:.0%})")
