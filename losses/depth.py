@@ -21,6 +21,7 @@ so ``dr/dxi = [n, (X - c) x n]``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -87,6 +88,12 @@ class DepthTerms:
     inliers: NDArray[np.float64]
     occluders: list[tuple[NDArray[np.int64], NDArray[np.int64]]]
     stride: NDArray[np.int64]
+    name = "depth"
+
+    def record(self) -> dict[str, Any]:
+        """Per view: pixels used, pixels where an unmodelled occluder is in front, the residuals' RMS
+        (mm) and the term's loss (noise units)."""
+        return {"used_px": self.used, "hidden_px": self.hidden, "rms_mm": self.rms_mm, "loss": self.loss}
 
     def evidence(self) -> TermEvidence | None:
         """What the depth says of the pose (:class:`~autoalign.losses.term.TermEvidence`): the median over

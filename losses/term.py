@@ -92,7 +92,7 @@ class TermValues:
     views: ViewTerms | None = None
     pose: PoseTerms | None = None
     hidden: list[NDArray[np.bool_]] | None = None
-    measured: object = None
+    measured: Measured | None = None
 
 
 class Stance(enum.Enum):
@@ -132,6 +132,21 @@ class TermEvidence:
     def record(self) -> dict[str, Any]:
         """As ``refine.json`` writes it."""
         return {"term": self.name, "stance": self.stance.value, "agreement": self.agreement, "reason": self.reason}
+
+
+class Measured(Protocol):
+    """What one kind of evidence measured at a result: its ``name`` (the key ``refine.json`` writes
+    its record under), its stance on the pose, and its record."""
+
+    name: str
+
+    def evidence(self) -> TermEvidence | None:
+        """Its stance on the pose (``None``: it measured too little to have one)."""
+        ...
+
+    def record(self) -> dict[str, Any]:
+        """Per view what it measured, as ``refine.json`` writes it."""
+        ...
 
 
 class Term(Protocol):

@@ -162,7 +162,7 @@ def test_the_command_uses_the_scenes_depth_unless_told_off(tmp_path) -> None:
             assert len(terms["depth_share"]) == len(terms["mask_loss"]) == len(terms["weight"]) == 10
             assert all(0.0 < s < 1.0 for s in terms["depth_share"]) and min(terms["mask_loss"]) >= 0.0
         else:
-            assert report["depth"] is None and sorted(report["terms"]) == ["mask_loss", "weight"]
+            assert "depth" not in report and sorted(report["terms"]) == ["mask_loss", "weight"]
     assert errors["auto"] < 3.0 and errors["off"] > 10.0, errors
 
 

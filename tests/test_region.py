@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import autoalign
-from autoalign.engine.photo_evidence import photo_targets
+from autoalign.engine.photo_evidence import PhotoEvidence, photo_targets
 from autoalign.engine.refine import RefineOptions, refine
 from autoalign.experiments.scenes.photo_scene import PhotoScene, write_photo_scene
 from autoalign.experiments.scenes.procedural_models import procedural_models
@@ -110,8 +110,9 @@ def test_photos_alone_refine_every_object(photo_scene, starts):
         mm, deg = _errors(res.T_wm, T_true, mesh.centre)
         assert mm < 1.0 and deg < 1.0, (mesh.name, mm, deg)
         _, at_start = photo_targets(scene, MeshPyramid(mesh).fine().hard_masks(T0, scene.cameras), RegionOptions())
-        assert res.photo is not None and len(res.photo.agreement) == len(scene)
-        assert np.median(res.photo.agreement) > np.median(at_start.agreement) + 0.02
+        photo = res.measurement(PhotoEvidence)
+        assert photo is not None and len(photo.agreement) == len(scene)
+        assert np.median(photo.agreement) > np.median(at_start.agreement) + 0.02
 
 
 @pytest.mark.slow
@@ -203,7 +204,6 @@ def test_photo_of_another_size_is_refused(photo_scene, tmp_path):
     (0.3, None, "failed", "silhouettes do not match the masks"),  # no photo: the masks decide
 ])
 def test_verdict_reads_the_photo(iou, contrast, status, words):
-    from autoalign.engine.photo_evidence import PhotoEvidence
     from autoalign.quality.verdict import PoseEvidence, judge
 
     n = 10

@@ -13,11 +13,12 @@ from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import transform_points
 from autoalign.io.bop import Scene
 from autoalign.losses import ViewTerms, robust_view_weights
-from autoalign.losses.depth import DepthNoise, DepthTerm, DepthTerms
+from autoalign.losses.depth import DepthNoise, DepthTerm
 from autoalign.losses.mask_term import MaskTerm
 from autoalign.losses.term import (
     Fragments,
     LevelViews,
+    Measured,
     Term,
     TermValues,
     ViewTermsRecord,
@@ -66,9 +67,9 @@ class Evaluation:
     values: tuple[TermValues, ...] = ()
 
     @property
-    def depth(self) -> DepthTerms | None:
-        """The depth term's measurements (``None``: masks only)."""
-        return next((v.measured for v in self.values if isinstance(v.measured, DepthTerms)), None)
+    def measured(self) -> tuple[Measured, ...]:
+        """What each term that keeps a record measured (:class:`~autoalign.losses.term.Measured`), in order."""
+        return tuple(v.measured for v in self.values if v.measured is not None)
 
     def record(self) -> ViewTermsRecord:
         """Each per-view term's loss per view (:class:`~autoalign.losses.term.ViewTermsRecord`)."""

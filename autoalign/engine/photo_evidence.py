@@ -14,7 +14,7 @@ learning them again between rounds is the alternation PWP3D and RBOT use per fra
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Callable, TypeVar
+from typing import Any, Callable, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -57,6 +57,13 @@ class PhotoEvidence:
     agreement: NDArray[np.float64]
     edge_contrast: NDArray[np.float64]
     rounds: int
+    name = "photo"
+
+    def record(self) -> dict[str, Any]:
+        """Per view: the band's half-width (px), the share of the band's pixels whose colour posterior
+        agrees with the silhouette, the edge contrast across the outline; and the rounds."""
+        return {"band_px": self.band_px, "agreement": self.agreement, "edge_contrast": self.edge_contrast,
+                "rounds": self.rounds}
 
     def evidence(self) -> TermEvidence | None:
         """What the photo says of the pose (:class:`~autoalign.losses.term.TermEvidence`): the median
@@ -147,4 +154,5 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
             unc = with_outline_disagreement(unc, shared_outline_offset(silhouettes, compared))
     return replace(result, T_init=T_seed, iou_before=view_ious(rast.hard_masks(T_seed, compared.cameras), compared),
                    iou_after=iou_after, uncertainty=unc,
-                   iterations=result.iterations + iterations, renders=result.renders + renders, photo=evidence)
+                   iterations=result.iterations + iterations, renders=result.renders + renders,
+                   measured=result.measured + (evidence,))

@@ -8,7 +8,7 @@ from __future__ import annotations
 import enum
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,7 +29,7 @@ from autoalign.engine.options import (  # noqa: F401 - the engine's settings, im
     RefineOptions,
     SearchOptions,
 )
-from autoalign.engine.photo_evidence import PhotoEvidence, refine_with_photos
+from autoalign.engine.photo_evidence import refine_with_photos
 from autoalign.engine.refit_spread import refit_ratio, spread_factor
 from autoalign.engine.schedule import Progress, polish, run_schedule  # noqa: F401 - polish: one pose, no search
 from autoalign.engine.seed_region import CLEARLY_BETTER, STIFFNESS, SeedHold, SeedRegion
@@ -42,14 +42,14 @@ from autoalign.geometry.mesh import Mesh
 from autoalign.geometry.se3 import pose_change, transform_points
 from autoalign.io.bop import Scene
 from autoalign.losses import targets_in_crops
-from autoalign.losses.depth import DepthTerms
 from autoalign.losses.silhouette import boundary_bias_grads
-from autoalign.losses.term import TermEvidence, ViewTermsRecord
+from autoalign.losses.term import Measured, TermEvidence, ViewTermsRecord
 from autoalign.losses.overlap import iou_from_counts, view_ious
 from autoalign.rasterizers.pyramid import MeshPyramid
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
 Seed = NDArray[np.float64] | Click | None
+M = TypeVar("M")
 
 
 class Stage(enum.Enum):
@@ -140,11 +140,12 @@ class RefineResult:
             1/4 resolution) the result fits than the best of its turns about those axes (30-180
             degrees; negative: a turn fit better and was refined); ``None`` when none were tried.
             Near 0 the object is nearly symmetric about such an axis.
-        depth: the depth term at the result, per view (``None``: masks only; :mod:`autoalign.losses.depth`).
         terms: each evidence term's loss per view at the result, with the view weights
             (:class:`~autoalign.losses.term.ViewTermsRecord`).
-        photo: the region term's evidence at the result (``None``: photos not used;
-            :class:`~autoalign.engine.photo_evidence.PhotoEvidence`). With photos the terms compare
+        measured: what each kind of evidence beside the masks measured at the result, in the order it
+            was measured (:class:`~autoalign.losses.term.Measured`): the depth term's
+            (:class:`~autoalign.losses.depth.DepthTerms`), the photo's
+            (:class:`~autoalign.engine.photo_evidence.PhotoEvidence`). With photos the terms compare
             the silhouettes with the region targets (the photo's posteriors fused with the mask);
             the IoUs are with the instance's masks, or with the targets where it has none.
         seed_hold: where the masks pulled the pose beyond a given seed's radius, the far pose and
@@ -166,17 +167,19 @@ class RefineResult:
     image_ids: list[int] = field(default_factory=list)
     uncertainty: Uncertainty | None = None
     turn_gap: float | None = None
-    depth: DepthTerms | None = None
     terms: ViewTermsRecord | None = None
-    photo: PhotoEvidence | None = None
+    measured: tuple[Measured, ...] = ()
     seed_hold: SeedHold | None = None
 
     def evidence(self) -> tuple[TermEvidence, ...]:
         """What each kind of evidence beside the masks says of the pose, in the order it was measured
-        (:class:`~autoalign.losses.term.TermEvidence`; a kind that measured nothing is left out)."""
-        found = (None if self.depth is None else self.depth.evidence(),
-                 None if self.photo is None else self.photo.evidence())
-        return tuple(e for e in found if e is not None)
+        (:class:`~autoalign.losses.term.TermEvidence`; a kind that measured too little is left out)."""
+        said = (m.evidence() for m in self.measured)
+        return tuple(e for e in said if e is not None)
+
+    def measurement(self, kind: type[M]) -> M | None:
+        """What the evidence of ``kind`` (e.g. :class:`~autoalign.losses.depth.DepthTerms`) measured, if it did."""
+        return next((m for m in self.measured if isinstance(m, kind)), None)
 
 
 def _final_loss(obj: SilhouetteObjective, T: NDArray[np.float64], level: Level,
@@ -631,4 +634,4 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
         iterations=sum(tr.iterations for _, tr in best.path), renders=obj.renders, timings=timings,
         hypotheses=standing.ranked, ambiguous=standing.ambiguous, runner_up=standing.runner_up,
         weights=final[0].weights, history=history, image_ids=list(scene.image_ids), uncertainty=uncertainty,
-        turn_gap=turn_gap, depth=final_ev.depth, terms=final_ev.record(), seed_hold=hold)
+        turn_gap=turn_gap, terms=final_ev.record(), measured=final_ev.measured, seed_hold=hold)

@@ -19,12 +19,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign import __version__
-from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult
 from autoalign.engine.uncertainty import BOUNDARY_BIAS_PX, SAME_VIEWPOINT_DEG, Uncertainty, axis_sigmas
 from autoalign.geometry.camera import PIXEL_CONVENTION
 from autoalign.geometry.se3 import rotation_angle_deg, transform_points
-from autoalign.losses.depth import DepthTerms
 from autoalign.losses.term import ViewTermsRecord
 from autoalign.quality.verdict import Verdict, low_weight_ids
 from autoalign.scene.joint import JointRefinement
@@ -56,25 +54,6 @@ def terms_record(terms: ViewTermsRecord | None) -> dict[str, Any] | None:
     if len(terms.losses) > 1:
         out.update({f"{name}_share": share for name, share in terms.shares().items()})
     return out
-
-
-def photo_record(photo: PhotoEvidence | None) -> dict[str, Any] | None:
-    """The region (colour) term at the result, per view of ``image_ids``: the band's half-width
-    (px), the share of the band's pixels whose colour posterior agrees with the silhouette, the
-    edge contrast across the outline, and the rounds the colour models were learned in (``None``:
-    photos not used)."""
-    if photo is None:
-        return None
-    return {"band_px": photo.band_px, "agreement": photo.agreement, "edge_contrast": photo.edge_contrast,
-            "rounds": photo.rounds}
-
-
-def depth_record(depth: DepthTerms | None) -> dict[str, Any] | None:
-    """The depth term at the result, per view of ``image_ids``: pixels used, pixels where an
-    unmodelled occluder is in front, the residuals' RMS (mm) and the term's loss (noise units)."""
-    if depth is None:
-        return None
-    return {"used_px": depth.used, "hidden_px": depth.hidden, "rms_mm": depth.rms_mm, "loss": depth.loss}
 
 
 def jsonable(obj: Any) -> Any:
@@ -273,8 +252,8 @@ class RefineReport:
             "hypotheses": [{"rank": k, "stage": h.stage_name, "loss": h.loss, "mean_iou": h.mean_iou,
                             "pose_init": pose_record(h.T_init), "pose": pose_record(h.T_final)}
                            for k, h in enumerate(r.hypotheses)],
-            "ambiguous": bool(r.ambiguous), "turn_gap": r.turn_gap, "depth": depth_record(r.depth),
-            "photo": photo_record(r.photo), "terms": terms_record(r.terms),
+            "ambiguous": bool(r.ambiguous), "turn_gap": r.turn_gap,
+            **{m.name: m.record() for m in r.measured}, "terms": terms_record(r.terms),
             "evidence": [e.record() for e in r.evidence()],
             "runner_up": None if self.runner_up is None else self.runner_up.to_json(),
             "options": self.options, "history": r.history, "outputs": dict(OUTPUTS),
@@ -328,7 +307,7 @@ class InstanceReport:
             "weights": res.weights, "median_iou_after": float(np.median(res.iou_after)),
             "empty_masks": self.empty,
             "ambiguous": bool(res.ambiguous), "symmetric": self.symmetric, "turn_gap": res.turn_gap,
-            "depth": depth_record(res.depth), "photo": photo_record(res.photo), "terms": terms_record(res.terms),
+            **{m.name: m.record() for m in res.measured}, "terms": terms_record(res.terms),
             "evidence": [e.record() for e in res.evidence()],
             "iterations": res.iterations, "renders": res.renders,
             "timings": {**res.timings, "instance": self.seconds},

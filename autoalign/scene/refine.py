@@ -166,6 +166,7 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
                                          opts.disambiguation.weak_turns)
             gap = own - float(scores.max())
         depth = None if joint.evaluation.depth is None else joint.evaluation.depth[k]
+        had_photo = r.result.measurement(PhotoEvidence)
         iou = joint.evaluation.hard_iou(k)
         own_scene = given.scenes[k]
         if photo[k] is not None and own_scene.has_masks:  # with its own masks
@@ -177,10 +178,10 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
             centre_w = transform_points(joint.poses[k], pyramids[k].mesh.centre[None])[0]
             distance = float(np.median([np.linalg.norm(centre_w - c.centre) for c in found.scenes[k].cameras]))
             unc = with_scale_sigma(unc, joint.scale_sigma, distance)
-        evidence = r.result.photo if photo[k] is None else replace(photo[k], rounds=r.result.photo.rounds)
+        evidence = had_photo if photo[k] is None or had_photo is None else replace(photo[k], rounds=had_photo.rounds)
+        measured = tuple(m for m in (depth, evidence) if m is not None)
         after.append(replace(r.result, T_wm=joint.poses[k], iou_after=iou, weights=joint.evaluation.weights[k],
-                             uncertainty=unc, turn_gap=gap, depth=depth, terms=joint.evaluation.record(k),
-                             photo=evidence))
+                             uncertainty=unc, turn_gap=gap, terms=joint.evaluation.record(k), measured=measured))
     return after
 
 
