@@ -488,14 +488,15 @@ def refine_task(task: Task) -> dict[str, Any]:
     ``task["out"]``. Its record: the status (0 ok, 3 written but flagged), seconds and its last
     warnings; a mistake in the scene's inputs gives ``{"id", "error"}`` instead (not done, so that
     it runs again once fixed); Ctrl-C raises ``KeyboardInterrupt`` (not done; :func:`run_tasks` stops)."""
-    from autoalign.jobs.job import FolderJob, RunLog, one_line
+    from autoalign.jobs.job import RunLog, one_line
+    from autoalign.jobs.refine_arguments import scene_job
     from autoalign.jobs.refine_folder import refine_folder
 
     log = RunLog()
     t0 = time.perf_counter()
     try:
         with _interrupts_of_a_task(), log.python_warnings():
-            outcome = refine_folder(FolderJob.from_argv(task["scene"], task["args"], task["out"]), log)
+            outcome = refine_folder(scene_job(task["scene"], task["args"], task["out"]), log)
     except AutoalignError as exc:
         return {"id": task["id"], "error": f"autoalign: error: {one_line(str(exc))}"}
     messages = [f"autoalign: warning: {m}" for m in [*log.warnings, *outcome.notes]]
@@ -560,10 +561,10 @@ def refine_settings(argv: Sequence[str]) -> dict[str, Any]:
     read (the scene then fails with their error) are kept as given."""
     from dataclasses import asdict
 
-    from autoalign.jobs.job import FolderJob
+    from autoalign.jobs.refine_arguments import scene_job
 
     try:
-        job = asdict(FolderJob.from_argv(".", argv, "."))
+        job = asdict(scene_job(".", argv, "."))
     except AutoalignError:
         return {"args": list(argv)}
     paths = {o.lstrip("-") for o in PATH_OPTIONS}

@@ -89,7 +89,8 @@ exit status: 0 the check ran (whatever the numbers), 2 a mistake in the command 
 
 def add_check_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``autoalign check`` on an argparse subparsers object."""
-    from autoalign.cli.common import HelpFormatter, index_list, positive_int
+    from autoalign.cli.common import HelpFormatter, index_list
+    from autoalign.jobs.refine_arguments import positive_int
     from autoalign.jobs.job import DEPTH_MODES, PHOTO_MODES
 
     p = subparsers.add_parser(

@@ -11,10 +11,10 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from collections.abc import Callable
 from typing import Any
 
-from autoalign.jobs.job import EXIT_FLAGGED, MESH_UNITS, RunLog, one_line  # noqa: F401 - EXIT_FLAGGED for the subcommands
+from autoalign.jobs.job import EXIT_FLAGGED, RunLog, one_line  # noqa: F401 - EXIT_FLAGGED for the subcommands
+from autoalign.jobs.refine_arguments import nonnegative_int
 from autoalign.runtime.interrupts import Interrupts
 
 PROG = "autoalign"
@@ -47,38 +47,12 @@ def _terminal_width() -> int:
         return 100
 
 
-def _int_at_least(minimum: int) -> Callable[[str], int]:
-    """An argparse type: a whole number of at least ``minimum``."""
-
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-        if v < minimum:
-            raise argparse.ArgumentTypeError(f"{text!r} must be {minimum} or more")
-        return v
-
-    return parse
-
-
-positive_int = _int_at_least(1)
-nonnegative_int = _int_at_least(0)
-
-
 def index_list(text: str) -> list[int]:
     """An argparse type: comma-separated whole numbers of 0 or more (``0,3``), at least one."""
     parts = [p.strip() for p in text.split(",")]
     if not any(parts):
         raise argparse.ArgumentTypeError(f"{text!r}: give whole numbers separated by commas, such as 0,3")
     return [nonnegative_int(p) for p in parts]
-
-
-def add_units_argument(group: Any) -> None:
-    """``--units mm|m`` of the mesh files, the same for every command that reads models."""
-    group.add_argument("--units", choices=MESH_UNITS, default=None,
-                       help="units of the mesh files; default mm, and a mesh under 2 units across is then refused "
-                            "as probably metres (pass --units m to scale it by 1000, --units mm to keep it)")
 
 
 def error(message: str) -> None:

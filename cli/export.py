@@ -56,7 +56,8 @@ exit status: 0 exported, 2 a mistake in the command or the input files (nothing 
 
 def add_export_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``autoalign export`` on an argparse subparsers object."""
-    from autoalign.cli.common import HelpFormatter, add_units_argument
+    from autoalign.cli.common import HelpFormatter
+    from autoalign.jobs.refine_arguments import add_units_argument
 
     p = subparsers.add_parser("export", help="write BOP labels (poses, masks, boxes; COCO) for every frame of a scene",
                               description=_DESCRIPTION, epilog=_EPILOG, formatter_class=HelpFormatter)

@@ -55,7 +55,8 @@ with Ctrl-C (exit status 130); nothing accepted is lost."""
 
 def add_label_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``autoalign label`` on an argparse subparsers object."""
-    from autoalign.cli.common import HelpFormatter, add_units_argument
+    from autoalign.cli.common import HelpFormatter
+    from autoalign.jobs.refine_arguments import add_units_argument
 
     p = subparsers.add_parser("label", help="a local web page to place, check and correct objects, then export",
                               description=_DESCRIPTION, epilog=_EPILOG, formatter_class=HelpFormatter)

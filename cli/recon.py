@@ -68,7 +68,8 @@ SCALE_SPREAD_WARN = 0.02
 
 def add_recon_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Register ``autoalign recon`` on an argparse subparsers object."""
-    from autoalign.cli.common import HelpFormatter, positive_int
+    from autoalign.cli.common import HelpFormatter
+    from autoalign.jobs.refine_arguments import positive_int
 
     p = subparsers.add_parser("recon", help="camera poses, scale, table frame and cloud from a capture (a BOP scene)",
                               description=_DESCRIPTION, epilog=_EPILOG, formatter_class=HelpFormatter)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -159,32 +159,6 @@ class FolderJob:
         return tuple(m for m, used in (("masks", self.masks != "none"), ("photos", self.uses_photos),
                                         ("depth", self.depth == "auto")) if used)
 
-    @classmethod
-    def from_argv(cls, scene: str, argv: Sequence[str], out: str) -> FolderJob:
-        """The job of ``autoalign refine SCENE ARGV --out OUT`` (the options a batch list gives per
-        scene, e.g. ``["--models", "models/", "--init", "coarse.json"]``); flags ``--refine-cameras``,
-        ``--solve-scale`` and ``--no-robust`` (``--quiet`` and ``--json`` are accepted and change
-        nothing), every other option with one value."""
-        names = {"--" + f.name.replace("_", "-"): f for f in fields(cls) if f.name not in ("scene", "out")}
-        flags = {"--refine-cameras": ("refine_cameras", True), "--solve-scale": ("solve_scale", True),
-                 "--no-robust": ("robust", False)}
-        values: dict[str, Any] = {}
-        words = list(argv)
-        while words:
-            word = words.pop(0)
-            if word in ("--quiet", "--json"):  # how the command prints; a scene of a batch prints nothing
-                continue
-            if word in flags:
-                values[flags[word][0]] = flags[word][1]
-            elif word in names and names[word].type in ("bool", bool) or word not in names:
-                raise AutoalignError(f"{word}: not an option of 'autoalign refine' for one scene (see "
-                                     "'autoalign refine --help')")
-            elif not words:
-                raise AutoalignError(f"{word}: expected one value after it (see 'autoalign refine --help')")
-            else:
-                values[names[word].name] = _option_value(word, names[word].name, words.pop(0))
-        return cls(str(scene), str(out), **values)
-
     def check(self) -> None:
         """Refuse combinations of options that cannot work (:class:`AutoalignError`, one line)."""
         if (self.model is None) == (self.models is None):
@@ -210,19 +184,6 @@ class FolderJob:
             raise AutoalignError("--refine-cameras needs --models: several objects seen together pin a camera down")
         if self.solve_scale and self.models is None:
             raise AutoalignError("--solve-scale needs --models (a models folder whose meshes give the objects' size)")
-
-
-def _option_value(option: str, name: str, text: str) -> Any:
-    """The value of ``option`` (the field ``name`` of :class:`FolderJob`) from its text."""
-    if name not in ("obj_id", "instance"):
-        return text
-    try:
-        value = int(text)
-    except ValueError:
-        raise AutoalignError(f"{option} {text!r}: expected a whole number") from None
-    if value < (1 if name == "obj_id" else 0):
-        raise AutoalignError(f"{option} {text!r}: must be {1 if name == 'obj_id' else 0} or more")
-    return value
 
 
 @dataclass

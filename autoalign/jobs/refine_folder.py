@@ -4,7 +4,8 @@ argument parsing and printing. One object (``model``) or every instance (``model
 ``overlay.png``, sometimes ``scene_camera.json``) are written all or none.
 
 The command line, the batch runner (:mod:`autoalign.batch`, whose scene lists carry each scene's
-options as text: :meth:`~autoalign.jobs.job.FolderJob.from_argv`) and Python users call
+options as text, parsed by the command's own parser: :func:`~autoalign.jobs.refine_arguments.scene_job`)
+and Python users call
 :func:`refine_folder`; its options and outcome are in :mod:`autoalign.jobs.job`.
 
 Standard library only at import (the command's start-up stays fast); the rest loads inside.
