@@ -43,6 +43,8 @@ _LAZY = {
     "Level": "autoalign.engine.objective", "SearchOptions": "autoalign.engine.options",
     "RankingOptions": "autoalign.engine.options", "DisambiguationOptions": "autoalign.engine.options",
     "MeshDetail": "autoalign.rasterizers.pyramid", "MeshPyramid": "autoalign.rasterizers.pyramid",
+    "LevenbergMarquardt": "autoalign.engine.solver", "GaussNewton": "autoalign.engine.solver",
+    "Adam": "autoalign.engine.solver",
 }
 
 # ``check`` (autoalign.jobs.check) is left out below: it reaches autoalign.jobs.report, which imports
@@ -57,6 +59,7 @@ if TYPE_CHECKING:  # pragma: no cover
     )
     from autoalign.engine.refine import RefineResult, refine  # noqa: F401
     from autoalign.engine.seeding import Click  # noqa: F401
+    from autoalign.engine.solver import Adam, GaussNewton, LevenbergMarquardt  # noqa: F401
     from autoalign.errors import AutoalignError  # noqa: F401
     from autoalign.geometry.camera import Camera  # noqa: F401
     from autoalign.geometry.mesh import Mesh, load_mesh, mesh_from_trimesh  # noqa: F401

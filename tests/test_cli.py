@@ -505,7 +505,7 @@ def test_refine_json_report(json_run, data):
     h = r["hypotheses"][0]
     assert {"stage", "loss", "mean_iou", "pose", "pose_init"} <= set(h)
     assert np.allclose(h["pose"]["T_wm"], T)
-    assert r["options"]["loss"] == "l2" and r["options"]["optimizer"] == "lm" and r["options"]["robust"] is True
+    assert r["options"]["loss"] == "l2" and r["options"]["optimizer"]["name"] == "lm" and r["options"]["robust"] is True
     import autoalign
 
     assert r["autoalign_version"] == autoalign.__version__

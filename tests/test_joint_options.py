@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from autoalign.engine.refine import RefineOptions
-from autoalign.engine.solver import GaussNewton
+from autoalign.engine.solver import Adam, GaussNewton
 from autoalign.errors import AutoalignError
 from autoalign.experiments.studies.metrics import Symmetries, pose_errors
 from autoalign.io.instances import read_init_poses, read_instance_scenes, read_instances
@@ -39,14 +39,16 @@ def test_an_option_the_joint_stage_cannot_honour_is_a_one_line_error(tmp_path: P
 
 def test_the_joint_rule_follows_the_optimizer() -> None:
     assert scene_refine.joint_rule(RefineOptions()) is None  # the stage's own Levenberg-Marquardt
-    assert isinstance(scene_refine.joint_rule(RefineOptions(optimizer="gn")), GaussNewton)
+    assert isinstance(scene_refine.joint_rule(RefineOptions(optimizer=GaussNewton())), GaussNewton)
+    with pytest.raises(AutoalignError, match="--optimizer adam"):
+        scene_refine.joint_rule(RefineOptions(optimizer=Adam()))
     with pytest.raises(AutoalignError, match="--loss dice"):
         scene_refine.joint_rule(RefineOptions(loss="dice"))
 
 
 @pytest.mark.slow
 def test_optimizer_gn_solves_the_joint_stage_with_gauss_newton(monkeypatch: pytest.MonkeyPatch) -> None:
-    """``optimizer="gn"`` with the scale solved: every joint solve is given Gauss-Newton steps, and the
+    """``optimizer=GaussNewton()`` with the scale solved: every joint solve is given Gauss-Newton steps, and the
     label ends within 1 mm / 1 deg of the bundled example's truth with the scale within 0.002 of 1."""
     given = []
     joint = scene_refine.refine_jointly
@@ -59,7 +61,7 @@ def test_optimizer_gn_solves_the_joint_stage_with_gauss_newton(monkeypatch: pyte
     found = read_instance_scenes(EXAMPLE / "scene", read_instances(EXAMPLE / "scene"))
     models = ModelSet.read(EXAMPLE / "models")
     seeds = read_init_poses(EXAMPLE / "init_gt.json", found)
-    done = scene_refine.refine_scene(found, models, seeds, RefineOptions(optimizer="gn"), solve_scale=True)
+    done = scene_refine.refine_scene(found, models, seeds, RefineOptions(optimizer=GaussNewton()), solve_scale=True)
     assert given and all(isinstance(r, GaussNewton) for r in given), given
     truth = read_init_poses(EXAMPLE / "scene" / "scene_gt.json", found)
     for r in done.results:

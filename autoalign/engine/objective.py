@@ -40,7 +40,7 @@ class Level:
         max_views: use at most this many views, spread through the scene (``None``: all).
         ftol: Levenberg-Marquardt stops before a step predicted to decrease the objective by
             less than this fraction of it (``None``: ``optim.FTOL / scale``, the loss's own noise
-            growing as the resolution drops; see :func:`~autoalign.engine.solver.levenberg_marquardt`).
+            growing as the resolution drops; see :func:`~autoalign.engine.solver.solve_pose`).
     """
 
     scale: float

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 from autoalign.engine.objective import Level
 from autoalign.engine.seed_region import SEED_RADIUS
-from autoalign.engine.solver import FTOL
+from autoalign.engine.solver import FTOL, STEP_RULES, StepRule
 from autoalign.losses.depth import DepthNoise
 from autoalign.losses.region import RegionOptions
 from autoalign.rasterizers.pyramid import MeshDetail
@@ -115,7 +115,10 @@ class RefineOptions:
     Attributes:
         loss: ``l2`` (default: per-pixel residuals give Gauss-Newton a full-rank model and it
             converged in 3-4x fewer iterations than ``iou``/``dice``; see the results), ``bce``, ``iou``, ``dice``.
-        optimizer: ``lm`` (Levenberg-Marquardt, default), ``gn`` (Gauss-Newton) or ``adam``.
+        optimizer: the step rule (:class:`~autoalign.engine.solver.StepRule`):
+            :class:`~autoalign.engine.solver.LevenbergMarquardt` (default),
+            :class:`~autoalign.engine.solver.GaussNewton` or :class:`~autoalign.engine.solver.Adam`
+            (:data:`~autoalign.engine.solver.STEP_RULES` by their ``--optimizer`` names).
         robust: Cauchy re-weighting of views by their misfit.
         schedule: coarse-to-fine levels (scale, sigma in px, iterations) a pose is polished through.
         search: the orientation search (:class:`SearchOptions`).
@@ -134,7 +137,7 @@ class RefineOptions:
     """
 
     loss: str = "l2"
-    optimizer: str = "lm"
+    optimizer: StepRule = STEP_RULES["lm"]
     robust: bool = True
     schedule: tuple[Level, ...] = DEFAULT_SCHEDULE
     search: SearchOptions = SearchOptions()

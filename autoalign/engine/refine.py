@@ -34,7 +34,7 @@ from autoalign.engine.refit_spread import refit_ratio, spread_factor
 from autoalign.engine.schedule import Progress, polish, run_schedule  # noqa: F401 - polish: one pose, no search
 from autoalign.engine.seed_region import CLEARLY_BETTER, STIFFNESS, SeedHold, SeedRegion
 from autoalign.engine.seeding import Click, click_centre, hull_centre, rotation_grid
-from autoalign.engine.solver import Trace
+from autoalign.engine.solver import StepRule, Trace
 from autoalign.engine.turn_profile import with_turn_profiles
 from autoalign.engine.uncertainty import Uncertainty, pose_uncertainty, viewpoint_groups
 from autoalign.errors import AutoalignError
@@ -318,7 +318,7 @@ def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple
 
 
 def _final_state(obj: SilhouetteObjective, best: Hypothesis, weights: NDArray[np.float64],
-                 levels: tuple[Level, ...], optimizer: str) -> tuple[Evaluation, Uncertainty]:
+                 levels: tuple[Level, ...], rule: StepRule) -> tuple[Evaluation, Uncertainty]:
     """The full-resolution evaluation at the best pose (the optimiser's last one when it has it)
     and the pose's uncertainty from it."""
     last_level, last_trace = best.path[-1] if best.path else (None, None)
@@ -326,14 +326,14 @@ def _final_state(obj: SilhouetteObjective, best: Hypothesis, weights: NDArray[np
         ev = last_trace.final
     else:
         ev = obj.evaluate(best.T_final, Level(1.0, levels[-1].sigma, 0), weights=weights)
-    return ev, final_uncertainty(obj, ev, best.T_final, levels[-1], optimizer)
+    return ev, final_uncertainty(obj, ev, best.T_final, levels[-1], rule)
 
 
 def final_uncertainty(obj: SilhouetteObjective, ev: Evaluation, T_wm: NDArray[np.float64],
-                      last: Level, optimizer: str) -> Uncertainty:
+                      last: Level, rule: StepRule) -> Uncertainty:
     """The pose's uncertainty from a full-resolution evaluation ``ev`` at it: the views' spread
     scaled where polishes with views left out move the pose farther than its Newton steps
-    (:mod:`autoalign.engine.refit_spread`, with ``optimizer`` and the schedule's ``last`` level),
+    (:mod:`autoalign.engine.refit_spread`, with the step ``rule`` and the schedule's ``last`` level),
     with the prior on a shared shift of the masks' outlines (:mod:`autoalign.engine.uncertainty`)
     and each weakly observed turn's variance from its loss profile
     (:mod:`autoalign.engine.turn_profile`; ``last``'s blur)."""
@@ -342,7 +342,7 @@ def final_uncertainty(obj: SilhouetteObjective, ev: Evaluation, T_wm: NDArray[np
     dirs = np.array([centre_w - c.centre for c in views.cameras])
     dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
     bias = boundary_bias_grads(ev.silhouettes, views.targets, views.totals)
-    factor = spread_factor(refit_ratio(obj, T_wm, ev, last, optimizer))
+    factor = spread_factor(refit_ratio(obj, T_wm, ev, last, rule))
     u = pose_uncertainty(ev.gn, ev.terms.grad, ev.terms.gn, ev.weights, ev.value, len(ev.silhouettes.band),
                          T_wm[:3, :3], bias, dirs, spread_factor=factor)
     return with_turn_profiles(obj, T_wm, u, ev.weights, last.sigma, viewpoint_groups(dirs))

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from autoalign.engine.objective import Evaluation, Level, SilhouetteObjective
 from autoalign.engine.schedule import run_schedule
+from autoalign.engine.solver import StepRule
 from autoalign.engine.uncertainty import deletion_step
 from autoalign.geometry.se3 import so3_log
 
@@ -58,7 +59,7 @@ def _move(T_from: NDArray[np.float64], T_to: NDArray[np.float64], centre_m: NDAr
 
 
 def refit_ratio(obj: SilhouetteObjective, T_wm: NDArray[np.float64], ev: Evaluation, last: Level,
-                optimizer: str) -> float | None:
+                rule: StepRule) -> float | None:
     """``sum_g a_g^T H a_g / sum_g l_g^T H l_g`` over the groups ``g`` (module doc): ``a_g`` the
     polish's move with group ``g`` left out, ``l_g`` its Newton step ``(H - H_g)^-1 g_g``
     (:func:`~autoalign.engine.uncertainty.deletion_step`, as the jackknife's) from the
@@ -68,7 +69,7 @@ def refit_ratio(obj: SilhouetteObjective, T_wm: NDArray[np.float64], ev: Evaluat
     if n < 2 * GROUPS:
         return None
     level = replace(last, scale=REFIT_SCALE, max_views=None, ftol=REFIT_FTOL, max_iters=REFIT_ITERS)
-    T0, _ = run_schedule(obj, T_wm, (level,), optimizer)
+    T0, _ = run_schedule(obj, T_wm, (level,), rule)
     w = ev.weights
     H = ev.gn
     H_inv = np.linalg.pinv(H, rcond=1e-12, hermitian=True)
@@ -77,7 +78,7 @@ def refit_ratio(obj: SilhouetteObjective, T_wm: NDArray[np.float64], ev: Evaluat
     for g in range(GROUPS):
         out = np.arange(n) % GROUPS == g
         sub = obj.subset(np.flatnonzero(~out))
-        Tg, _ = run_schedule(sub, T0, (level,), optimizer)
+        Tg, _ = run_schedule(sub, T0, (level,), rule)
         a = _move(T0, Tg, obj.centre_m)
         step = deletion_step(H_inv, every, np.einsum("v,vij->ij", w[out], ev.terms.gn[out]),
                              (w[out, None] * ev.terms.grad[out]).sum(axis=0))

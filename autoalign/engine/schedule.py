@@ -9,18 +9,18 @@ from numpy.typing import NDArray
 
 from autoalign.engine.objective import Evaluation, Level, SilhouetteObjective
 from autoalign.engine.options import RefineOptions
-from autoalign.engine.solver import OPTIMIZERS, Trace
+from autoalign.engine.solver import StepRule, Trace, solve_pose
 from autoalign.io.bop import Scene
 from autoalign.rasterizers.pyramid import MeshPyramid
 
 Progress = Callable[[str, int, int], None]
 
 
-def run_schedule(obj: SilhouetteObjective, T: NDArray[np.float64], levels: tuple[Level, ...], optimizer: str,
+def run_schedule(obj: SilhouetteObjective, T: NDArray[np.float64], levels: tuple[Level, ...], rule: StepRule,
                   progress: Progress | None = None, label: str = "refine",
                   give_up: Callable[[int, Evaluation], bool] | None = None) -> tuple[NDArray[np.float64], list[Trace]]:
-    """Run ``levels`` in turn from ``T``; ``give_up(iteration, evaluation)`` returning True ends a level early."""
-    opt = OPTIMIZERS[optimizer]
+    """Run ``levels`` in turn from ``T`` with the step ``rule``; ``give_up(iteration, evaluation)``
+    returning True ends a level early."""
     traces = []
     total = sum(lv.max_iters for lv in levels)
     done = 0
@@ -32,7 +32,7 @@ def run_schedule(obj: SilhouetteObjective, T: NDArray[np.float64], levels: tuple
                 progress(label, base + it + 1, total)
             return give_up is not None and give_up(it, ev)
 
-        T, tr = opt(obj, T, lv, callback=cb)
+        T, tr = solve_pose(obj, T, lv, rule, callback=cb)
         traces.append(tr)
         done += lv.max_iters
         if progress is not None:

@@ -19,7 +19,7 @@ For one object a solve stops when a step moves the object by less than ``tol_mm`
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Generic, Protocol, TypeVar
 
 import numpy as np
@@ -120,9 +120,14 @@ class Outcome(Generic[X, P]):
 
 
 class StepRule(Protocol):
-    """A solver: ``init()`` its state, ``step(...)`` one iteration of it."""
+    """A solver: ``init()`` its state, ``step(...)`` one iteration of it; ``at(level)`` the same rule
+    for a problem at a resolution level (its tolerances there); ``name`` as ``--optimizer`` gives it."""
+
+    name: str
 
     def init(self) -> object: ...
+
+    def at(self, level: Level) -> "StepRule": ...
 
     def step(self, problem: Problem, x: object, point: object, state: object) -> Outcome: ...
 
@@ -214,7 +219,7 @@ class Damping:
     lam: float
 
 
-@dataclass
+@dataclass(frozen=True)
 class LevenbergMarquardt:
     """Levenberg-Marquardt on the weighted Gauss-Newton system ``(H + lam D) step = -g``, ``D = diag(H)``.
 
@@ -241,9 +246,15 @@ class LevenbergMarquardt:
     max_step: tuple[float, float] | None = (30.0, 20.0)
     floor: float = 1e-12
     floor_of_trace: bool = True
+    name: str = field(default="lm", init=False)
 
     def init(self) -> Damping:
         return Damping(self.lam)
+
+    def at(self, level: Level) -> "LevenbergMarquardt":
+        """This rule with ``ftol`` at ``level`` (:func:`level_ftol`): below full resolution the loss's
+        own noise grows, and so does what a step must gain to be tried."""
+        return replace(self, ftol=level_ftol(level, self.ftol))
 
     def step(self, problem: Problem[X, P], x: X, point: P, state: Damping) -> Outcome[X, P]:
         H, g = problem.normal_equations(x, point)
@@ -297,16 +308,20 @@ class LevenbergMarquardt:
         return step if self.max_step is None else clip_step(step, *self.max_step)
 
 
-@dataclass
+@dataclass(frozen=True)
 class GaussNewton:
     """Gauss-Newton steps ``H step = -g`` (least squares, clipped to ``max_step`` mm and degrees; None:
     not clipped) with step halving (up to ``halvings`` times) until the objective does not increase."""
 
     max_step: tuple[float, float] | None = (30.0, 20.0)
     halvings: int = 12
+    name: str = field(default="gn", init=False)
 
     def init(self) -> None:
         return None
+
+    def at(self, level: Level) -> "GaussNewton":
+        return self
 
     def step(self, problem: Problem[X, P], x: X, point: P, state: None) -> Outcome[X, P]:
         H, g = problem.normal_equations(x, point)
@@ -333,7 +348,7 @@ class Moments:
     taken: int = 0
 
 
-@dataclass
+@dataclass(frozen=True)
 class Adam:
     """Adam on the twist with per-block learning rates (mm and degrees per step), decayed geometrically.
     Every step is taken; the iteration reports the evaluation its step came from."""
@@ -342,9 +357,13 @@ class Adam:
     lr_deg: float = 1.0
     betas: tuple[float, float] = (0.9, 0.999)
     decay: float = 0.97
+    name: str = field(default="adam", init=False)
 
     def init(self) -> Moments:
         return Moments(np.zeros(6), np.zeros(6))
+
+    def at(self, level: Level) -> "Adam":
+        return self
 
     def step(self, problem: Problem[X, P], x: X, point: P, state: Moments) -> Outcome[X, P]:
         g = problem.normal_equations(x, point)[1]
@@ -416,48 +435,24 @@ class PoseProblem:
         return [(slice(None), ev.value)]
 
 
-PoseSolve = Callable[..., "tuple[NDArray[np.float64], Trace]"]
+def solve_pose(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level, rule: StepRule,
+               callback: Callback | None = None, tol_mm: float = TOL_MM,
+               tol_deg: float = TOL_DEG) -> tuple[NDArray[np.float64], Trace]:
+    """One object's pose (world from model, mm) descended at ``level`` by ``rule`` (:meth:`StepRule.at`
+    the level), for at most ``level.max_iters`` iterations; ``callback(iteration, evaluation)``
+    returning True stops it.
 
-
-def _solve_pose(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level, rule: StepRule,
-                tol_mm: float, tol_deg: float, callback: Callback | None) -> tuple[NDArray[np.float64], Trace]:
-    sol = minimise(PoseProblem(objective, level, tol_mm, tol_deg), T, rule, level.max_iters, callback)
+    With :class:`LevenbergMarquardt` it stops, besides the step-size test, without trying it, at a
+    step whose predicted decrease is below ``ftol`` of the objective (at ``level`` as
+    :func:`level_ftol` says). The objective's own noise (outlines discretised in pixels) is then
+    larger than what the model can still gain: without this rule LM kept rendering sub-micrometre
+    steps at full resolution, each gaining 1e-5 of the objective, without a better pose. What it
+    leaves is a few hundredths of a pixel in the images, mostly in directions the silhouettes barely
+    see (a flashlight's small button turning it about its axis by a few tenths of a degree).
+    """
+    sol = minimise(PoseProblem(objective, level, tol_mm, tol_deg), T, rule.at(level), level.max_iters, callback)
     return sol.x, sol.trace
 
 
-def levenberg_marquardt(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level,
-                        lam: float = 1e-3, tol_mm: float = TOL_MM, tol_deg: float = TOL_DEG,
-                        callback: Callback | None = None, damping_growth: float = 4.0,
-                        max_step_mm: float = 30.0, max_step_deg: float = 20.0,
-                        ftol: float = FTOL) -> tuple[NDArray[np.float64], Trace]:
-    """:class:`LevenbergMarquardt` on one object's pose at ``level`` (``lam``, ``damping_growth``:
-    its damping; steps clipped to ``max_step_mm`` / ``max_step_deg``).
-
-    Besides the step-size test it stops, without trying it, at a step whose predicted decrease is
-    below ``ftol`` of the objective (at ``level`` as :func:`level_ftol` says). The objective's own
-    noise (outlines discretised in pixels) is then larger than what the model can still gain:
-    without this rule LM kept rendering sub-micrometre steps at full resolution, each gaining 1e-5
-    of the objective, without a better pose. What it leaves is a few hundredths of a pixel in the images, mostly in directions the
-    silhouettes barely see (a flashlight's small button turning it about its axis by a few tenths
-    of a degree).
-    """
-    rule = LevenbergMarquardt(level_ftol(level, ftol), lam, damping_growth, (max_step_mm, max_step_deg))
-    return _solve_pose(objective, T, level, rule, tol_mm, tol_deg, callback)
-
-
-def gauss_newton(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level,
-                 tol_mm: float = TOL_MM, tol_deg: float = TOL_DEG, callback: Callback | None = None,
-                 max_step_mm: float = 30.0, max_step_deg: float = 20.0) -> tuple[NDArray[np.float64], Trace]:
-    """:class:`GaussNewton` on one object's pose at ``level``."""
-    return _solve_pose(objective, T, level, GaussNewton((max_step_mm, max_step_deg)), tol_mm, tol_deg, callback)
-
-
-def adam(objective: SilhouetteObjective, T: NDArray[np.float64], level: Level,
-         lr_mm: float = 1.0, lr_deg: float = 1.0, betas: tuple[float, float] = (0.9, 0.999),
-         decay: float = 0.97, tol_mm: float = TOL_MM, tol_deg: float = TOL_DEG,
-         callback: Callback | None = None) -> tuple[NDArray[np.float64], Trace]:
-    """:class:`Adam` on one object's pose at ``level``."""
-    return _solve_pose(objective, T, level, Adam(lr_mm, lr_deg, betas, decay), tol_mm, tol_deg, callback)
-
-
-OPTIMIZERS: dict[str, PoseSolve] = {"lm": levenberg_marquardt, "gn": gauss_newton, "adam": adam}
+STEP_RULES: dict[str, StepRule] = {"lm": LevenbergMarquardt(FTOL), "gn": GaussNewton(), "adam": Adam()}
+"""The step rules by the name ``--optimizer`` gives, with their default settings."""

@@ -143,8 +143,9 @@ class FolderJob:
     def refine_options(self) -> RefineOptions:
         """The engine's settings this job asks for: loss, optimiser, robust weights, the seed's radius."""
         from autoalign.engine.options import RefineOptions
+        from autoalign.engine.solver import STEP_RULES
 
-        return RefineOptions(loss=self.loss, optimizer=self.optimizer, robust=self.robust,
+        return RefineOptions(loss=self.loss, optimizer=STEP_RULES[self.optimizer], robust=self.robust,
                              seed_radius=self.seed_radius_mm_deg)
 
     @property

@@ -38,7 +38,7 @@ from autoalign.engine.hypotheses import turn_scores
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult, refine
 from autoalign.engine.seed_region import SEED_RADIUS
-from autoalign.engine.solver import GaussNewton, StepRule
+from autoalign.engine.solver import GaussNewton, LevenbergMarquardt, StepRule
 from autoalign.engine.uncertainty import (with_outline_disagreement, with_outline_shift, with_scale_sigma,
                                          with_spread_factor, with_turn_floors)
 from autoalign.geometry.se3 import pose_change, symmetric_pose_change, transform_points
@@ -199,10 +199,10 @@ def joint_rule(opts: RefineOptions) -> StepRule | None:
     if opts.loss != "l2":
         raise AutoalignError(f"--loss {opts.loss}: the objects of --models are refined together with the l2 loss "
                              f"only (their residuals are solved jointly); {fix}")
-    if opts.optimizer not in ("lm", "gn"):
-        raise AutoalignError(f"--optimizer {opts.optimizer}: the objects of --models are refined together by least "
-                             f"squares (lm or gn) only; {fix}")
-    return GaussNewton(max_step=None) if opts.optimizer == "gn" else None
+    if not isinstance(opts.optimizer, (LevenbergMarquardt, GaussNewton)):
+        raise AutoalignError(f"--optimizer {opts.optimizer.name}: the objects of --models are refined together by "
+                             f"least squares (lm or gn) only; {fix}")
+    return GaussNewton(max_step=None) if isinstance(opts.optimizer, GaussNewton) else None
 
 
 def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArray[np.float64]],

@@ -30,6 +30,7 @@ import trimesh
 
 from autoalign.engine.objective import Level, SilhouetteObjective
 from autoalign.engine.refine import RefineOptions, refine
+from autoalign.engine.solver import STEP_RULES
 from autoalign.experiments import RESULTS
 from autoalign.experiments.result_files import write_results
 from autoalign.experiments.scenes.synthetic import (
@@ -73,7 +74,7 @@ def bench_case(mesh: Mesh, n_views: int, width: int, height: int, seed: int, opt
         ev = obj.evaluate(T0, level)
     per_iter = (time.perf_counter() - t0) / reps
     t0 = time.perf_counter()
-    res = refine(scene, mesh, seed=T0, options=RefineOptions(optimizer=optimizer))
+    res = refine(scene, mesh, seed=T0, options=RefineOptions(optimizer=STEP_RULES[optimizer]))
     wall = time.perf_counter() - t0
     c = mesh.centre[None]
     err_mm = float(np.linalg.norm(transform_points(res.T_wm, c) - transform_points(T_gt, c)))

@@ -39,7 +39,7 @@ METHOD_NOTES = {
     "autoalign": "autoalign.engine.refine.refine(scene, mesh, seed=None): visual-hull centre + 384 orientation "
                  "hypotheses (best {n_starts} climbed on hard IoU{n_starts_note}), LM "
                  "coarse-to-fine (the paper's T_init carries no orientation information)",
-    "adam": "the same with RefineOptions(optimizer='adam')",
+    "adam": "the same with RefineOptions(optimizer=Adam())",
     "autoalign-seeded": "refine(scene, mesh, seed=T_init): local refinement from the paper's initial pose",
     "init": "no refinement (the initial pose)",
 }

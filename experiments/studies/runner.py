@@ -43,7 +43,7 @@ from autoalign.io.atomic_files import write_json_atomic
 METHODS = ("paper", "autoalign", "adam", "autoalign-seeded", "init")
 """``paper``: the discrete argmax-IoU baseline; ``autoalign``: ``refine(seed=None)`` (visual hull +
 orientation hypotheses: the paper's initial orientation is uniformly random, so it carries no
-information); ``adam``: the same with ``RefineOptions(optimizer="adam")``; ``autoalign-seeded``:
+information); ``adam``: the same with ``RefineOptions(optimizer=Adam())``; ``autoalign-seeded``:
 ``refine(seed=T_init)``; ``init``: no refinement (the initial pose itself)."""
 ALL_METHODS = ("paper", "autoalign", "adam", "autoalign-seeded")
 INIT_DEPENDENT = ("paper", "autoalign-seeded", "init")
@@ -292,6 +292,7 @@ def _engine_poses(result: Any) -> list[np.ndarray] | None:
 def run_task(task: dict[str, Any]) -> dict[str, Any]:
     """Run one task (see :func:`build_tasks`) and return its record (JSON-able)."""
     from autoalign.engine.refine import RefineOptions, hard_ious, refine
+    from autoalign.engine.solver import Adam
     from autoalign.experiments.studies.paper_method import refine_paper
     from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
@@ -332,7 +333,7 @@ def run_task(task: dict[str, Any]) -> dict[str, Any]:
         T_final, poses = geo.T_init, [geo.T_init]
         extra.update(iterations=0, stopped="none", view_renders=0, rays=0, renders=0)
     elif method in ("autoalign", "adam", "autoalign-seeded"):
-        opts = RefineOptions(optimizer="adam") if method == "adam" else RefineOptions()
+        opts = RefineOptions(optimizer=Adam()) if method == "adam" else RefineOptions()
         seed = geo.T_init if method == "autoalign-seeded" else None
         res = refine(scene, entry.mesh, seed=seed, options=opts)
         wall = time.perf_counter() - t0
