@@ -297,11 +297,11 @@ def test_a_turn_its_profile_widened_stays_weak_in_the_joint_stage():
     """The joint stage keeps the turn floors its instances' profiles found alone (``with_turn_floors``):
     their turns are weakly observed whatever the joint spread says, so a floor of 1.5 deg makes the pose
     nearly symmetric (the SAM-like scene 35's blob, 2.3 deg off with a joint spread under 1 deg)."""
-    from autoalign.engine.uncertainty import TurnFloor, Uncertainty, with_covariance, with_turn_floors
+    from autoalign.engine.uncertainty import CovarianceParts, TurnFloor, compose, with_turn_floors
 
     ids = list(range(10))
     spread = np.diag([0.01, 0.01, 0.01, np.radians(0.5) ** 2, np.radians(0.5) ** 2, np.radians(0.8) ** 2])
-    u = with_covariance(Uncertainty(spread, np.zeros(3), np.zeros(3)), spread)
+    u = compose(CovarianceParts(spread))
     assert u.weak_turn_axes == []
     fit = (np.full(10, 0.95), np.ones(10), ids)
     assert judge(PoseEvidence(*fit, uncertainty=u)).status == "ok"

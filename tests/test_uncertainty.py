@@ -185,13 +185,12 @@ def test_outline_shift_moves_the_pose_as_predicted_and_is_in_the_sigma(k):
 
 def test_sigmas_along_and_across_the_ray():
     """A covariance with 9 mm^2 along the model's x and 1 mm^2 across, the median view along x."""
-    from autoalign.engine.uncertainty import Uncertainty, with_outline_shift
+    from autoalign.engine.uncertainty import CovarianceParts, compose
 
     cov = np.diag([9.0, 1.0, 0.25, 1e-6, 1e-6, 1e-6])
-    u = Uncertainty(cov, np.sqrt(np.diag(cov)[:3]), np.zeros(3))
-    out = with_outline_shift(u, np.zeros(6), np.array([2.0, 0.0, 0.0]))
+    out = compose(CovarianceParts(cov, view_dir_m=np.array([1.0, 0.0, 0.0])))
     assert out.sigma_ray_mm == pytest.approx(3.0) and out.sigma_across_mm == pytest.approx(1.0)
-    shifted = with_outline_shift(u, np.array([0.0, 1.5, 0.0, 0.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), bias_px=2.0)
+    shifted = out.adding(bias_shift=np.array([0.0, 1.5, 0.0, 0.0, 0.0, 0.0]), outline_px=2.0)
     assert shifted.sigma_mm[1] == pytest.approx(np.sqrt(1.0 + 9.0))  # 2 px of 1.5 mm each
 
 

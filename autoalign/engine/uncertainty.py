@@ -44,7 +44,7 @@ reported about and along the model's own axes (its x, y, z), since those name wh
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -90,6 +90,60 @@ class TurnFloor:
 
     axis_m: NDArray[np.float64]
     variance: float
+
+
+@dataclass(frozen=True)
+class CovarianceParts:
+    """What a pose's covariance is made of, by name (model axes; twist ``(v [mm], w [rad])`` about
+    the object's centre; see the module doc). :func:`compose` is the one function that sums them.
+
+    Attributes:
+        spread: (6, 6) the views' spread as measured (their jackknife over viewpoints).
+        naive: (6, 6) the residual-variance estimate, for comparison (``None``: not measured).
+        spread_factor: the spread is scaled by it where polishes with views left out moved the pose
+            farther than its Newton steps (:mod:`autoalign.engine.refit_spread`).
+        turn_floors: each weakly observed turn's least variance, from its loss profile
+            (:mod:`autoalign.engine.turn_profile`).
+        bias_shift: (6,) the twist the pose moves by per pixel of outward shift of every mask's outline.
+        outline_px: the prior sigma of that shared shift (px).
+        disagreement_px: with the photos, how far the masks' outlines lie outside the fitted
+            silhouettes (px; :func:`with_outline_disagreement`); ``None``: not measured.
+        scale: a solved scene scale's relative sigma and the label's distance from its cameras (mm);
+            ``None``: the scale was given.
+        view_dir_m: (3,) unit direction of the median view in the model's axes; ``None``: not known.
+        viewpoints: the independent viewpoints the spread counts (:func:`viewpoint_groups`).
+    """
+
+    spread: NDArray[np.float64]
+    naive: NDArray[np.float64] | None = None
+    spread_factor: float = 1.0
+    turn_floors: tuple[TurnFloor, ...] = ()
+    bias_shift: NDArray[np.float64] = field(default_factory=lambda: np.zeros(6))
+    outline_px: float = BOUNDARY_BIAS_PX
+    disagreement_px: float | None = None
+    scale: tuple[float, float] | None = None
+    view_dir_m: NDArray[np.float64] | None = None
+    viewpoints: int | None = None
+
+    def stages(self) -> tuple[NDArray[np.float64], ...]:
+        """The covariance as it is summed, each stage with one more part: the views' spread (scaled,
+        its turns floored), plus the outline prior (the floors then raised in it too), plus the
+        photos' disagreement, plus the scale's share along the ray."""
+        views = self.spread_factor * self.spread
+        shift = np.outer(self.bias_shift, self.bias_shift)
+        prior = views + self.outline_px ** 2 * shift
+        for f in self.turn_floors:
+            e = np.r_[np.zeros(3), f.axis_m]
+            for C in (views, prior):
+                var = float(e @ C @ e)
+                if f.variance > var:
+                    C += (f.variance - var) * np.outer(e, e)
+        disagreement = prior if self.disagreement_px is None else prior + self.disagreement_px ** 2 * shift
+        full = disagreement
+        if self.scale is not None and self.view_dir_m is not None and self.scale[0] > 0.0:
+            full = disagreement.copy()
+            full[:3, :3] += (self.scale[0] * self.scale[1]) ** 2 * np.outer(self.view_dir_m, self.view_dir_m)
+        return views, prior, disagreement, full
 
 
 @dataclass
@@ -143,6 +197,7 @@ class Uncertainty:
     outline_disagreement_px: float | None = None
     spread: NDArray[np.float64] | None = None
     viewpoints: int | None = None
+    parts: CovarianceParts | None = None
 
     @property
     def views_spread(self) -> NDArray[np.float64]:
@@ -151,17 +206,22 @@ class Uncertainty:
         return self.covariance if self.spread is None else self.spread
 
     def components(self) -> dict[str, NDArray[np.float64]]:
-        """:attr:`covariance` as the sum it is made of (6x6 each, model axes): ``views`` (the views'
-        spread, scaled by :attr:`spread_factor`, with the turn profiles' floors), ``outline_prior``
-        (:data:`BOUNDARY_BIAS_PX` on a shift every mask's outline shares), ``outline_disagreement``
-        (with the photos: the masks' offset from the fitted outlines, on the same shift) and
-        ``scale`` (a solved scene scale along the ray: what is left)."""
-        shift = np.outer(self.bias_shift, self.bias_shift)
-        parts = {"views": self.views_spread,
-                 "outline_prior": BOUNDARY_BIAS_PX ** 2 * shift if self.spread is not None else 0.0 * shift,
-                 "outline_disagreement": (self.outline_disagreement_px or 0.0) ** 2 * shift}
-        parts["scale"] = self.covariance - sum(parts.values())
-        return parts
+        """:attr:`covariance` as the sum it is made of (6x6 each, model axes; :class:`CovarianceParts`):
+        ``views`` (the views' spread, scaled by :attr:`spread_factor`, with the turn profiles'
+        floors), ``outline_prior`` (:data:`BOUNDARY_BIAS_PX` on a shift every mask's outline
+        shares), ``outline_disagreement`` (with the photos: the masks' offset from the fitted
+        outlines, on the same shift) and ``scale`` (a solved scene scale along the ray)."""
+        if self.parts is None:
+            zero = np.zeros((6, 6))
+            return {"views": self.covariance, "outline_prior": zero, "outline_disagreement": zero, "scale": zero}
+        views, prior, disagreement, full = self.parts.stages()
+        return {"views": views, "outline_prior": prior - views, "outline_disagreement": disagreement - prior,
+                "scale": full - disagreement}
+
+    def adding(self, **parts: Any) -> "Uncertainty":
+        """This uncertainty with the named parts (:class:`CovarianceParts` fields) set, summed again."""
+        base = self.parts if self.parts is not None else CovarianceParts(self.covariance, outline_px=0.0)
+        return compose(replace(base, **parts))
 
 
 def _into_model(R_wm: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -249,10 +309,9 @@ def pose_uncertainty(H: NDArray[np.float64], view_grads: NDArray[np.float64], vi
     g = view_grads * w
     groups = None if view_dirs_w is None else viewpoint_groups(view_dirs_w)
     spread = jackknife(H_inv, [(every, wv * Hv) for wv, Hv in zip(w[:, 0], view_gn)], g, groups=groups)
-    u = uncertainty_of(spread_factor * spread, H_inv * (2.0 * value / max(n_band - 6, 1)), R_wm,
-                       shift_w, median_view_direction(view_dirs_w, w[:, 0]), bias_px)
-    return replace(u, spread_factor=float(spread_factor),
-                   viewpoints=None if groups is None else viewpoints_seen(groups, g))
+    return uncertainty_of(spread, H_inv * (2.0 * value / max(n_band - 6, 1)), R_wm, shift_w,
+                          median_view_direction(view_dirs_w, w[:, 0]), bias_px, spread_factor,
+                          None if groups is None else viewpoints_seen(groups, g))
 
 
 def median_view_direction(view_dirs_w: NDArray[np.float64] | None,
@@ -385,48 +444,53 @@ def _ray_sigmas(cov_m: NDArray[np.float64], d_m: NDArray[np.float64]) -> tuple[f
     return along, across
 
 
+def compose(parts: CovarianceParts) -> Uncertainty:
+    """The uncertainty its named ``parts`` make (:meth:`CovarianceParts.stages`): the covariance and
+    what it says (sigmas per model axis, along and across the median view's ray, the weakly
+    observed directions; the weakly observed turns are found in the views' spread alone, before the
+    outline prior, which inflates every direction it moves and hides the ratio). The one function
+    an :class:`Uncertainty` is built by."""
+    views, _, _, cov = parts.stages()
+    axes = _weak_turn_axes(parts.spread_factor * parts.spread)
+    for f in parts.turn_floors:
+        if all(abs(float(f.axis_m @ a)) < SAME_AXIS for a in axes):
+            axes.append(f.axis_m)
+    d_m = None if parts.view_dir_m is None else np.asarray(parts.view_dir_m, dtype=np.float64)
+    along, across = _ray_sigmas(cov, d_m) if d_m is not None else (None, None)
+    naive = axis_sigmas(parts.naive) if parts.naive is not None else (np.zeros(3), np.zeros(3))
+    return Uncertainty(cov, *axis_sigmas(cov), [t for t, _ in _weak(cov)], axes, *naive, parts.bias_shift, d_m,
+                       along, across, list(parts.turn_floors), float(parts.spread_factor), parts.disagreement_px,
+                       views, parts.viewpoints, parts)
+
+
 def uncertainty_of(cov_w: NDArray[np.float64], naive_w: NDArray[np.float64], R_wm: NDArray[np.float64],
                    bias_shift_w: NDArray[np.float64] | None = None, view_dir_w: NDArray[np.float64] | None = None,
-                   bias_px: float = BOUNDARY_BIAS_PX) -> Uncertainty:
-    """What the world-twist covariance ``cov_w`` (6x6, about the object centre) says, in the
-    model's axes, with the prior on a shared outline shift (``bias_shift_w``: the world twist per
-    px, ``bias_px``: its sigma) added; ``naive_w`` is the residual-variance estimate, for
-    comparison; ``view_dir_w``: the median view's unit direction (world), for the sigmas along
-    and across it."""
-    noise = _to_model(cov_w, R_wm)
-    n_mm, n_deg = axis_sigmas(_to_model(naive_w, R_wm))
-    # the turns the views' geometry barely fixes (what a nearly symmetric object can hide), before
-    # the outline shift's prior, which inflates every direction it moves and hides the ratio
-    u = Uncertainty(noise, *axis_sigmas(noise), [], _weak_turn_axes(noise), n_mm, n_deg, spread=noise)
+                   bias_px: float = BOUNDARY_BIAS_PX, spread_factor: float = 1.0,
+                   viewpoints: int | None = None) -> Uncertainty:
+    """The uncertainty of the world-twist spread ``cov_w`` (6x6, about the object centre) in the
+    model's axes (:func:`compose`), scaled by ``spread_factor``, with the prior on a shared outline
+    shift (``bias_shift_w``: the world twist per px, ``bias_px``: its sigma); ``naive_w`` is the
+    residual-variance estimate, for comparison; ``view_dir_w``: the median view's unit direction
+    (world), for the sigmas along and across it."""
     shift = np.zeros(6) if bias_shift_w is None else _into_model(R_wm) @ np.asarray(bias_shift_w, dtype=np.float64)
     d_m = None if view_dir_w is None else R_wm.T @ np.asarray(view_dir_w, dtype=np.float64)
-    return with_outline_shift(u, shift, d_m, bias_px)
-
-
-def with_outline_shift(u: Uncertainty, shift_m: NDArray[np.float64], view_dir_m: NDArray[np.float64] | None,
-                       bias_px: float = BOUNDARY_BIAS_PX) -> Uncertainty:
-    """``u`` (a covariance without the prior) with the prior on a shared outline shift added:
-    ``shift_m`` (6,) the model-frame twist per px (the joint stage takes the one measured alone,
-    at a pose a few mm away), ``view_dir_m`` the median view's unit direction in the model's axes."""
-    shift = np.asarray(shift_m, dtype=np.float64)
-    d_m = None if view_dir_m is None else np.asarray(view_dir_m, dtype=np.float64) / np.linalg.norm(view_dir_m)
-    return with_covariance(replace(u, bias_shift=shift, view_dir_m=d_m),
-                           u.covariance + bias_px ** 2 * np.outer(shift, shift))
+    if d_m is not None:
+        d_m = d_m / np.linalg.norm(d_m)
+    return compose(CovarianceParts(_to_model(cov_w, R_wm), _to_model(naive_w, R_wm), float(spread_factor),
+                                   bias_shift=shift, outline_px=bias_px, view_dir_m=d_m, viewpoints=viewpoints))
 
 
 def with_outline_disagreement(u: Uncertainty, offset_px: float) -> Uncertainty:
-    """``u`` (with the outline prior) with the measured disagreement about where the outline lies
-    added to that prior: ``offset_px`` is the shift the masks' outlines share outside the
-    silhouettes of a pose fitted with the photos as well
-    (:func:`~autoalign.losses.outline_offset.shared_outline_offset`). The masks and the colours then
-    disagree by that much, and the pose lies somewhere between the two: which one is right, the
-    fit cannot tell (a mask eroded by 4 px against a photo whose colour runs on into a neighbour of
-    the same colour), so the shared shift's variance becomes ``BOUNDARY_BIAS_PX^2 + offset_px^2``.
-    NaN (nothing to measure) leaves ``u`` as it is."""
+    """``u`` with the measured disagreement about where the outline lies added to the outline
+    prior: ``offset_px`` is the shift the masks' outlines share outside the silhouettes of a pose
+    fitted with the photos as well (:func:`~autoalign.losses.outline_offset.shared_outline_offset`).
+    The masks and the colours then disagree by that much, and the pose lies somewhere between the
+    two: which one is right, the fit cannot tell (a mask eroded by 4 px against a photo whose colour
+    runs on into a neighbour of the same colour), so the shared shift's variance becomes
+    ``BOUNDARY_BIAS_PX^2 + offset_px^2``. NaN (nothing to measure) leaves ``u`` as it is."""
     if not np.isfinite(offset_px):
         return u
-    cov = u.covariance + float(offset_px) ** 2 * np.outer(u.bias_shift, u.bias_shift)
-    return replace(with_covariance(u, cov), outline_disagreement_px=float(offset_px))
+    return u.adding(disagreement_px=float(offset_px))
 
 
 def with_scale_sigma(u: Uncertainty, sigma_relative: float, distance_mm: float) -> Uncertainty:
@@ -436,27 +500,7 @@ def with_scale_sigma(u: Uncertainty, sigma_relative: float, distance_mm: float) 
     the ray (``u.view_dir_m``); the instance's twist, taken relative to the grown scene, holds none of it."""
     if u.view_dir_m is None or sigma_relative <= 0.0:
         return u
-    cov = u.covariance.copy()
-    cov[:3, :3] += (sigma_relative * distance_mm) ** 2 * np.outer(u.view_dir_m, u.view_dir_m)
-    return with_covariance(u, cov)
-
-
-def with_covariance(u: Uncertainty, cov_m: NDArray[np.float64]) -> Uncertainty:
-    """``u`` with the model-frame covariance ``cov_m`` and what it says (sigmas, weak directions,
-    sigmas along and across ``u.view_dir_m``)."""
-    s_mm, s_deg = axis_sigmas(cov_m)
-    along, across = _ray_sigmas(cov_m, u.view_dir_m) if u.view_dir_m is not None else (None, None)
-    return replace(u, covariance=cov_m, sigma_mm=s_mm, sigma_deg=s_deg, weak=[t for t, _ in _weak(cov_m)],
-                   sigma_ray_mm=along, sigma_across_mm=across)
-
-
-def with_spread_factor(u: Uncertainty, factor: float) -> Uncertainty:
-    """``u``, whose covariance is the views' spread alone (no outline-shift prior yet), with it
-    scaled by ``factor`` (:mod:`autoalign.engine.refit_spread`) and its weakly observed turns
-    found again."""
-    cov = factor * u.covariance
-    return replace(with_covariance(u, cov), weak_turn_axes=_weak_turn_axes(cov), spread_factor=float(factor),
-                   spread=cov)
+    return u.adding(scale=(float(sigma_relative), float(distance_mm)))
 
 
 def with_turn_floors(u: Uncertainty, floors: list[TurnFloor]) -> Uncertainty:
@@ -465,15 +509,4 @@ def with_turn_floors(u: Uncertainty, floors: list[TurnFloor]) -> Uncertainty:
     among the weakly observed ones."""
     if not floors:
         return u
-    cov = u.covariance.copy()
-    spread = None if u.spread is None else u.spread.copy()
-    axes = list(u.weak_turn_axes)
-    for f in floors:
-        e = np.r_[np.zeros(3), f.axis_m]
-        for C in (c for c in (cov, spread) if c is not None):
-            var = float(e @ C @ e)
-            if f.variance > var:
-                C += (f.variance - var) * np.outer(e, e)
-        if all(abs(float(f.axis_m @ a)) < SAME_AXIS for a in axes):
-            axes.append(f.axis_m)
-    return replace(with_covariance(u, cov), turn_floors=list(floors), weak_turn_axes=axes, spread=spread)
+    return u.adding(turn_floors=tuple(u.turn_floors) + tuple(floors))

@@ -317,8 +317,8 @@ def _covariances(problem: JointProblem, x: JointState,
     cov = cov + votes
     n_band = sum(f.n_band for fits in point.ev.fits for f in fits)
     naive = H_inv * (2.0 * point.ev.value / max(n_band - problem.n, 1))
-    unc = [replace(uncertainty_of(cov[6 * k:6 * k + 6, 6 * k:6 * k + 6], naive[6 * k:6 * k + 6, 6 * k:6 * k + 6],
-                                  T[:3, :3]), viewpoints=viewpoints_seen(groups, per_view[:, 6 * k:6 * k + 6]))
+    unc = [uncertainty_of(cov[6 * k:6 * k + 6, 6 * k:6 * k + 6], naive[6 * k:6 * k + 6, 6 * k:6 * k + 6], T[:3, :3],
+                          viewpoints=viewpoints_seen(groups, per_view[:, 6 * k:6 * k + 6]))
            for k, T in enumerate(x.poses)]
     return cov, votes, unc
 

@@ -39,8 +39,7 @@ from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult, refine
 from autoalign.engine.seed_region import SEED_RADIUS
 from autoalign.engine.solver import GaussNewton, LevenbergMarquardt, StepRule
-from autoalign.engine.uncertainty import (with_outline_disagreement, with_outline_shift, with_scale_sigma,
-                                         with_spread_factor, with_turn_floors)
+from autoalign.engine.uncertainty import with_outline_disagreement, with_scale_sigma
 from autoalign.geometry.se3 import pose_change, symmetric_pose_change, transform_points
 from autoalign.errors import AutoalignError
 from autoalign.io.instances import Instance, InstanceScenes
@@ -156,9 +155,9 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
     after = []
     for k, r in enumerate(alone):
         alone_unc = r.result.uncertainty
-        unc = joint.uncertainties[k] if alone_unc is None else with_turn_floors(with_outline_shift(
-            with_spread_factor(joint.uncertainties[k], alone_unc.spread_factor), alone_unc.bias_shift,
-            alone_unc.view_dir_m), alone_unc.turn_floors)
+        unc = joint.uncertainties[k] if alone_unc is None else joint.uncertainties[k].adding(
+            spread_factor=alone_unc.spread_factor, bias_shift=alone_unc.bias_shift, view_dir_m=alone_unc.view_dir_m,
+            turn_floors=tuple(alone_unc.turn_floors))
         gap = None
         if unc.weak_turn_axes and opts.disambiguation.weak_turns:  # the joint system's weak turns, tried at its pose
             own, scores, _ = turn_scores(pyramids[k].with_faces(opts.detail.coarse), found.scenes[k],
