@@ -92,7 +92,9 @@ class OutlineFinder:
         view, edge = np.nonzero(flip.T)  # grouped by view
         if len(edge) == 0:
             return Outline.empty()
-        used = np.unique(self.mesh.edges[edge])
+        is_used = np.zeros(len(self.mesh.vertices), dtype=bool)
+        is_used[self.mesh.edges[edge]] = True
+        used = np.flatnonzero(is_used)  # the contour edges' vertices, sorted, unique
         V_w = np.zeros_like(self.mesh.vertices)
         V_w[used] = transform_points(T_wm, self.mesh.vertices[used])
         ends = self.mesh.edges[edge]
@@ -113,17 +115,21 @@ class OutlineFinder:
         t = (k + 0.5) / n_sub[rep]
         mid = A[rep] + t[:, None] * d[rep]
         nrm = np.column_stack([-d[:, 1], d[:, 0]]) / L[:, None]
-        p_plus = mid + _SIDE_PX * nrm[rep]
-        p_minus = mid - _SIDE_PX * nrm[rep]
+        side = _SIDE_PX * nrm[rep]
+        n = len(rep)
+        uv = np.empty((2 * n, 2))  # the test points either side: mid + side, then mid - side
+        np.add(mid, side, out=uv[:n])
+        np.subtract(mid, side, out=uv[n:])
         sv = view[rep]
-        hits = self.caster.pixel_hits(T_wm, cams, np.concatenate([sv, sv]), np.concatenate([p_plus, p_minus]))
-        on_outline = hits[:len(rep)] != hits[len(rep):]
-        pair = np.flatnonzero(on_outline)
-        owner = rep[pair]
-        t0 = np.full(len(L), np.inf)
-        t1 = np.full(len(L), -np.inf)
-        np.minimum.at(t0, owner, k[pair] / n_sub[owner])
-        np.maximum.at(t1, owner, (k[pair] + 1.0) / n_sub[owner])
-        t0, t1 = t0[owner], t1[owner]
-        a, b = A[owner] + t0[:, None] * d[owner], A[owner] + t1[:, None] * d[owner]
+        hits = self.caster.pixel_hits(T_wm, cams, np.concatenate([sv, sv]), uv)
+        pair = np.flatnonzero(hits[:n] != hits[n:])
+        owner = rep[pair]  # non-decreasing, and k[pair] increasing within each owner
+        # An edge's visible interval runs from its first outline segment to its last: its pairs
+        # are consecutive here, and k / n_sub grows with k.
+        bounds = np.append(np.flatnonzero(np.diff(owner, prepend=-1)), len(owner))
+        first, last, count = bounds[:-1], bounds[1:] - 1, np.diff(bounds)
+        t0 = np.repeat(k[pair[first]] / n_sub[owner[first]], count)
+        t1 = np.repeat((k[pair[last]] + 1.0) / n_sub[owner[last]], count)
+        A_o, d_o = A[owner], d[owner]
+        a, b = A_o + t0[:, None] * d_o, A_o + t1[:, None] * d_o
         return Outline(sv[pair], edge[owner], mid[pair], t0, t1, a, b)

@@ -167,25 +167,39 @@ class SoftSilhouetteRasterizer:
         band = find_band(outline, crops, offsets, band_r)
         hard = hard_mask(self.caster, T_wm, cams, crops, offsets, band)
         soft = hard.astype(np.float64)
-        pixels = band.pixels
-        view_of_band = np.searchsorted(offsets, pixels, side="right") - 1
+        pixels, view_of_band = band.pixels, band.view
         n_out = outline.per_view(len(cameras))
         if len(pixels) == 0:
             return Silhouettes(crops, offsets, soft, hard, pixels, np.zeros((0, 6)), view_of_band, n_out,
                                np.zeros((0, 2), dtype=np.int64))
-        local = pixels - offsets[view_of_band]
-        w_b = crops[view_of_band, 2]
-        px = crops[view_of_band, 0] + local % w_b + 0.5
-        py = crops[view_of_band, 1] + local // w_b + 0.5
         ends = self.mesh.edges[outline.edge[band.segment]]
-        value, jac = soft_edge_values(cams, view_of_band, px, py, np.where(hard[pixels], 1.0, -1.0),
-                                      transform_points(T_wm, self.mesh.vertices[ends[:, 0]]),
-                                      transform_points(T_wm, self.mesh.vertices[ends[:, 1]]),
+        A_w, B_w = self._world_ends(T_wm, ends)
+        value, jac = soft_edge_values(cams, view_of_band, band.px, band.py, np.where(hard[pixels], 1.0, -1.0), A_w, B_w,
                                       outline.t0[band.segment], outline.t1[band.segment],
                                       transform_points(T_wm, self.mesh.centre[None])[0], half, with_jacobian,
                                       wrt == "vertices")
         soft[pixels] = value
         return Silhouettes(crops, offsets, soft, hard, pixels, jac, view_of_band, n_out, ends)
+
+    def _world_ends(self, T_wm: NDArray[np.float64],
+                    ends: NDArray[np.int64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """World positions (mm; B, 3 each) of the mesh vertices ``ends[:, 0]`` and ``ends[:, 1]`` (B, 2).
+
+        The few distinct vertices are moved once and gathered, instead of one matrix product over
+        all B rows (B is up to ~10^5 at full resolution, where a multi-threaded BLAS product was
+        slower than everything else in the render). A product of at least two rows gives each
+        row the same bits however many rows it has; a single row takes another BLAS path
+        (matrix-vector), so one band pixel keeps the direct product.
+        """
+        V = self.mesh.vertices
+        is_used = np.zeros(len(V), dtype=bool)
+        is_used[ends] = True
+        used = np.flatnonzero(is_used)
+        if len(ends) < 2 or len(used) < 2:
+            return transform_points(T_wm, V[ends[:, 0]]), transform_points(T_wm, V[ends[:, 1]])
+        V_w = np.empty_like(V)
+        V_w[used] = transform_points(T_wm, V[used])
+        return V_w[ends[:, 0]], V_w[ends[:, 1]]
 
 
 def _crop_pixel_centres(crop: NDArray[np.int64]) -> NDArray[np.float64]:
