@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.geometry.camera import Camera
+from autoalign.geometry.camera import Camera, pixel_centres, uv_from_opencv
 from autoalign.geometry.mesh import Mesh
 from autoalign.losses.silhouette import ViewTerms
 from autoalign.losses.term import Fragments, LevelViews, Stance, TermEvidence, TermValues
@@ -120,8 +120,9 @@ class DepthTerms:
         rows, cols = self.occluders[k]
         half = self.stride[k] / 2.0
         for r, c in zip(rows, cols):
-            y0, y1 = int(np.floor((r - half + 0.5) * scale)), int(np.ceil((r + half + 0.5) * scale))
-            x0, x1 = int(np.floor((c - half + 0.5) * scale)), int(np.ceil((c + half + 0.5) * scale))
+            # the cell's edges in continuous coordinates, at the level's resolution
+            y0, y1 = int(np.floor(uv_from_opencv(r - half) * scale)), int(np.ceil(uv_from_opencv(r + half) * scale))
+            x0, x1 = int(np.floor(uv_from_opencv(c - half) * scale)), int(np.ceil(uv_from_opencv(c + half) * scale))
             out[max(y0, 0):y1, max(x0, 0):x1] = True
         return out
 
@@ -167,8 +168,8 @@ def depth_terms(caster: RayCaster, mesh: Mesh, T_wm: NDArray[np.float64], camera
         rows, cols, out.stride[k] = sample_pixels(cam, mesh, T_wm, measured, max_samples)
         if len(rows) == 0:
             continue
-        # rays through the pixel centres (internal convention: +0.5) with unit z in the camera: t is depth
-        pix = np.stack([cols + 0.5, rows + 0.5, np.ones(len(rows))], 1)
+        # rays through the pixel centres with unit z in the camera: t is depth
+        pix = np.column_stack([pixel_centres(cols, rows), np.ones(len(rows))])
         d_w = (pix @ np.linalg.inv(cam.K).T) @ cam.R_w2c  # rows R_c2w K^-1 [u, v, 1]
         hits = caster.first_hits(T_wm, cam.centre, d_w.astype(np.float32))
         z_r = hits.t.astype(np.float64)

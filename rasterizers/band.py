@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from autoalign.geometry.camera import pixel_centres, uv_from_opencv
 from autoalign.rasterizers.camera_batch import CameraBatch
 from autoalign.rasterizers.outline import Outline
 from autoalign.rasterizers.ray_casting import RayCaster
@@ -32,7 +33,7 @@ class Band:
         samples: (R, 3) three flat pixels of each off-band region.
         view: (B,) the view of each band pixel.
         px, py: (B,) the band pixels' centres in their (scaled) images, pixels (internal
-            convention, +0.5): the values :func:`pixel_centres` gives.
+            convention): the values :func:`flat_pixel_centres` gives.
     """
 
     pixels: NDArray[np.int64]
@@ -44,13 +45,13 @@ class Band:
     py: NDArray[np.float64]
 
 
-def pixel_centres(crops: NDArray[np.int64], offsets: NDArray[np.int64],
+def flat_pixel_centres(crops: NDArray[np.int64], offsets: NDArray[np.int64],
                   flat: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-    """The view and the continuous centre (N, 2; internal convention, +0.5) of flat pixels."""
+    """The view and the continuous centre (N, 2; internal convention) of flat pixels."""
     view = np.searchsorted(offsets, flat, side="right") - 1
     local = flat - offsets[view]
     w = crops[view, 2]
-    return view, np.column_stack([crops[view, 0] + local % w + 0.5, crops[view, 1] + local // w + 0.5])
+    return view, pixel_centres(crops[view, 0] + local % w, crops[view, 1] + local // w)
 
 
 def find_band(outline: Outline, crops: NDArray[np.int64], offsets: NDArray[np.int64], band_r: float) -> Band:
@@ -86,8 +87,7 @@ def find_band(outline: Outline, crops: NDArray[np.int64], offsets: NDArray[np.in
     at = rr * W + cc  # atlas index of each band pixel
     band = atlas.flat_index(rr, cc)
     view = atlas.view_of_row[rr]
-    px = atlas.x0_of_row[rr] + cc + 0.5
-    py = atlas.y0_of_row[rr] + rr + 0.5
+    px, py = uv_from_opencv(atlas.x0_of_row[rr] + cc), uv_from_opencv(atlas.y0_of_row[rr] + rr)  # centres
     # A band pixel's nearest outline segment is chosen among those nearest to it and to its 4
     # neighbours (in this order: itself, above, below, left, right; clamped at the atlas border).
     # A neighbour across a gap belongs to another view and is never taken.
@@ -118,7 +118,7 @@ def _outline_cells(outline: Outline, seg: _Segments, crops: NDArray[np.int64],
     cx = np.clip(np.floor(outline.mid[:, 0] - crops[sv, 0]).astype(np.int64), 0, crops[sv, 2] - 1)
     cy = np.clip(np.floor(outline.mid[:, 1] - crops[sv, 1]).astype(np.int64), 0, crops[sv, 3] - 1)
     ay = atlas.row0[sv] + cy
-    d_cell = seg.dist2(crops[sv, 0] + cx + 0.5, crops[sv, 1] + cy + 0.5, np.arange(len(sv)))
+    d_cell = seg.dist2(uv_from_opencv(crops[sv, 0] + cx), uv_from_opencv(crops[sv, 1] + cy), np.arange(len(sv)))
     cell = ay * atlas.shape[1] + cx
     order = np.lexsort((-d_cell, cell))  # by cell, and within a cell nearest last
     sorted_cells = cell[order]
@@ -165,10 +165,10 @@ def hard_mask(caster: RayCaster, T_wm: NDArray[np.float64], cams: CameraBatch, c
     A region whose rays disagree (an outline the segment test missed) is ray-cast pixel by pixel.
     """
     def hits(flat: NDArray[np.int64]) -> NDArray[np.bool_]:
-        return caster.pixel_hits(T_wm, cams, *pixel_centres(crops, offsets, flat))
+        return caster.pixel_hits(T_wm, cams, *flat_pixel_centres(crops, offsets, flat))
 
     n_band = len(band.pixels)
-    sample_view, sample_uv = pixel_centres(crops, offsets, band.samples.ravel())
+    sample_view, sample_uv = flat_pixel_centres(crops, offsets, band.samples.ravel())
     h = caster.pixel_hits(T_wm, cams, np.concatenate([band.view, sample_view]),
                           np.concatenate([np.column_stack([band.px, band.py]), sample_uv]))
     if band.samples.size:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.geometry.camera import K_from_opencv
+from autoalign.geometry.camera import K_from_opencv, uv_from_opencv, uv_to_opencv
 from autoalign.geometry.se3 import make_pose
 from autoalign.geometry.mesh import ColouredMesh
 from autoalign.rasterizers.ray_casting import RayCaster, RayHits
@@ -61,8 +61,7 @@ def pixel_rays(K_internal: NDArray[np.float64], width: int, height: int, box: Bo
     ``K_internal``; unit z component, so the hit distance is the depth z (mm)."""
     u0, v0, u1, v1 = box if box is not None else (0, 0, width, height)
     Kinv = np.linalg.inv(np.asarray(K_internal, dtype=np.float64).reshape(3, 3))
-    u = np.arange(u0, u1, dtype=np.float64) + 0.5
-    v = np.arange(v0, v1, dtype=np.float64) + 0.5
+    u, v = uv_from_opencv(np.arange(u0, u1)), uv_from_opencv(np.arange(v0, v1))  # the pixels' centres
     d = (v[:, None, None] * Kinv[:, 1] + Kinv[:, 2]) + u[None, :, None] * Kinv[:, 0]
     d = d / d[..., 2:3]
     return d.reshape(-1, 3).astype(np.float32)
@@ -80,7 +79,7 @@ def _projected_box(vertices_c: Sequence[NDArray[np.float64]], K_internal: NDArra
     if not np.all(V[:, 2] > 1e-6) or not np.all(np.isfinite(V)):
         return 0, 0, width, height
     uvw = V @ K_internal.T
-    u, v = uvw[:, 0] / uvw[:, 2] - 0.5, uvw[:, 1] / uvw[:, 2] - 0.5  # nearest pixel centre: round(u - 0.5)
+    u, v = uv_to_opencv(uvw[:, :2] / uvw[:, 2:3]).T  # pixel-index units
     box = (max(int(np.floor(u.min())) - 1, 0), max(int(np.floor(v.min())) - 1, 0),
            min(int(np.ceil(u.max())) + 2, width), min(int(np.ceil(v.max())) + 2, height))
     return box if box[0] < box[2] and box[1] < box[3] else None

@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.geometry.camera import Camera
+from autoalign.geometry.camera import Camera, pixel_centres
 from autoalign.geometry.mesh import Mesh
 from autoalign.geometry.se3 import transform_points
 from autoalign.rasterizers.band import find_band, hard_mask
@@ -205,5 +205,4 @@ class SoftSilhouetteRasterizer:
 def _crop_pixel_centres(crop: NDArray[np.int64]) -> NDArray[np.float64]:
     """Continuous coordinates (N, 2) of the pixel centres of a crop, row-major (internal convention)."""
     x0, y0, w, h = (int(v) for v in crop)
-    gx, gy = np.meshgrid(np.arange(x0, x0 + w) + 0.5, np.arange(y0, y0 + h) + 0.5)
-    return np.column_stack([gx.ravel(), gy.ravel()])
+    return pixel_centres(*np.meshgrid(np.arange(x0, x0 + w), np.arange(y0, y0 + h)))

@@ -85,7 +85,7 @@ def proposal_masks(mesh: Any, vertex_labels: NDArray[np.int64], n: int, cameras:
     out = {}
     for m, (im, cam) in enumerate(cameras.items()):
         j, i = np.meshgrid(np.arange(cam.width), np.arange(cam.height))
-        d = cam.ray_directions(np.column_stack([j.ravel() + 0.5, i.ravel() + 0.5]))  # pixel centres
+        d = cam.pixel_rays(j, i)
         rays = np.column_stack([np.broadcast_to(cam.centre, d.shape), d]).astype(np.float32)
         prim = scene.cast_rays(o3d.core.Tensor(rays))["primitive_ids"].numpy().astype(np.int64)
         hit = prim != scene.INVALID_ID

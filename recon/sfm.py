@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.errors import AutoalignError
+from autoalign.geometry.camera import K_from_opencv, K_to_opencv, uv_to_opencv
 from autoalign.geometry.se3 import make_pose
 from autoalign.recon.capture import Capture
 
@@ -123,7 +124,8 @@ def _extract_features(db: Path, folder: Path, names: list[str], K: NDArray[np.fl
     reader = pycolmap.ImageReaderOptions()
     if K is not None:
         reader.camera_model = "PINHOLE"
-        reader.camera_params = f"{K[0, 0]},{K[1, 1]},{K[0, 2] + 0.5},{K[1, 2] + 0.5}"
+        Kc = K_from_opencv(K)  # COLMAP's pixel centres are the internal convention's
+        reader.camera_params = f"{Kc[0, 0]},{Kc[1, 1]},{Kc[0, 2]},{Kc[1, 2]}"
     else:
         reader.camera_model = "SIMPLE_PINHOLE"
     extraction = pycolmap.FeatureExtractionOptions()
@@ -180,7 +182,7 @@ def _result(rec: pycolmap.Reconstruction, id_of: dict[str, int],
     in the OpenCV pixel convention; ``n_frames``: the frames given."""
     cam = next(iter(rec.cameras.values()))
     f = cam.focal_length_x, cam.focal_length_y
-    K = np.array([[f[0], 0.0, cam.principal_point_x - 0.5], [0.0, f[1], cam.principal_point_y - 0.5], [0.0, 0.0, 1.0]])
+    K = K_to_opencv(np.array([[f[0], 0.0, cam.principal_point_x], [0.0, f[1], cam.principal_point_y], [0.0, 0.0, 1.0]]))
     point_ids = sorted(rec.points3D)
     index = {pid: k for k, pid in enumerate(point_ids)}
     points = np.array([rec.points3D[p].xyz for p in point_ids], dtype=np.float64).reshape(-1, 3)
@@ -195,12 +197,12 @@ def _result(rec: pycolmap.Reconstruction, id_of: dict[str, int],
         uv, idx = [], []
         for p2 in image.points2D:
             if p2.has_point3D():
-                uv.append(np.asarray(p2.xy) - 0.5)
+                uv.append(uv_to_opencv(p2.xy))
                 idx.append(index[p2.point3D_id])
         obs[fid] = (np.array(uv, dtype=np.float64).reshape(-1, 2), np.array(idx, dtype=np.int64))
     for name, (T, xy, pids) in extra.items():
         T_cw[id_of[name]] = T
-        obs[id_of[name]] = (xy - 0.5, np.array([index[p] for p in pids], dtype=np.int64))
+        obs[id_of[name]] = (uv_to_opencv(xy), np.array([index[p] for p in pids], dtype=np.int64))
     return SfmResult(dict(sorted(T_cw.items())), K, points, colors, obs, float(rec.compute_mean_reprojection_error()),
                      n_frames)
 

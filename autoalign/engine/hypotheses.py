@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from autoalign.geometry.camera import pixel_centres
 from autoalign.geometry.se3 import invert, make_pose, so3_exp, so3_log
 from autoalign.io.bop import Scene
 from autoalign.losses.overlap import iou_from_counts
@@ -123,8 +124,7 @@ class _LowResViews:
             x1, y1 = int(min(np.ceil(uc[0] + r_px), cam.width)), int(min(np.ceil(uc[1] + r_px), cam.height))
             if x1 <= x0 or y1 <= y0:
                 continue
-            gx, gy = np.meshgrid(np.arange(x0, x1) + 0.5, np.arange(y0, y1) + 0.5)
-            uv = np.column_stack([gx.ravel(), gy.ravel()])
+            uv = pixel_centres(*np.meshgrid(np.arange(x0, x1), np.arange(y0, y1)))
             n = len(t_tot)
             centres.append(cam.centre)
             dirs.append(cam.ray_directions(uv))
@@ -139,7 +139,7 @@ class _LowResViews:
             view.append(np.full(len(uv), n))
             t_tot.append(float(mask.sum()))
             ys, xs = np.nonzero(mask)
-            g_cent.append([xs.mean() + 0.5, ys.mean() + 0.5])
+            g_cent.append(pixel_centres(xs.mean(), ys.mean())[0])
             # d(pixel)/d(world shift) at the object centre, (2, 3)
             z = Xc[2]
             P = np.array([[cam.K[0, 0], cam.K[0, 1], cam.K[0, 2] - uc[0]], [0.0, cam.K[1, 1], cam.K[1, 2] - uc[1]]]) / z

@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.errors import AutoalignError
-from autoalign.geometry.camera import uv_from_opencv, uv_to_opencv
+from autoalign.geometry.camera import pixel_centres, uv_from_opencv, uv_to_opencv
 from autoalign.io.bop import Scene
 
 
@@ -106,7 +106,7 @@ def hull_centre(scene: Scene, diameter: float, grid: int = 40, min_fraction: flo
         if len(xs) == 0:
             continue
         origins.append(cam.centre)
-        dirs.append(cam.ray_directions(np.array([[xs.mean() + 0.5, ys.mean() + 0.5]]))[0])
+        dirs.append(cam.pixel_rays(xs.mean(), ys.mean())[0])
     if not origins:
         raise AutoalignError("the masks are empty in every view; check the segmentation or --instance")
     centre = closest_point_to_rays(np.array(origins), np.array(dirs)) if start is None else np.asarray(start, float)
@@ -151,7 +151,8 @@ def check_click(scene: Scene, click: Click, tol_px: float = CLICK_TOLERANCE_PX) 
     ys, xs = np.nonzero(np.asarray(scene.masks[k]) > 0.5)
     if len(xs) == 0:
         return
-    d = float(np.sqrt(((xs + 0.5 - click.u) ** 2 + (ys + 0.5 - click.v) ** 2).min()))
+    c = pixel_centres(xs, ys)
+    d = float(np.sqrt(((c[:, 0] - click.u) ** 2 + (c[:, 1] - click.v) ** 2).min()))
     if d > tol_px:
         raise AutoalignError(f"--click {click.image_id}:{typed}: not on the object's mask in image "
                              f"{click.image_id} (the nearest mask pixel is {d:.0f} px away); click on the object")

@@ -24,7 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from autoalign.geometry.se3 import make_pose
 
@@ -59,8 +59,17 @@ def uv_from_opencv(uv: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def uv_to_opencv(uv: NDArray[np.float64]) -> NDArray[np.float64]:
-    """OpenCV / BOP pixel coordinates from internal ones (inverse of :func:`uv_from_opencv`)."""
+    """OpenCV / BOP pixel coordinates from internal ones (inverse of :func:`uv_from_opencv`): a
+    pixel's index is the OpenCV coordinate of its centre, so this also maps an internal coordinate
+    to pixel-index units (``floor(uv_to_opencv(uv) + 0.5)`` is the pixel it falls in)."""
     return np.asarray(uv, dtype=np.float64) - OPENCV_TO_INTERNAL_PX
+
+
+def pixel_centres(cols: ArrayLike, rows: ArrayLike) -> NDArray[np.float64]:
+    """Internal continuous coordinates (N, 2) ``(u, v)`` of the centres of the pixels in columns
+    ``cols`` and rows ``rows`` (same shape, flattened): ``(j + 0.5, i + 0.5)``, a pixel's index
+    being the OpenCV coordinate of its centre. Every pixel index becomes a coordinate here."""
+    return uv_from_opencv(np.column_stack([np.ravel(cols), np.ravel(rows)]))
 
 
 @dataclass(frozen=True)
@@ -106,6 +115,11 @@ class Camera:
         Xc = self.to_camera(X_w)
         uvw = Xc @ self.K.T
         return uvw[:, :2] / uvw[:, 2:3]
+
+    def pixel_rays(self, cols: ArrayLike, rows: ArrayLike) -> NDArray[np.float64]:
+        """Unit world-frame directions (N, 3) of the rays through the centres of the pixels in
+        columns ``cols`` and rows ``rows`` (:func:`pixel_centres`)."""
+        return self.ray_directions(pixel_centres(cols, rows))
 
     def ray_directions(self, uv: NDArray[np.float64]) -> NDArray[np.float64]:
         """Unit world-frame directions of the rays through continuous pixel coordinates (N, 2)."""

@@ -255,7 +255,7 @@ def masks_meeting_point(scene: Scene) -> NDArray[np.float64] | None:
         ys, xs = np.nonzero(np.asarray(m) > 0.5)
         if len(xs) == 0:
             continue
-        d = cam.ray_directions(np.array([[xs.mean() + 0.5, ys.mean() + 0.5]]))[0]
+        d = cam.pixel_rays(xs.mean(), ys.mean())[0]
         P = np.eye(3) - np.outer(d, d)  # off the ray
         A, b, n = A + P, b + P @ cam.centre, n + 1
     if n < 2 or np.linalg.eigvalsh(A)[0] < 0.005 * n:

@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.errors import AutoalignError
-from autoalign.geometry.camera import Camera
+from autoalign.geometry.camera import Camera, pixel_centres, uv_to_opencv
 from autoalign.io.bop import (
     Label,
     depth_scales,
@@ -117,7 +117,7 @@ class FrameRenderer:
             caster = self._caster(lab.obj_id)
             x0, y0, x1, y1 = _canvas_crop(cam, lab.T_cm, self.models.mesh(lab.obj_id).hull)
             gx, gy = np.meshgrid(np.arange(x0, x1), np.arange(y0, y1))
-            uv = np.column_stack([gx.ravel(), gy.ravel()]).astype(np.float64) + 0.5  # internal centres
+            uv = pixel_centres(gx, gy)
             d = caster.pixel_depths(lab.T_cm, batch, np.zeros(len(uv), dtype=np.int64), uv).reshape(gy.shape)
             silhouettes.append((x0, y0, np.isfinite(d), d))
             ix0, iy0, ix1, iy1 = max(x0, 0), max(y0, 0), min(x1, W), min(y1, H)
@@ -126,8 +126,8 @@ class FrameRenderer:
         nearest = dist.min(axis=0) if len(labels) else np.full((H, W), np.inf, np.float32)
         measured = None
         if depth_mm is not None:
-            rays = np.linalg.inv(cam.K) @ np.stack([*np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5),
-                                                     np.ones((H, W))]).reshape(3, -1)
+            centres = pixel_centres(*np.meshgrid(np.arange(W), np.arange(H)))
+            rays = np.linalg.inv(cam.K) @ np.vstack([centres.T, np.ones(H * W)])
             measured = (depth_mm.ravel() * np.linalg.norm(rays, axis=0)).reshape(H, W)  # distance along the ray
         kept, masks, visib, info = [], [], [], []
         for k, (lab, (x0, y0, hit, d)) in enumerate(zip(labels, silhouettes)):
@@ -160,7 +160,7 @@ def _canvas_crop(cam: Camera, T_cm: NDArray[np.float64], hull: NDArray[np.float6
     if np.any(X[:, 2] < NEAR_MM):
         return -W, -H, 2 * W, 2 * H
     uv = X @ cam.K.T
-    uv = uv[:, :2] / uv[:, 2:3] - 0.5  # internal -> integer pixel coordinates
+    uv = uv_to_opencv(uv[:, :2] / uv[:, 2:3])  # pixel-index units
     x0, y0 = np.floor(uv.min(0)).astype(int) - 1
     x1, y1 = np.ceil(uv.max(0)).astype(int) + 2
     return max(x0, -W), max(y0, -H), min(x1, 2 * W), min(y1, 2 * H)

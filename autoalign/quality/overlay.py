@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from autoalign.errors import AutoalignError
+from autoalign.geometry.camera import uv_from_opencv, uv_to_opencv
 from autoalign.io.bop import Scene, photo_path, read_photo
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
@@ -87,8 +88,8 @@ def _contour_polys(mask: NDArray[np.bool_], x0: float, y0: float, s: float) -> l
     contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
     out = []
     for c in contours:
-        p = c.reshape(-1, 2).astype(np.float64) + 0.5  # pixel centres, continuous coordinates
-        p = (p - [x0, y0]) * s - 0.5  # to tile pixel indices
+        p = uv_from_opencv(c.reshape(-1, 2))  # the contour's pixel centres, continuous coordinates
+        p = uv_to_opencv((p - [x0, y0]) * s)  # to tile pixel indices
         out.append(np.round(p * (1 << _SHIFT)).astype(np.int32).reshape(-1, 1, 2))
     return out
 
@@ -101,13 +102,20 @@ def _put_label(img: NDArray[np.uint8], text: str, org: tuple[int, int], colour: 
     cv2.putText(img, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, colour, 1, cv2.LINE_AA)
 
 
+def tile_map(x0: int, y0: int, s: float) -> NDArray[np.float64]:
+    """The 2x3 affine map (``cv2.warpAffine``) from image pixel indices to the indices of a tile
+    showing the image from pixel ``(x0, y0)`` on at ``s`` tile pixels per image pixel: pixel centres
+    map onto pixel centres."""
+    shift = uv_to_opencv((uv_from_opencv(np.zeros(2)) - [x0, y0]) * s)
+    return np.array([[s, 0.0, shift[0]], [0.0, s, shift[1]]])
+
+
 def _tile(target: NDArray[np.bool_], before: NDArray[np.bool_], after: NDArray[np.bool_], label: str,
           worst: bool) -> NDArray[np.uint8]:
     H, W = target.shape
     x0, y0, w, h = _crop_box([target, before, after], W, H)
     s = TILE_W / w
-    # affine map from image pixel indices to tile pixel indices (centres at +0.5 on both sides)
-    A = np.array([[s, 0.0, (0.5 - x0) * s - 0.5], [0.0, s, (0.5 - y0) * s - 0.5]])
+    A = tile_map(x0, y0, s)
     interp = cv2.INTER_NEAREST if s >= 1.0 else cv2.INTER_LINEAR  # zoomed in: show the mask's pixels
     inside = cv2.warpAffine(np.ones((H, W), np.float32), A, (TILE_W, TILE_H), flags=interp,
                             borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
@@ -240,7 +248,7 @@ def render_instances_overlay(cameras: list, image_ids: list[int], scene_dir: str
                                  + [sil[j] for _, _, sil in instances if sil is not None], cam.width, cam.height,
                                  MULTI_TILE_W / MULTI_TILE_H)
         s = MULTI_TILE_W / w
-        A = np.array([[s, 0.0, (0.5 - x0) * s - 0.5], [0.0, s, (0.5 - y0) * s - 0.5]])
+        A = tile_map(x0, y0, s)
         tile = cv2.warpAffine(np.clip(base, 0, 255).astype(np.uint8), A, (MULTI_TILE_W, MULTI_TILE_H),
                               flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=_OUTSIDE)
         for k, (label, _, sil) in enumerate(instances):

@@ -13,6 +13,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from autoalign.geometry.camera import uv_from_opencv, uv_to_opencv
+
 RATIO_TEST = 0.8
 """Lowe's ratio: a match is kept when its descriptor distance is below this times the second best's."""
 MAX_MATCH_PX = 10.0
@@ -55,7 +57,7 @@ def sift_features(gray: NDArray[np.uint8], upsample: float = UPSAMPLE) -> Featur
     if desc is None or not kps:
         return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
     uv = np.array([k.pt for k in kps], dtype=np.float64)
-    return Features((uv + 0.5) / s - 0.5, desc.astype(np.float32))
+    return Features(uv_to_opencv(uv_from_opencv(uv) / s), desc.astype(np.float32))
 
 
 def sift_scale(width: int, height: int) -> float:
@@ -94,8 +96,8 @@ def match_features(render: Features, photo: Features, ratio: float = RATIO_TEST,
 
 def in_box(uv: NDArray[np.float64], box: tuple[int, int, int, int]) -> NDArray[np.bool_]:
     """Whether each (u, v) (OpenCV px) lies in the pixels of ``box`` (u0, v0, u1, v1), end exclusive."""
-    u0, v0, u1, v1 = box
-    return (uv[:, 0] >= u0 - 0.5) & (uv[:, 0] < u1 - 0.5) & (uv[:, 1] >= v0 - 0.5) & (uv[:, 1] < v1 - 0.5)
+    lo, hi = uv_to_opencv(np.array(box[:2])), uv_to_opencv(np.array(box[2:]))  # the box's edges
+    return (uv[:, 0] >= lo[0]) & (uv[:, 0] < hi[0]) & (uv[:, 1] >= lo[1]) & (uv[:, 1] < hi[1])
 
 
 def at_pixels(uv: NDArray[np.float64], image: NDArray[np.bool_]) -> NDArray[np.bool_]:

@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.engine.objective import Level, SilhouetteObjective
-from autoalign.geometry.camera import Camera
+from autoalign.geometry.camera import Camera, pixel_centres
 from autoalign.geometry.se3 import transform_points
 from autoalign.io.instances import InstanceScenes
 from autoalign.losses import robust_view_weights
@@ -257,7 +257,7 @@ class OcclusionObjective:
             pj = ((yy - yj) * wj + (xx - xj)).ravel()
             both = (si.soft[si.offsets[g] + pi] > 0) & (sj.soft[sj.offsets[g] + pj] > 0)
             if both.any():
-                uv = np.column_stack([xx.ravel()[both], yy.ravel()[both]]) + 0.5
+                uv = pixel_centres(xx.ravel()[both], yy.ravel()[both])
                 out.append(_Pair(i, j, int(g), pi[both], pj[both], uv))
         return out
 

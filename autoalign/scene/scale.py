@@ -78,8 +78,8 @@ def scale_from_masks(found: InstanceScenes, models: ModelSet,
         views = [(cam, m > 0.5) for cam, m in zip(scene.cameras, scene.masks) if (m > 0.5).any()]
         if len(views) < 2:
             continue
-        centroids = [np.argwhere(m)[:, ::-1].mean(0, keepdims=True) + 0.5 for _, m in views]  # pixel centres
-        rays = np.array([cam.ray_directions(c)[0] for (cam, _), c in zip(views, centroids)])
+        centroids = [np.argwhere(m).mean(0) for _, m in views]  # (row, column)
+        rays = np.array([cam.pixel_rays(c[1], c[0])[0] for (cam, _), c in zip(views, centroids)])
         X = closest_point_to_rays(np.array([cam.centre for cam, _ in views]), rays, outlier=CENTROID_OUTLIER)
         areas = np.array([m.sum() for _, m in views], dtype=np.float64)
         R = None if rotations is None else rotations.get(inst.index)
