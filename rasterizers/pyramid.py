@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from autoalign.geometry.mesh import Mesh
+from autoalign.geometry.se3 import Symmetries
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
 SEARCH_SCALE = 0.125
@@ -45,10 +46,13 @@ AS_GIVEN = MeshDetail(None, None, None)
 class MeshPyramid:
     """``mesh`` (model frame, mm) and its simplified versions, each with its rasterizer, made on
     first use and kept: one per model (:meth:`~autoalign.io.models.ModelSet.pyramid`), shared by
-    every stage that renders it. Not thread-safe (drjit renders one thread at a time)."""
+    every stage that renders it. Not thread-safe (drjit renders one thread at a time).
+    ``symmetries``: the model's (:class:`~autoalign.geometry.se3.Symmetries`), for what measures
+    how far a pose moved (a turn about an axis of continuous symmetry is no move)."""
 
-    def __init__(self, mesh: Mesh) -> None:
+    def __init__(self, mesh: Mesh, symmetries: Symmetries = Symmetries()) -> None:
         self.mesh = mesh
+        self.symmetries = symmetries
         self._rasterizers: dict[int | None, SoftSilhouetteRasterizer] = {}
 
     def with_faces(self, max_faces: int | None) -> SoftSilhouetteRasterizer:

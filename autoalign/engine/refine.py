@@ -39,7 +39,7 @@ from autoalign.engine.turn_profile import with_turn_profiles
 from autoalign.engine.uncertainty import Uncertainty, pose_uncertainty, viewpoint_groups
 from autoalign.errors import AutoalignError
 from autoalign.geometry.mesh import Mesh
-from autoalign.geometry.se3 import pose_change, transform_points
+from autoalign.geometry.se3 import pose_change, symmetric_pose_change, transform_points
 from autoalign.io.bop import Scene
 from autoalign.losses import targets_in_crops
 from autoalign.losses.silhouette import boundary_bias_grads
@@ -490,13 +490,16 @@ def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best:
     """Stage 4b, a seed is evidence: when ``best`` ended beyond ``opts.seed_radius`` of the given
     pose ``anchor``, the best pose within it (the schedule from ``anchor`` with the region's
     penalty, :mod:`autoalign.engine.seed_region`), returned instead unless ``best`` fits clearly
-    better (its full-resolution evaluation ``ev``). Returns the finalist kept, its evaluation, its
-    uncertainty (``None``: unchanged) and the hold (``None``: within the radius)."""
+    better (its full-resolution evaluation ``ev``). The move is measured modulo the model's
+    symmetries (``obj.pyramid.symmetries``): a free turn about an axis of continuous symmetry is no
+    move. Returns the finalist kept, its evaluation, its uncertainty (``None``: unchanged) and the
+    hold (``None``: within the radius)."""
     h = best.hypothesis
-    move = pose_change(anchor, h.T_final, obj.centre_m)
+    syms = obj.pyramid.symmetries
+    move = symmetric_pose_change(anchor, h.T_final, obj.centre_m, syms.discrete, syms.continuous)
     if opts.seed_radius is None or (move[0] <= opts.seed_radius[0] and move[1] <= opts.seed_radius[1]):
         return best, ev, None, None
-    held = obj.with_pose_term(SeedRegion(anchor, obj.centre_m, opts.seed_radius, STIFFNESS * len(obj.scene)))
+    held = obj.with_pose_term(SeedRegion(anchor, obj.centre_m, opts.seed_radius, STIFFNESS * len(obj.scene), syms))
     full = Level(1.0, opts.schedule[-1].sigma, 0)
     candidates = []
     # the whole schedule, which the far pose's pull may take to the region's edge, and the last level alone
@@ -569,7 +572,8 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
             With its photos (:attr:`Scene.photos`) they are evidence too, and the masks may be empty
             (:mod:`autoalign.engine.photo_evidence`; a seed pose is needed then).
         mesh: the object model (mm), or its :class:`~autoalign.rasterizers.pyramid.MeshPyramid` (e.g.
-            :meth:`ModelSet.pyramid <autoalign.io.models.ModelSet.pyramid>`) to share its rasterizers with other calls.
+            :meth:`ModelSet.pyramid <autoalign.io.models.ModelSet.pyramid>`) to share its rasterizers with other calls
+            and give the model's symmetries (the seed's hold measures moves modulo them).
         seed: a coarse world-from-model pose (4x4), a :class:`Click`, or ``None`` (visual hull).
             Without a pose the orientation is searched with ``options.n_rotations`` hypotheses.
         options: see :class:`RefineOptions`.

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.geometry.se3 import so3_log, transform_points
+from autoalign.geometry.se3 import Symmetries, closest_symmetric_pose, so3_log, transform_points
 from autoalign.losses.term import Fragments, PoseTerms, TermValues
 
 SEED_RADIUS = (25.0, 30.0)
@@ -38,12 +38,14 @@ mask loss is at most 1 (area-normalised) and below 0.05 at a good fit."""
 @dataclass(frozen=True)
 class SeedRegion:
     """The poses within ``radius`` (mm at the centre, degrees) of ``T_seed`` (world from model),
-    ``centre_m`` the model's centre (mm), ``weight`` the penalty's scale (``STIFFNESS`` x views)."""
+    modulo the model's ``symmetries``; ``centre_m`` the model's centre (mm), ``weight`` the penalty's
+    scale (``STIFFNESS`` x views)."""
 
     T_seed: NDArray[np.float64]
     centre_m: NDArray[np.float64]
     radius: tuple[float, float]
     weight: float
+    symmetries: Symmetries = Symmetries()
     name = "seed"
 
     def residuals(self, fragments: Fragments) -> TermValues:
@@ -51,7 +53,12 @@ class SeedRegion:
         return TermValues(self.name, pose=self.term(fragments.T_wm))
 
     def term(self, T_wm: NDArray[np.float64]) -> PoseTerms:
-        """The penalty at ``T_wm`` and its derivatives (zero inside the region)."""
+        """The penalty at ``T_wm`` and its derivatives (zero inside the region), the move measured to
+        the symmetric equivalent of ``T_wm`` nearest the seed (a free turn about an axis of
+        continuous symmetry costs nothing; at that nearest equivalent the turn's derivative is the
+        plain one's, the symmetry's angle being at its optimum)."""
+        if self.symmetries:
+            T_wm = closest_symmetric_pose(self.T_seed, T_wm, self.symmetries.discrete, self.symmetries.continuous)
         grad, gn, value = np.zeros(6), np.zeros((6, 6)), 0.0
         s = float(np.sqrt(self.weight))
         d = transform_points(T_wm, self.centre_m[None])[0] - transform_points(self.T_seed, self.centre_m[None])[0]

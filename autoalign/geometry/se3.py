@@ -12,6 +12,7 @@ Conventions
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -127,6 +128,18 @@ def pose_change(A: ArrayLike, B: ArrayLike, centre_m: ArrayLike) -> tuple[float,
     A, B, c = np.asarray(A, dtype=np.float64), np.asarray(B, dtype=np.float64), np.asarray(centre_m, dtype=np.float64)
     return (float(np.linalg.norm(A[:3, :3] @ c + A[:3, 3] - B[:3, :3] @ c - B[:3, 3])),
             rotation_angle_deg(A[:3, :3], B[:3, :3]))
+
+
+@dataclass(frozen=True)
+class Symmetries:
+    """A model's symmetries, as BOP's ``models_info.json`` lists them: ``discrete`` 4x4 transforms
+    (model frame, mm) and ``continuous`` (unit axis, a point on it; model frame, mm)."""
+
+    discrete: tuple[NDArray[np.float64], ...] = ()
+    continuous: tuple[tuple[NDArray[np.float64], NDArray[np.float64]], ...] = ()
+
+    def __bool__(self) -> bool:
+        return bool(self.discrete or self.continuous)
 
 
 def closest_symmetric_pose(A: ArrayLike, B: ArrayLike, discrete: Sequence[ArrayLike] = (),

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from autoalign.errors import AutoalignError
 from autoalign.io.bop import read_json_file, whole_number_keys
 from autoalign.geometry.mesh import ColouredMesh, Mesh, load_mesh
+from autoalign.geometry.se3 import Symmetries
 from autoalign.rasterizers.pyramid import MeshPyramid
 
 GREY = (0.5, 0.5, 0.5)
@@ -172,7 +173,8 @@ class ModelSet:
         """The mesh of ``obj_id`` with its simplified versions and their rasterizers, made once: every
         stage that renders the object shares it."""
         if obj_id not in self._pyramids:
-            self._pyramids[obj_id] = MeshPyramid(self.mesh(obj_id))
+            discrete, continuous = self.symmetries(obj_id)
+            self._pyramids[obj_id] = MeshPyramid(self.mesh(obj_id), Symmetries(tuple(discrete), tuple(continuous)))
         return self._pyramids[obj_id]
 
     def coloured(self, obj_id: int, named_in: Path | None = None) -> ColouredMesh:
