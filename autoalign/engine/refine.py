@@ -343,9 +343,10 @@ def final_uncertainty(obj: SilhouetteObjective, ev: Evaluation, T_wm: NDArray[np
     dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
     bias = boundary_bias_grads(ev.silhouettes, views.targets, views.totals)
     factor = spread_factor(refit_ratio(obj, T_wm, ev, last, rule))
+    groups = viewpoint_groups(dirs)
     u = pose_uncertainty(ev.gn, ev.terms.grad, ev.terms.gn, ev.weights, ev.value, len(ev.silhouettes.band),
-                         T_wm[:3, :3], bias, dirs, spread_factor=factor)
-    return with_turn_profiles(obj, T_wm, u, ev.weights, last.sigma, viewpoint_groups(dirs))
+                         T_wm[:3, :3], bias, dirs, spread_factor=factor, groups=groups)
+    return with_turn_profiles(obj, T_wm, u, ev.weights, last.sigma, groups)
 
 
 def _seed(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,

@@ -284,7 +284,8 @@ def _weak_turn_axes(spread_m: NDArray[np.float64]) -> list[NDArray[np.float64]]:
 def pose_uncertainty(H: NDArray[np.float64], view_grads: NDArray[np.float64], view_gn: NDArray[np.float64],
                      weights: NDArray[np.float64], value: float, n_band: int, R_wm: NDArray[np.float64],
                      bias_grads: NDArray[np.float64] | None = None, view_dirs_w: NDArray[np.float64] | None = None,
-                     bias_px: float = BOUNDARY_BIAS_PX, spread_factor: float = 1.0) -> Uncertainty:
+                     bias_px: float = BOUNDARY_BIAS_PX, spread_factor: float = 1.0,
+                     groups: list[NDArray[np.int64]] | None = None) -> Uncertainty:
     """The uncertainty of a converged pose (see the module doc).
 
     Args:
@@ -301,13 +302,16 @@ def pose_uncertainty(H: NDArray[np.float64], view_grads: NDArray[np.float64], vi
         view_dirs_w: (V, 3) unit directions from each camera to the object centre (world).
         bias_px: the prior sigma of the shared outline shift (px).
         spread_factor: the views' spread is scaled by it (:mod:`autoalign.engine.refit_spread`).
+        groups: the views of each viewpoint (:func:`viewpoint_groups` of ``view_dirs_w``, which it
+            defaults to; ``None`` without directions: each view its own).
     """
     H_inv = np.linalg.pinv(H, rcond=1e-12, hermitian=True)
     w = np.asarray(weights, dtype=np.float64)[:, None]
     shift_w = np.zeros(6) if bias_grads is None else -H_inv @ (w * bias_grads).sum(axis=0)
     every = np.arange(6)
     g = view_grads * w
-    groups = None if view_dirs_w is None else viewpoint_groups(view_dirs_w)
+    if groups is None and view_dirs_w is not None:
+        groups = viewpoint_groups(view_dirs_w)
     spread = jackknife(H_inv, [(every, wv * Hv) for wv, Hv in zip(w[:, 0], view_gn)], g, groups=groups)
     return uncertainty_of(spread, H_inv * (2.0 * value / max(n_band - 6, 1)), R_wm, shift_w,
                           median_view_direction(view_dirs_w, w[:, 0]), bias_px, spread_factor,

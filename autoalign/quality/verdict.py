@@ -303,18 +303,13 @@ class PoseEvidence:
                    result.evidence(), seed_move, seed_radius, result.seed_hold)
 
 
-def judge(evidence: PoseEvidence) -> Verdict:
-    """The verdict on one pose from its evidence (see the module doc and :class:`PoseEvidence`)."""
-    e = evidence
-    iou_after, weights, image_ids, empty_ids = e.iou_after, e.weights, e.image_ids, e.empty_ids
-    ambiguous, symmetric, uncertainty, free_axes_m = e.ambiguous, e.symmetric, e.uncertainty, e.free_axes_m
-    turn_gap = e.turn_gap
-    seed_move, seed_radius, seed_hold = e.seed_move, e.seed_radius, e.seed_hold
-    iou = np.asarray(iou_after, dtype=np.float64)
-    w = np.asarray(weights, dtype=np.float64)
+def judge(e: PoseEvidence) -> Verdict:
+    """The verdict on one pose from its evidence ``e`` (see the module doc and :class:`PoseEvidence`)."""
+    iou = np.asarray(e.iou_after, dtype=np.float64)
+    w = np.asarray(e.weights, dtype=np.float64)
     reasons: list[str] = []
-    low = low_weight_ids(image_ids, w, iou)
-    n_all = len(iou) + len(empty_ids)
+    low = low_weight_ids(e.image_ids, w, iou)
+    n_all = len(iou) + len(e.empty_ids)
     failed = False
     if len(iou) < MIN_VIEWS:
         reasons.append(f"only {len(iou)} view(s) with a mask (at least {MIN_VIEWS} needed): add masks or views")
@@ -326,22 +321,22 @@ def judge(evidence: PoseEvidence) -> Verdict:
     if low:
         reasons.append(f"{len(low)} view(s) down-weighted, their masks disagree with the others: image ids "
                        + ", ".join(map(str, low[:12])) + (" ..." if len(low) > 12 else ""))
-    if empty_ids:
-        reasons.append(f"{len(empty_ids)} view(s) with an empty mask treated as missing: image ids "
-                       + ", ".join(map(str, list(empty_ids)[:12])) + (" ..." if len(empty_ids) > 12 else ""))
-    set_aside = sorted(set(low) | set(int(i) for i in empty_ids))
+    if e.empty_ids:
+        reasons.append(f"{len(e.empty_ids)} view(s) with an empty mask treated as missing: image ids "
+                       + ", ".join(map(str, list(e.empty_ids)[:12])) + (" ..." if len(e.empty_ids) > 12 else ""))
+    set_aside = sorted(set(low) | set(int(i) for i in e.empty_ids))
     too_many = n_all > 0 and len(set_aside) > SET_ASIDE_FRACTION * n_all
-    if ambiguous and not symmetric:
+    ambiguous = e.ambiguous and not e.symmetric
+    if ambiguous:
         reasons.append("ambiguous: a clearly different pose fits almost as well (refine.json's runner_up); "
                        "look for the detail that tells them apart, or seed it with --init or a click")
-    seed_reasons, far = _seed_reasons(seed_move, seed_radius, seed_hold)
-    sigma_reasons = [] if uncertainty is None else _sigma_reasons(uncertainty, free_axes_m, turn_gap, symmetric)
+    seed_reasons, far = _seed_reasons(e.seed_move, e.seed_radius, e.seed_hold)
+    sigma_reasons = ([] if e.uncertainty is None
+                     else _sigma_reasons(e.uncertainty, e.free_axes_m, e.turn_gap, e.symmetric))
     reasons += seed_reasons + sigma_reasons
-    uncertain = bool(sigma_reasons)
     if failed:
         status = "failed"
-    elif ((med < CHECK_IOU and not fit.supported) or too_many or (ambiguous and not symmetric) or uncertain
-          or fit.look or far):
+    elif (med < CHECK_IOU and not fit.supported) or too_many or ambiguous or sigma_reasons or fit.look or far:
         status = "check"
         if too_many:
             reasons.append(f"{len(set_aside)} of {n_all} views set aside (more than {SET_ASIDE_FRACTION:.0%})")
