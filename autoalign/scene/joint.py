@@ -24,12 +24,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.engine.objective import Level
+from autoalign.engine.seed_region import SeedRegion
 from autoalign.engine.solver import FTOL, LevenbergMarquardt, Stop, StepRule, minimise
 from autoalign.engine.uncertainty import Uncertainty, jackknife, uncertainty_of, viewpoint_groups, viewpoints_seen
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import apply_twist, transform_points
 from autoalign.io.instances import InstanceScenes
 from autoalign.losses.depth import DepthNoise
+from autoalign.losses.term import PoseTerms
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.scene.cameras import CameraPrior, camera_block
 from autoalign.scene.occlusion import JointEvaluation, OcclusionObjective
@@ -92,7 +94,8 @@ class JointState:
 
 @dataclass
 class JointPoint:
-    """The fit of a :class:`JointState`; its value is the weighted loss plus the camera prior."""
+    """The fit of a :class:`JointState`; its value is the weighted loss plus the camera prior and the
+    seed regions' penalties (``prior_cost``)."""
 
     ev: JointEvaluation
     prior_cost: float = 0.0
@@ -115,6 +118,7 @@ class JointProblem:
     with_cameras: bool
     with_scale: bool
     scale_from: list[bool] | None
+    holds: list[SeedRegion | None] | None = None  # per instance, the seed region its pose is held in
     _using: JointState | None = field(default=None, repr=False)  # the iterate whose cameras are in use
 
     def __post_init__(self) -> None:
@@ -154,7 +158,13 @@ class JointProblem:
         if x is not self._using:
             self._use(x)
         ev = self.objective.evaluate(x.poses, self.level, None if weights_of is None else weights_of.ev.weights)
-        return JointPoint(ev, self.prior.cost(x.d) if self.with_cameras else 0.0)
+        held = sum(t.value for _, t in self._hold_terms(x))
+        return JointPoint(ev, (self.prior.cost(x.d) if self.with_cameras else 0.0) + held)
+
+    def _hold_terms(self, x: JointState) -> list[tuple[int, PoseTerms]]:
+        """Each held instance's seed-region penalty at ``x`` (:class:`~autoalign.engine.seed_region.SeedRegion`),
+        with the instance's index: a pose held within its seed's radius alone stays held here."""
+        return [(k, h.term(T)) for k, (h, T) in enumerate(zip(self.holds or [], x.poses)) if h is not None]
 
     def reweighted(self, point: JointPoint) -> JointPoint:
         return replace(point, ev=point.ev.reweighted())
@@ -191,12 +201,15 @@ class JointProblem:
         return JointState(poses, E, d, S)
 
     def normal_equations(self, x: JointState, point: JointPoint) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """``H`` and ``g`` of the loss plus the camera prior."""
+        """``H`` and ``g`` of the loss plus the camera prior and the seed regions' penalties."""
         H, g, _ = self.system(x, point)
         if self.with_cameras:
             Hp, gp = self.prior.system(x.d)
             H[self.cams, self.cams] += Hp
             g[self.cams] += gp
+        for k, t in self._hold_terms(x):
+            H[6 * k:6 * k + 6, 6 * k:6 * k + 6] += t.gn
+            g[6 * k:6 * k + 6] += t.grad
         return H, g
 
     def system(self, x: JointState, point: JointPoint,
@@ -264,7 +277,7 @@ def refine_jointly(found: InstanceScenes, pyramids: list[MeshPyramid], poses: li
                    detail: MeshDetail = MeshDetail(), robust: bool = True, with_scale: bool = False,
                    depth: DepthNoise | None = None,
                    scale_from: list[bool] | None = None, progress: Progress | None = None,
-                   rule: StepRule | None = None) -> JointRefinement:
+                   rule: StepRule | None = None, holds: list[SeedRegion | None] | None = None) -> JointRefinement:
     """Refine the poses of all instances of ``found`` (their meshes: ``pyramids``, drawn at
     ``detail.fine``) together from ``poses`` (world from model, mm), occlusion-aware, with
     ``with_cameras`` a correction of every camera and with ``with_scale`` the scene's scale
@@ -272,11 +285,14 @@ def refine_jointly(found: InstanceScenes, pyramids: list[MeshPyramid], poses: li
     ``depth``: the sensor's noise, for the instances whose scenes have measured depth). ``scale_from`` (per instance, default all): the
     instances whose fit decides the scale; the others move with it but do not pull it.
     Levenberg-Marquardt (:func:`~autoalign.engine.solver.minimise`; or the step ``rule`` given) with
-    IRLS view weights."""
+    IRLS view weights. ``holds``: per instance, the seed region (:class:`~autoalign.engine.seed_region.SeedRegion`)
+    its pose was held in alone (``None``: free), whose penalty joins the solve (not the covariance,
+    as alone)."""
     objective = OcclusionObjective(found, pyramids, robust, detail, depth)
     centres_m = objective.centres_m
     p = np.mean([transform_points(T, c[None])[0] for T, c in zip(poses, centres_m)], axis=0)
-    problem = JointProblem(objective, level, centres_m, p, prior or CameraPrior(), with_cameras, with_scale, scale_from)
+    problem = JointProblem(objective, level, centres_m, p, prior or CameraPrior(), with_cameras, with_scale, scale_from,
+                           holds)
     x0 = problem.start(poses)
     stage = "joint refinement" + (" with cameras" if with_cameras else "") + (" and scale" if with_scale else "")
 
