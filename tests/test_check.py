@@ -435,11 +435,6 @@ class Real:
     variants: dict[str, list[ViewInstanceCheck]]
 
 
-REAL_GROUP = pytest.mark.xdist_group("test_check.real")
-"""The tests that read the real scene's checks run on one worker: the fixture takes about a minute,
-and split between two workers it was made on both."""
-
-
 @pytest.fixture(scope="module")
 def real(tmp_path_factory: pytest.TempPathFactory) -> Real:
     """The dataset's labels on 15 images through :func:`check_scene`, the same labels moved 8 mm
@@ -479,7 +474,6 @@ def _by_obj(summaries) -> dict:
     return {s.obj_id: s for s in summaries}
 
 
-@REAL_GROUP
 @pytest.mark.slow
 @needs_real
 def test_dataset_labels_give_small_feature_distance_for_textured_objects(real: Real) -> None:
@@ -510,7 +504,6 @@ def test_dataset_labels_give_small_feature_distance_for_textured_objects(real: R
     assert rep.edge_ci95[0] < rep.edge_px < rep.edge_ci95[1]
 
 
-@REAL_GROUP
 @needs_real
 def test_labels_moved_8mm_give_clearly_larger_distance(real: Real) -> None:
     """8 mm along the camera x axis (about 4.5 px at 1 m) moves the renderings right: the distance
@@ -531,7 +524,6 @@ def test_labels_moved_8mm_give_clearly_larger_distance(real: Real) -> None:
     assert sum(m[o].edge_px > g[o].edge_px for o in g) >= 6
 
 
-@REAL_GROUP
 @needs_real
 def test_half_pixel_principal_point_changes_little(real: Real) -> None:
     """cx, cy + 0.5 px changes the pooled distance by under a pixel (measured +0.71 px), far less
@@ -548,7 +540,6 @@ def test_half_pixel_principal_point_changes_little(real: Real) -> None:
         assert abs(h[obj].edge_px - g[obj].edge_px) < 0.25
 
 
-@REAL_GROUP
 @needs_real
 def test_transposed_rotation_fails(real: Real) -> None:
     """R^T instead of R: most matches vanish (measured 112 -> 37 for the textured objects), the rest
@@ -565,7 +556,6 @@ def test_transposed_rotation_fails(real: Real) -> None:
     assert all(t[obj].edge_px > g[obj].edge_px + 0.3 for obj in g) and t[8].edge_px > g[8].edge_px + 1.5
 
 
-@REAL_GROUP
 @needs_real
 def test_labels_moved_8mm_lose_the_comparison(real: Real) -> None:
     """The dataset's labels against the same labels moved 8 mm: closer to the photos' edges for
@@ -584,7 +574,6 @@ def test_labels_moved_8mm_lose_the_comparison(real: Real) -> None:
     assert all(c.gain_px == 0.0 and c.closer_share == 0.0 and c.verdict == "no clear difference" for c in same)
 
 
-@REAL_GROUP
 @needs_real
 def test_comparison_figure_draws_the_three_outlines(real: Real) -> None:
     """A row of FIGURE_VIEWS tiles per instance; in the duck's first tile the mask (cyan), the
