@@ -183,7 +183,11 @@ def scene_job(scene: str, argv: Sequence[str], out: str) -> FolderJob:
         if word.startswith("--") and name in BATCH_ONLY and name not in ("quiet", "json"):
             raise AutoalignError(f"{word.split('=', 1)[0]}: an option of the whole batch, not of one scene's line "
                                  "(see 'autoalign refine --help')")
-    return job_of(_scene_parser().parse_args([str(scene), *words, "--out", str(out)]))
+    args = _scene_parser().parse_args([str(scene), *words, "--out", str(out)])
+    if args.batch is not None or args.workers != 1 or args.scheduler is not None:  # spelt short, e.g. --work 2
+        raise AutoalignError("--batch, --workers and --scheduler are options of the whole batch, not of one scene's "
+                             "line (see 'autoalign refine --help')")
+    return job_of(args)
 
 
 def shared_argv(args: argparse.Namespace) -> list[str]:
