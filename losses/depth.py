@@ -215,16 +215,17 @@ class DepthTerm:
 
     def residuals(self, fragments: Fragments) -> TermValues:
         f = fragments
-        return self.at(f.rasterizer.caster, f.rasterizer.mesh, f.T_wm, f.centre_w, f.views, f.scale)
-
-    def at(self, caster: RayCaster, mesh: Mesh, T_wm: NDArray[np.float64], centre_w: NDArray[np.float64],
-           views: LevelViews, scale: float) -> TermValues:
-        """The term for a mesh at ``T_wm`` in ``views`` (with measured depth) at a level of ``scale``."""
-        if views.depths is None:
-            raise ValueError("the views have no measured depth")
-        d = depth_terms(caster, mesh, T_wm, views.full_cameras, views.depths, centre_w, self.noise,
-                        max(SAMPLES_MIN, int(MAX_SAMPLES * scale)), views.full_masks)
+        d = self.measure(f.rasterizer.caster, f.rasterizer.mesh, f.T_wm, f.centre_w, f.views, f.scale)
         hidden = None
         if d.hidden.any():
-            hidden = [d.hidden_mask(k, (c.height, c.width), scale) for k, c in enumerate(views.cameras)]
+            hidden = [d.hidden_mask(k, (c.height, c.width), f.scale) for k, c in enumerate(f.views.cameras)]
         return TermValues(self.name, ViewTerms(d.loss, d.grad, d.gn), hidden=hidden, measured=d)
+
+    def measure(self, caster: RayCaster, mesh: Mesh, T_wm: NDArray[np.float64], centre_w: NDArray[np.float64],
+                views: LevelViews, scale: float) -> DepthTerms:
+        """The depth terms of a mesh at ``T_wm`` in ``views`` (with measured depth) at a level of
+        ``scale``, without the hidden pixels' images (the joint stage reads the terms alone)."""
+        if views.depths is None:
+            raise ValueError("the views have no measured depth")
+        return depth_terms(caster, mesh, T_wm, views.full_cameras, views.depths, centre_w, self.noise,
+                           max(SAMPLES_MIN, int(MAX_SAMPLES * scale)), views.full_masks)

@@ -138,7 +138,7 @@ def test_worker_with_jax_and_a_big_heap_ends_quickly_without_keyboard_interrupt(
     ignored in: <function _xla_gc_callback> ... KeyboardInterrupt". With tests/conftest.py's
     collection before that, the heap is frozen and they walk only what came after it: a few
     thousand objects, not the test's two million (counted, not timed: they took 0.2-0.5 s here)."""
-    pytest.importorskip("jax")
+    import jax  # noqa: F401 - installed by the test command: a missing one must fail, not skip
     (tmp_path / "conftest.py").write_text(CONFTEST.read_text() + WALKED_AT_EXIT)
     (tmp_path / "test_heap.py").write_text(HEAP_TEST)
     p = subprocess.run([sys.executable, "-m", "pytest", "-n", "2", "-q", "-p", "no:cacheprovider", "-p",

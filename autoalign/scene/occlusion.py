@@ -211,7 +211,7 @@ class OcclusionObjective:
             centre = transform_points(poses[i], self.centres_m[i][None])[0]
             views = self.objectives[i].at_scale(level.scale)
             d = self._last.get(("depth", i), keys[i],
-                               lambda: term.at(rast.caster, rast.mesh, poses[i], centre, views, level.scale).measured)
+                               lambda: term.measure(rast.caster, rast.mesh, poses[i], centre, views, level.scale))
             for k, f in enumerate(fits[i]):
                 grad, gn = f.grad.copy(), f.gn.copy()
                 grad[:6] += d.grad[k]
