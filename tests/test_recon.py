@@ -165,14 +165,14 @@ def test_bad_captures_are_one_line_errors_and_write_nothing(stream, tmp_path):
 @pytest.mark.slow
 def test_long_captures_map_keyframes_then_register_the_rest(tmp_path, monkeypatch):
     """Beyond EXHAUSTIVE_MAX frames only every KEYFRAME_EVERY-th frame (and the last) is mapped and
-    the others are registered to its points by PnP: here a 120-frame stream (RGB) with the limit
-    lowered to 40, so that it takes that path (31 keyframes)."""
+    the others are registered to its points by PnP: here an 80-frame stream (RGB) with the limit
+    lowered to 24, so that it takes that path (21 keyframes)."""
     from autoalign.recon import sfm
     from autoalign.recon.capture import read_capture
 
-    n = 120
+    n = 80
     folder = render_stream(tmp_path / "capture", n_frames=n, width=320, height=240, seed=2, depth=False).folder
-    monkeypatch.setattr(sfm, "EXHAUSTIVE_MAX", 40)
+    monkeypatch.setattr(sfm, "EXHAUSTIVE_MAX", 24)
     capture = read_capture(folder, tmp_path / "frames", None, 1.0, str(folder / "intrinsics.json"), 1)
     found = sfm.run_sfm(capture, tmp_path / "work")
     assert len(found.T_cw) >= 0.98 * n
