@@ -101,6 +101,7 @@ class Stance(enum.Enum):
     SUPPORTS = "supports"  # it agrees: masks that cover the silhouette loosely are no reason to check
     NEUTRAL = "neutral"  # it neither confirms nor contradicts the pose
     CONTRADICTS = "contradicts"  # it disagrees: the pose fails (a measurement) or is to be checked (an appearance)
+    NO_EVIDENCE = "no evidence"  # it measured nothing about this object (depth through glass): said, never held against it
 
 
 @dataclass(frozen=True)

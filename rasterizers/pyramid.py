@@ -48,11 +48,13 @@ class MeshPyramid:
     first use and kept: one per model (:meth:`~autoalign.io.models.ModelSet.pyramid`), shared by
     every stage that renders it. Not thread-safe (drjit renders one thread at a time).
     ``symmetries``: the model's (:class:`~autoalign.geometry.se3.Symmetries`), for what measures
-    how far a pose moved (a turn about an axis of continuous symmetry is no move)."""
+    how far a pose moved (a turn about an axis of continuous symmetry is no move); ``transparent``:
+    the model is declared transparent to depth sensors (``materials.json``, :mod:`autoalign.io.models`)."""
 
-    def __init__(self, mesh: Mesh, symmetries: Symmetries = Symmetries()) -> None:
+    def __init__(self, mesh: Mesh, symmetries: Symmetries = Symmetries(), transparent: bool = False) -> None:
         self.mesh = mesh
         self.symmetries = symmetries
+        self.transparent = transparent
         self._rasterizers: dict[int | None, SoftSilhouetteRasterizer] = {}
 
     def with_faces(self, max_faces: int | None) -> SoftSilhouetteRasterizer:

@@ -32,6 +32,7 @@ from autoalign.engine.options import (  # noqa: F401 - the engine's settings, im
 from autoalign.engine.photo_evidence import refine_with_photos
 from autoalign.engine.refit_spread import refit_ratio, spread_factor
 from autoalign.engine.schedule import Progress, polish, run_schedule  # noqa: F401 - polish: one pose, no search
+from autoalign.engine.see_through import refine_minding_see_through
 from autoalign.engine.seed_region import CLEARLY_BETTER, STIFFNESS, SeedHold, SeedRegion
 from autoalign.engine.seeding import Click, click_centre, hull_centre, rotation_grid
 from autoalign.engine.solver import StepRule, Trace
@@ -584,16 +585,24 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
     """
     seed, anchor = checked_inputs(scene, mesh, seed, anchor)
     opts = options or RefineOptions()
+    pyramid = mesh if isinstance(mesh, MeshPyramid) else MeshPyramid(mesh)
+    if scene.depths is not None and opts.depth is not None:
+        return refine_minding_see_through(scene, pyramid, seed, opts, progress, anchor, _refine_evidence)
+    return _refine_evidence(scene, pyramid, seed, opts, progress, anchor)
+
+
+def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,
+                     progress: Progress | None = None, anchor: NDArray[np.float64] | None = None) -> RefineResult:
+    """:func:`refine` on its evidence as given: with the photos (:mod:`autoalign.engine.photo_evidence`,
+    which calls this on its targets), else the masks (and the depth) alone."""
     if scene.photos is not None and opts.region is not None:
-        pyramid = mesh if isinstance(mesh, MeshPyramid) else MeshPyramid(mesh)
-        return refine_with_photos(scene, pyramid, seed, opts, refine, progress)
+        return refine_with_photos(scene, pyramid, seed, opts, _refine_evidence, progress)
     scene = scene.without_empty_masks()
     if len(scene) == 0:
         raise AutoalignError("every mask of the scene is empty; there is nothing to align the object with")
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     given_pose = seed is not None and not isinstance(seed, Click)
-    pyramid = mesh if isinstance(mesh, MeshPyramid) else MeshPyramid(mesh)
     mesh = pyramid.mesh
     obj = SilhouetteObjective(pyramid, scene, opts.loss, opts.robust, opts.detail, opts.depth)
     levels = opts.schedule

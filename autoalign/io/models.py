@@ -5,6 +5,11 @@
 (``{"axis", "offset"}``), as the bop_toolkit defines them. Meshes load on first use, as
 :class:`~autoalign.geometry.mesh.Mesh` (welded, for refining) or as :class:`ColouredMesh` (the file's
 vertices with their colours, for rendering the labels against photos).
+
+``materials.json`` (optional, beside it; BOP has no such field) declares what the sensors see of an
+object: ``{"<obj_id>": {"material": "transparent" | "opaque"}}``. The measured depth of a
+transparent object is not evidence about its surface (:mod:`autoalign.engine.see_through`);
+an object not listed is recognised from the evidence.
 """
 
 from __future__ import annotations
@@ -23,6 +28,11 @@ from autoalign.io.bop import read_json_file, whole_number_keys
 from autoalign.geometry.mesh import ColouredMesh, Mesh, load_mesh
 from autoalign.geometry.se3 import Symmetries
 from autoalign.rasterizers.pyramid import MeshPyramid
+
+MATERIALS = ("opaque", "transparent")
+"""The materials ``materials.json`` may declare."""
+MATERIALS_FIX = ('materials.json maps object ids to {"material": "transparent"} or {"material": "opaque"}, e.g. '
+                 '{"3": {"material": "transparent"}}')
 
 GREY = (0.5, 0.5, 0.5)
 """Colour (RGB, 0..1) of a mesh without vertex colours."""
@@ -128,6 +138,20 @@ def _rigid(T: NDArray[np.float64], tol: float = 1e-2) -> bool:
             and abs(np.linalg.det(R) - 1.0) < tol)
 
 
+def read_materials(path: Path) -> dict[int, str]:
+    """``materials.json`` (module doc) by ``obj_id``; an error naming the file and the fix when malformed."""
+    raw = read_json_file(path, MATERIALS_FIX)
+    if not isinstance(raw, dict):
+        raise AutoalignError(f"{path}: not a JSON object; {MATERIALS_FIX}")
+    out: dict[int, str] = {}
+    for key, entry in whole_number_keys(raw, path, "object id").items():
+        material = entry.get("material") if isinstance(entry, dict) else None
+        if material not in MATERIALS:
+            raise AutoalignError(f"{path}: object {key} has material {material!r}; {MATERIALS_FIX}")
+        out[key] = material
+    return out
+
+
 @dataclass
 class ModelSet:
     """The models of one BOP models folder, by ``obj_id``.
@@ -136,11 +160,13 @@ class ModelSet:
         folder: the models folder.
         info: ``models_info.json`` entries by ``obj_id`` (``{}`` if the file is absent).
         units: the meshes' units for :func:`~autoalign.geometry.mesh.load_mesh` (``None``: mm, metres refused).
+        materials: ``materials.json``'s declarations by ``obj_id`` (module doc; ``{}`` if the file is absent).
     """
 
     folder: Path
     info: dict[int, dict[str, Any]]
     units: str | None = None
+    materials: dict[int, str] = field(default_factory=dict)
     _meshes: dict[int, Mesh] = field(default_factory=dict, repr=False)
     _coloured: dict[int, ColouredMesh] = field(default_factory=dict, repr=False)
     _pyramids: dict[int, MeshPyramid] = field(default_factory=dict, repr=False)
@@ -154,7 +180,9 @@ class ModelSet:
                                  "obj_XXXXXX.ply files (and models_info.json) to --models")
         info_path = folder / "models_info.json"
         info = read_models_info(info_path) if with_info and info_path.is_file() else {}
-        return ModelSet(folder, info, units)
+        materials_path = folder / "materials.json"
+        materials = read_materials(materials_path) if materials_path.is_file() else {}
+        return ModelSet(folder, info, units, materials)
 
     def path(self, obj_id: int) -> Path:
         return self.folder / f"obj_{obj_id:06d}.ply"
@@ -174,7 +202,8 @@ class ModelSet:
         stage that renders the object shares it."""
         if obj_id not in self._pyramids:
             discrete, continuous = self.symmetries(obj_id)
-            self._pyramids[obj_id] = MeshPyramid(self.mesh(obj_id), Symmetries(tuple(discrete), tuple(continuous)))
+            self._pyramids[obj_id] = MeshPyramid(self.mesh(obj_id), Symmetries(tuple(discrete), tuple(continuous)),
+                                                 transparent=self.materials.get(obj_id) == "transparent")
         return self._pyramids[obj_id]
 
     def coloured(self, obj_id: int, named_in: Path | None = None) -> ColouredMesh:

@@ -316,7 +316,7 @@ def judge(e: PoseEvidence) -> Verdict:
         failed = True
     med = float(np.median(iou)) if len(iou) else 0.0
     fit = _fit_against_the_evidence(med, e.terms, agreeing_views(iou, w))
-    reasons += fit.reasons
+    reasons += fit.reasons + [t.reason for t in e.terms if t.stance is Stance.NO_EVIDENCE]
     failed = failed or fit.failed
     if low:
         reasons.append(f"{len(low)} view(s) down-weighted, their masks disagree with the others: image ids "

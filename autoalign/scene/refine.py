@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 from autoalign.engine.hypotheses import turn_scores
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult, refine
+from autoalign.engine.see_through import measured_see_through
 from autoalign.engine.seed_region import SEED_RADIUS, STIFFNESS, SeedRegion
 from autoalign.engine.solver import GaussNewton, LevenbergMarquardt, StepRule
 from autoalign.engine.uncertainty import with_outline_disagreement, with_scale_sigma
@@ -45,6 +46,7 @@ from autoalign.errors import AutoalignError
 from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
 from autoalign.losses.region import RegionOptions
+from autoalign.losses.see_through import SeeThrough
 from autoalign.losses.outline_offset import shared_outline_offset
 from autoalign.losses.overlap import view_ious
 from autoalign.quality.verdict import PoseEvidence, Verdict, judge
@@ -165,6 +167,9 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
                                          opts.disambiguation.weak_turns)
             gap = own - float(scores.max())
         depth = None if joint.evaluation.depth is None else joint.evaluation.depth[k]
+        seen = r.result.measurement(SeeThrough)
+        if seen is not None:  # the depth sees through it: the joint stage did not use it either
+            depth = measured_see_through(found.scenes[k], pyramids[k], joint.poses[k], opts, seen.declared)
         had_photo = r.result.measurement(PhotoEvidence)
         iou = joint.evaluation.hard_iou(k)
         own_scene = given.scenes[k]
@@ -182,6 +187,15 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
         after.append(replace(r.result, T_wm=joint.poses[k], iou_after=iou, weights=joint.evaluation.weights[k],
                              uncertainty=unc, turn_gap=gap, terms=joint.evaluation.record(k), measured=measured))
     return after
+
+
+def without_see_through_depth(found: InstanceScenes, alone: list[InstanceResult]) -> InstanceScenes:
+    """``found`` without the measured depth of the instances it sees through (their results alone
+    say so: :mod:`autoalign.engine.see_through`), for the joint stage."""
+    see_through = [r.result.measurement(SeeThrough) is not None for r in alone]
+    if not any(see_through):
+        return found
+    return replace(found, scenes=[replace(sc, depths=None) if st else sc for sc, st in zip(found.scenes, see_through)])
 
 
 def _all_flagged(results: list[InstanceResult], reason: str) -> list[InstanceResult]:
@@ -261,14 +275,15 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
             # the photos' evidence as targets learned at the alone poses, the others left out
             given = others_left_out(found, models, {r.instance.index: r.result.T_wm for r in alone})
             found, photo_alone = region_targets(given, models, start, opts.region, opts.detail, leave_out=False)
-        attempt = (refine_jointly(found, pyramids, start, with_cameras=True, detail=opts.detail, robust=opts.robust,
+        opaque = without_see_through_depth(found, alone)
+        attempt = (refine_jointly(opaque, pyramids, start, with_cameras=True, detail=opts.detail, robust=opts.robust,
                                   with_scale=solve_scale, depth=opts.depth, scale_from=scale_from, progress=progress,
                                   rule=rule, holds=holds)
                    if refine_cameras else None)
         if attempt is not None and corrections_accepted(attempt.view_misfit_before, attempt.view_misfit_after):
             joint = attempt
         else:
-            joint = refine_jointly(found, pyramids, start, detail=opts.detail, robust=opts.robust, with_scale=solve_scale,
+            joint = refine_jointly(opaque, pyramids, start, detail=opts.detail, robust=opts.robust, with_scale=solve_scale,
                                    depth=opts.depth, scale_from=scale_from, progress=progress, rule=rule, holds=holds)
         if solve_scale:
             found = found.through({**scaled_cameras(found.camera_by_id, joint.scale), **joint.cameras})

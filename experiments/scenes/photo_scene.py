@@ -77,10 +77,12 @@ def place_on_table(meshes: Sequence[Mesh], rng: np.random.Generator, radius_mm: 
 
 
 def render_photos(meshes: Sequence[Mesh], poses: Sequence[NDArray[np.float64]], cameras: Sequence[Camera],
-                  rng: np.random.Generator, noise: float = 2.0,
+                  rng: np.random.Generator, noise: float = 2.0, see_through: Sequence[int] = (),
                   ) -> tuple[list[NDArray[np.uint8]], list[NDArray[np.float64]]]:
     """Photos (BGR uint8) and depth (mm along the optical axis, 0 = nothing) of the meshes at
-    ``poses`` on a table, each object with its own texture (module doc)."""
+    ``poses`` on a table, each object with its own texture (module doc). The depth passes through
+    the meshes at positions ``see_through`` onto what is behind them, as a structured-light or
+    time-of-flight sensor's does through glass (the photos still show them)."""
     table = table_mesh(700.0)
     shapes = [(table, np.eye(4), TintedTexture(rng, np.array([0.55, 0.42, 0.3]), 0.5, grey=True))]
     hues = rng.permutation(np.linspace(0, 179, len(meshes), endpoint=False) + rng.uniform(0, 180 / len(meshes)))
@@ -108,6 +110,9 @@ def render_photos(meshes: Sequence[Mesh], poses: Sequence[NDArray[np.float64]], 
             rgb[sel] = tex(P) * shade[:, None]
         img = np.clip(rgb * 255.0 + rng.normal(0.0, noise, rgb.shape), 0, 255).round().astype(np.uint8)
         photos.append(img.reshape(cam.height, cam.width, 3)[:, :, ::-1].copy())
+        if see_through:
+            opaque = [j for j in range(len(shapes)) if j - 1 not in see_through]
+            t = t_all[opaque].min(0)
         z = np.where(np.isfinite(t), t * (dn @ cam.R_w2c[2]), 0.0)
         depths.append(z.reshape(cam.height, cam.width))
     return photos, depths
@@ -131,25 +136,32 @@ def near_one_viewpoint(n_views: int, rng: np.random.Generator, distance_mm: floa
     return cams
 
 
-def sensor_depth(z: NDArray[np.float64], rng: np.random.Generator, holes: float = 0.03) -> NDArray[np.float64]:
+def sensor_depth(z: NDArray[np.float64], rng: np.random.Generator, holes: float = 0.03,
+                 blobs_on: NDArray[np.bool_] | None = None, blob_share: float = 0.3) -> NDArray[np.float64]:
     """Depth as a Kinect-class sensor measures it: noise growing with z squared
     (:class:`~autoalign.losses.depth.DepthNoise`), a share ``holes`` of pixels without a
-    measurement, and the image registered one pixel off the colour camera."""
+    measurement, and the image registered one pixel off the colour camera. ``blobs_on``: pixels
+    (H, W) where blobs of holes cover about ``blob_share`` of them (glass and metal return no
+    measurement in patches)."""
     from autoalign.losses.depth import DepthNoise
 
     noisy = np.where(z > 0, z + rng.normal(0.0, 1.0, z.shape) * DepthNoise().sigma(z), 0.0)
     noisy[rng.random(z.shape) < holes] = 0.0
+    if blobs_on is not None and blobs_on.any():
+        field = cv2.GaussianBlur(rng.random(z.shape).astype(np.float32), (0, 0), 6.0)  # smooth noise: blobs
+        noisy[blobs_on & (field < np.quantile(field[blobs_on], blob_share))] = 0.0
     return np.roll(noisy, 1, axis=1)
 
 
 def write_photo_scene(folder: str | Path, meshes: Sequence[Mesh], n_views: int, seed: int = 0,
                       width: int = 640, height: int = 480, depth: bool = False,
                       dist_range: tuple[float, float] = (350.0, 600.0),
-                      cameras: Sequence[Camera] | None = None) -> PhotoScene:
+                      cameras: Sequence[Camera] | None = None, see_through: Sequence[int] = ()) -> PhotoScene:
     """A BOP scene folder (``scene_camera.json``, ``scene_gt.json``, ``mask_visib/``, ``rgb/``,
     optionally ``depth/`` with ``depth_scale``, measured as :func:`sensor_depth`) of ``meshes``
     (obj_id = position + 1) on a table, seen by ``cameras``, or by ``n_views`` cameras on a ring
-    at 25-60 degrees elevation."""
+    at 25-60 degrees elevation. The depth passes through the meshes at positions ``see_through``
+    (glass: :func:`render_photos`), with blobs of holes on them (:func:`sensor_depth`)."""
     import json
 
     folder = Path(folder)
@@ -158,13 +170,14 @@ def write_photo_scene(folder: str | Path, meshes: Sequence[Mesh], n_views: int, 
     cams = list(cameras) if cameras is not None else ring_cameras(n_views, rng, (25.0, 60.0), dist_range, None, width,
                                                                   height, (0.0, 0.0, 30.0), jitter_mm=30.0)
     masks = write_multi_scene(folder, meshes, list(range(1, len(meshes) + 1)), poses, cams)
-    photos, depths = render_photos(meshes, poses, cams, rng)
+    photos, depths = render_photos(meshes, poses, cams, rng, see_through=see_through)
     (folder / "rgb").mkdir(exist_ok=True)
     for i, img in enumerate(photos):
         cv2.imwrite(str(folder / "rgb" / f"{i:06d}.png"), img)
     if depth:
         (folder / "depth").mkdir(exist_ok=True)
-        for i, z in enumerate(sensor_depth(z, rng) for z in depths):
+        glass = [np.any([masks[i][j] for j in see_through], axis=0) if see_through else None for i in range(len(cams))]
+        for i, z in enumerate(sensor_depth(z, rng, blobs_on=g) for z, g in zip(depths, glass)):
             cv2.imwrite(str(folder / "depth" / f"{i:06d}.png"), np.round(z / DEPTH_SCALE).astype(np.uint16))
         cams_json = json.loads((folder / "scene_camera.json").read_text())
         for entry in cams_json.values():

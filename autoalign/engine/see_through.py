@@ -1,0 +1,74 @@
+"""Objects the measured depth sees through (glass): their depth neither pulls the pose nor fails it.
+
+A model declared transparent (``materials.json``, :meth:`~autoalign.io.models.ModelSet.material`)
+is refined without the depth from the start. Any other is refined with it; when the result is in
+doubt (the depth contradicts it, or its silhouettes miss the masks), it
+is refined again without the depth, and where the depth at that pose sees through the object
+(:func:`~autoalign.losses.see_through.see_through_shares`: measured behind its surface or missing
+inside its masks) that result is kept, the depth recorded as :class:`~autoalign.losses.see_through.SeeThrough`.
+An opaque object whose depth agrees runs once, exactly as before.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any, Callable, TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.engine.options import RefineOptions
+from autoalign.engine.seeding import Click
+from autoalign.io.bop import Scene
+from autoalign.losses.depth import DepthTerms
+from autoalign.losses.see_through import SeeThrough, see_through_shares
+from autoalign.losses.term import Stance
+from autoalign.rasterizers.pyramid import MeshPyramid
+
+LOOSE_IOU = 0.5
+"""A result whose median IoU with the masks is below this is in doubt (the verdict fails it too)."""
+
+R = TypeVar("R")
+"""The engine's result (:class:`~autoalign.engine.refine.RefineResult`): the engine calls this module."""
+
+
+def measured_see_through(scene: Scene, pyramid: MeshPyramid, T_wm: NDArray[np.float64], opts: RefineOptions,
+                         declared: bool = False) -> SeeThrough:
+    """The share of the object's depth samples inside its masks (without masks: its silhouettes at
+    ``T_wm``) that lie behind its surface or are missing, per view of ``scene`` (with depth)."""
+    assert scene.depths is not None and opts.depth is not None
+    rast = pyramid.fine(opts.detail)
+    masks = scene.masks if scene.has_masks else rast.hard_masks(T_wm, scene.cameras)
+    return SeeThrough(see_through_shares(rast.caster, pyramid.mesh, T_wm, scene.cameras, scene.depths, masks,
+                                         opts.depth), declared)
+
+
+def in_doubt(result: Any) -> bool:
+    """Whether a result (:class:`~autoalign.engine.refine.RefineResult`) refined with the depth is
+    worth trying without it: the depth contradicts it, or its silhouettes miss the masks (a seed's
+    hold let go is not enough: the depth of an opaque object pulls a wrong seed's result away too)."""
+    depth = result.measurement(DepthTerms)
+    evidence = depth.evidence() if depth is not None else None
+    contradicts = evidence is not None and evidence.stance is Stance.CONTRADICTS
+    return contradicts or float(np.median(result.iou_after)) < LOOSE_IOU
+
+
+def refine_minding_see_through(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.float64] | Click | None,
+                               opts: RefineOptions, progress: Any, anchor: NDArray[np.float64] | None,
+                               run: Callable[..., R]) -> R:
+    """``run`` (the engine on ``scene``, which has measured depth) minding depth that sees through
+    the object (module doc)."""
+    without = replace(scene, depths=None)
+    if pyramid.transparent:
+        result = run(without, pyramid, seed, opts, progress, anchor)
+        seen = measured_see_through(scene, pyramid, result.T_wm, opts, declared=True)
+        return replace(result, measured=(seen,) + result.measured)
+    result = run(scene, pyramid, seed, opts, progress, anchor)
+    if not in_doubt(result):
+        return result
+    alt = run(without, pyramid, seed, opts, progress, anchor)
+    seen = measured_see_through(scene, pyramid, alt.T_wm, opts)
+    if not seen.sees_through():
+        return result
+    return replace(alt, measured=(seen,) + alt.measured, renders=result.renders + alt.renders,
+                   timings={k: result.timings.get(k, 0.0) + v for k, v in alt.timings.items()})

@@ -1,0 +1,95 @@
+"""Depth that sees through an object: glass, for a structured-light or time-of-flight sensor.
+
+Where the instance's masks show the object and the object at a pose covers the pixel, an opaque
+surface is measured on the object, within the sensor's noise. Through glass the sensor measures
+what is behind it, or nothing (holes). A view *sees through* a sample when its measurement lies
+behind the rendered surface by more than the occluder margin (:class:`~autoalign.losses.depth.DepthNoise`:
+the larger of ``occluder_mm`` and 5 sigma) or is missing. Such depth is not evidence about the
+object's surface: it must neither pull the pose nor fail it (:class:`SeeThrough` says so, with
+the numbers).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.geometry.camera import Camera, pixel_centres
+from autoalign.geometry.mesh import Mesh
+from autoalign.losses.depth import MAX_SAMPLES, MIN_SAMPLES_TO_JUDGE, DepthNoise
+from autoalign.losses.term import Stance, TermEvidence
+from autoalign.rasterizers.ray_casting import RayCaster
+
+SEES_THROUGH = 0.5
+"""Median share (over the views that can judge) of the object's samples inside its masks whose
+depth lies behind its surface or is missing, at or above which the depth sees through the object.
+Synthetic glass (the sensor seeing the table through it, holes in blobs on it): 0.93-1.0 at the
+pose the masks give; opaque objects there 0.03-0.05 (the sensor's holes); the real YCB-Video
+frames' labels 0.0-0.04 (results: ``docs/results.md``, transparent objects)."""
+
+
+@dataclass
+class SeeThrough:
+    """The measured depth of an object that it sees through (module doc): per view the share of the
+    object's samples inside its masks measured behind its surface or missing (NaN: fewer than
+    :data:`~autoalign.losses.depth.MIN_SAMPLES_TO_JUDGE` samples), at the pose it was measured at;
+    ``declared``: the model is declared transparent (``materials.json``), whatever the share."""
+
+    share: NDArray[np.float64]
+    declared: bool = False
+    name = "depth"
+
+    @property
+    def median_share(self) -> float | None:
+        """The median share over the views that can judge (``None``: none can)."""
+        s = self.share[np.isfinite(self.share)]
+        return float(np.median(s)) if len(s) else None
+
+    def sees_through(self) -> bool:
+        """Whether the depth is to be read as seeing through the object: declared, or measured so."""
+        m = self.median_share
+        return self.declared or (m is not None and m >= SEES_THROUGH)
+
+    def record(self) -> dict[str, Any]:
+        """Whether the depth sees through the object, whether that was declared, and per view the share."""
+        return {"sees_through": self.sees_through(), "declared": self.declared, "through_share": self.share}
+
+    def evidence(self) -> TermEvidence:
+        """No evidence about the object (:attr:`~autoalign.losses.term.Stance.NO_EVIDENCE`), with its
+        reason: never a contradiction."""
+        m = self.median_share
+        numbers = "" if m is None else (f": a median {100 * m:.0f}% of its depth samples inside its masks lie "
+                                        "behind its surface or are missing")
+        how = "declared transparent in materials.json" if self.declared else "recognised as transparent to depth"
+        return TermEvidence(self.name, Stance.NO_EVIDENCE, m if m is not None else float("nan"),
+                            f"the measured depth sees through this object ({how}{numbers}); it is not used",
+                            fails=False, sees_outline=False, reliability=self.share)
+
+
+def see_through_shares(caster: RayCaster, mesh: Mesh, T_wm: NDArray[np.float64], cameras: list[Camera],
+                       depths: list[NDArray[np.float32]], masks: list[NDArray[np.float32]],
+                       noise: DepthNoise = DepthNoise(), max_samples: int = MAX_SAMPLES) -> NDArray[np.float64]:
+    """Per view, the share of the pixels inside the instance's mask (> 0.5) that the mesh at ``T_wm``
+    (world from model, mm) covers whose measured depth (mm along the optical axis, 0 = none) lies
+    behind the rendered surface by more than the occluder margin or is missing (module doc); NaN
+    where fewer than ``MIN_SAMPLES_TO_JUDGE`` such pixels are sampled (a grid of about ``max_samples``)."""
+    out = np.full(len(cameras), np.nan)
+    for k, (cam, measured, mask) in enumerate(zip(cameras, depths, masks)):
+        rows, cols = np.nonzero(np.asarray(mask) > 0.5)
+        if len(rows) < MIN_SAMPLES_TO_JUDGE:
+            continue
+        step = max(1, int(np.ceil(len(rows) / max_samples)))
+        rows, cols = rows[::step], cols[::step]
+        pix = np.column_stack([pixel_centres(cols, rows), np.ones(len(rows))])
+        d_w = (pix @ np.linalg.inv(cam.K).T) @ cam.R_w2c  # unit z in the camera: t is depth
+        z_r = caster.first_hits(T_wm, cam.centre, d_w.astype(np.float32)).t.astype(np.float64)
+        hit = np.isfinite(z_r)
+        if hit.sum() < MIN_SAMPLES_TO_JUDGE:
+            continue
+        z_m, z_r = measured[rows[hit], cols[hit]].astype(np.float64), z_r[hit]
+        behind = z_m > z_r + np.maximum(noise.occluder_mm, 5.0 * noise.sigma(z_r))
+        out[k] = float(np.mean((z_m <= 0) | behind))
+    return out
