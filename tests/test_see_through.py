@@ -111,18 +111,20 @@ FIX = '{"material": "transparent"}'
     ('{"1": "transparent"}', ["object 1 has material None", FIX]),
     ("[1]", ["not a JSON object", FIX]),
 ])
-def test_a_malformed_materials_file_is_a_one_line_error_before_anything_is_refined(tmp_path: Path, content: str,
+def test_a_malformed_materials_file_is_a_one_line_error_before_anything_is_refined(tmp_path: Path, capsys,
+                                                                                  content: str,
                                                                                   says: list[str]) -> None:
+    from autoalign.cli.main import main
+
     models = tmp_path / "models"
     models.mkdir()
     for f in (EXAMPLE / "models").iterdir():
         (models / f.name).write_bytes(f.read_bytes())
     (models / "materials.json").write_text(content)
     out = tmp_path / "out"
-    p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", str(EXAMPLE / "scene"), "--models",
-                        str(models), "--init", str(EXAMPLE / "init_gt.json"), "--out", str(out), "--quiet"],
-                       capture_output=True, text=True, timeout=300)
-    assert p.returncode == 2 and not out.exists()
-    line = p.stderr.strip()
+    rc = main(["refine", str(EXAMPLE / "scene"), "--models", str(models), "--init", str(EXAMPLE / "init_gt.json"),
+               "--out", str(out), "--quiet"])
+    line = capsys.readouterr().err.strip()
+    assert rc == 2 and not out.exists()
     assert "\n" not in line and str(models / "materials.json") in line
     assert all(s in line for s in says)  # what is wrong, and the fix
