@@ -572,7 +572,8 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
         scene: calibrated views with target masks (mm, BOP world frame). Views whose mask is
             empty are left out (:meth:`Scene.without_empty_masks`; ``RefineResult.image_ids`` lists the used ones).
             With its photos (:attr:`Scene.photos`) they are evidence too, and the masks may be empty
-            (:mod:`autoalign.engine.photo_evidence`; a seed pose is needed then).
+            (:mod:`autoalign.engine.photo_evidence`; a seed pose is needed then). Its measured depth
+            is evidence too, unless it sees through the object (glass: :mod:`autoalign.engine.see_through`).
         mesh: the object model (mm), or its :class:`~autoalign.rasterizers.pyramid.MeshPyramid` (e.g.
             :meth:`ModelSet.pyramid <autoalign.io.models.ModelSet.pyramid>`) to share its rasterizers with other calls
             and give the model's symmetries (the seed's hold measures moves modulo them).

@@ -66,7 +66,11 @@ def refine_minding_see_through(scene: Scene, pyramid: MeshPyramid, seed: NDArray
     result = run(scene, pyramid, seed, opts, progress, anchor)
     if not in_doubt(result):
         return result
-    alt = run(without, pyramid, seed, opts, progress, anchor)
+    def told(stage: str, done: int, total: int) -> None:
+        if progress is not None:
+            progress(f"without the depth: {stage}", done, total)
+
+    alt = run(without, pyramid, seed, opts, told, anchor)
     seen = measured_see_through(scene, pyramid, alt.T_wm, opts)
     if not seen.sees_through():
         return result
