@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.engine.options import RefineOptions
+from autoalign.engine.schedule import Progress
 from autoalign.engine.seeding import Click
 from autoalign.io.bop import Scene
 from autoalign.losses.depth import DepthTerms
@@ -26,7 +27,8 @@ from autoalign.losses.term import Stance
 from autoalign.rasterizers.pyramid import MeshPyramid
 
 LOOSE_IOU = 0.5
-"""A result whose median IoU with the masks is below this is in doubt (the verdict fails it too)."""
+"""A result whose median IoU with the masks is below this is in doubt: the verdict's own line for
+silhouettes that do not match the masks (:data:`~autoalign.quality.verdict.FAILED_IOU`, a layer above)."""
 
 R = TypeVar("R")
 """The engine's result (:class:`~autoalign.engine.refine.RefineResult`): the engine calls this module."""
@@ -54,7 +56,7 @@ def in_doubt(result: Any) -> bool:
 
 
 def refine_minding_see_through(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.float64] | Click | None,
-                               opts: RefineOptions, progress: Any, anchor: NDArray[np.float64] | None,
+                               opts: RefineOptions, progress: Progress | None, anchor: NDArray[np.float64] | None,
                                run: Callable[..., R]) -> R:
     """``run`` (the engine on ``scene``, which has measured depth) minding depth that sees through
     the object (module doc)."""
@@ -66,6 +68,7 @@ def refine_minding_see_through(scene: Scene, pyramid: MeshPyramid, seed: NDArray
     result = run(scene, pyramid, seed, opts, progress, anchor)
     if not in_doubt(result):
         return result
+
     def told(stage: str, done: int, total: int) -> None:
         if progress is not None:
             progress(f"without the depth: {stage}", done, total)
