@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-from collections import Counter
 import signal
 import subprocess
 import sys
@@ -22,14 +21,6 @@ if "PYTEST_XDIST_WORKER" in os.environ:
     _share = str(max(1, (os.cpu_count() or 1) // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))))
     os.environ.setdefault("AUTOALIGN_THREADS", _share)
     os.environ.setdefault("OMP_NUM_THREADS", _share)
-
-
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Test files with more slow tests first, each file's tests kept together and in their order (its
-    module fixtures made once per worker): with two workers the last minutes then hold short tests,
-    which even out between them, instead of a long one that leaves the other worker idle."""
-    slow = Counter(item.nodeid.split("::")[0] for item in items if item.get_closest_marker("slow"))
-    items.sort(key=lambda item: -slow[item.nodeid.split("::")[0]])
 
 
 def pytest_configure(config: pytest.Config) -> None:
