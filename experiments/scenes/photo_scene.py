@@ -78,11 +78,12 @@ def place_on_table(meshes: Sequence[Mesh], rng: np.random.Generator, radius_mm: 
 
 def render_photos(meshes: Sequence[Mesh], poses: Sequence[NDArray[np.float64]], cameras: Sequence[Camera],
                   rng: np.random.Generator, noise: float = 2.0, see_through: Sequence[int] = (),
-                  ) -> tuple[list[NDArray[np.uint8]], list[NDArray[np.float64]]]:
+                  clear: bool = False) -> tuple[list[NDArray[np.uint8]], list[NDArray[np.float64]]]:
     """Photos (BGR uint8) and depth (mm along the optical axis, 0 = nothing) of the meshes at
     ``poses`` on a table, each object with its own texture (module doc). The depth passes through
     the meshes at positions ``see_through`` onto what is behind them, as a structured-light or
-    time-of-flight sensor's does through glass (the photos still show them)."""
+    time-of-flight sensor's does through glass; the photos show them textured, or with ``clear`` as
+    clear glass without refraction (:func:`_through_clear_glass`)."""
     table = table_mesh(700.0)
     shapes = [(table, np.eye(4), TintedTexture(rng, np.array([0.55, 0.42, 0.3]), 0.5, grey=True))]
     hues = rng.permutation(np.linspace(0, 179, len(meshes), endpoint=False) + rng.uniform(0, 180 / len(meshes)))
@@ -108,14 +109,50 @@ def render_photos(meshes: Sequence[Mesh], poses: Sequence[NDArray[np.float64]], 
             n = mesh.face_normals[h.prim[sel]] @ T[:3, :3].T
             shade = 0.35 + 0.65 * np.abs(np.einsum("ij,ij->i", n, dn[sel]))
             rgb[sel] = tex(P) * shade[:, None]
-        img = np.clip(rgb * 255.0 + rng.normal(0.0, noise, rgb.shape), 0, 255).round().astype(np.uint8)
-        photos.append(img.reshape(cam.height, cam.width, 3)[:, :, ::-1].copy())
         if see_through:
             opaque = [j for j in range(len(shapes)) if j - 1 not in see_through]
-            t = t_all[opaque].min(0)
+            t_opaque = t_all[opaque].min(0)
+            if clear:
+                rgb = _through_clear_glass(rgb, shapes, hits, t_all, near, opaque, o, dn)
+            t = t_opaque
+        img = np.clip(rgb * 255.0 + rng.normal(0.0, noise, rgb.shape), 0, 255).round().astype(np.uint8)
+        photos.append(img.reshape(cam.height, cam.width, 3)[:, :, ::-1].copy())
         z = np.where(np.isfinite(t), t * (dn @ cam.R_w2c[2]), 0.0)
         depths.append(z.reshape(cam.height, cam.width))
     return photos, depths
+
+
+def _through_clear_glass(rgb: NDArray[np.float64], shapes: list, hits: list, t_all: NDArray[np.float64],
+                         near: NDArray[np.int64], opaque: list[int], o: NDArray[np.float64],
+                         dn: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``rgb`` where a see-through shape is nearest replaced by what lies behind it (the nearest
+    opaque surface, shaded as :func:`render_photos` does), dimmed by 10%, brightened towards white
+    where the glass is seen at a grazing angle (a Fresnel-like rim): clear glass without refraction."""
+    out = rgb.copy()
+    glass = ~np.isin(near, opaque) & np.isfinite(t_all.min(0))
+    if not glass.any():
+        return out
+    behind = np.array(opaque)[np.argmin(t_all[opaque][:, glass], 0)]
+    idx = np.nonzero(glass)[0]
+    for j in np.unique(behind):
+        sel = idx[behind == j]
+        mesh, T, tex = shapes[j]
+        t = t_all[j, sel]
+        ok = np.isfinite(t)
+        colour = np.full((len(sel), 3), 0.15)
+        if ok.any():
+            P = o + dn[sel[ok]] * t[ok, None]
+            n = mesh.face_normals[hits[j].prim[sel[ok]]] @ T[:3, :3].T
+            colour[ok] = tex(P) * (0.35 + 0.65 * np.abs(np.einsum("ij,ij->i", n, dn[sel[ok]])))[:, None]
+        out[sel] = colour
+    for j in set(range(len(shapes))) - set(opaque):  # the rim of each glass in front
+        sel = np.nonzero(near == j)[0]
+        if len(sel):
+            mesh, T, _ = shapes[j]
+            n = mesh.face_normals[hits[j].prim[sel]] @ T[:3, :3].T
+            rim = (1.0 - np.abs(np.einsum("ij,ij->i", n, dn[sel]))) ** 3
+            out[sel] = 0.9 * out[sel] + rim[:, None] * (1.0 - 0.9 * out[sel])
+    return out
 
 
 def near_one_viewpoint(n_views: int, rng: np.random.Generator, distance_mm: float = 700.0, elevation_deg: float = 40.0,
@@ -156,12 +193,13 @@ def sensor_depth(z: NDArray[np.float64], rng: np.random.Generator, holes: float 
 def write_photo_scene(folder: str | Path, meshes: Sequence[Mesh], n_views: int, seed: int = 0,
                       width: int = 640, height: int = 480, depth: bool = False,
                       dist_range: tuple[float, float] = (350.0, 600.0),
-                      cameras: Sequence[Camera] | None = None, see_through: Sequence[int] = ()) -> PhotoScene:
+                      cameras: Sequence[Camera] | None = None, see_through: Sequence[int] = (),
+                      clear: bool = False) -> PhotoScene:
     """A BOP scene folder (``scene_camera.json``, ``scene_gt.json``, ``mask_visib/``, ``rgb/``,
     optionally ``depth/`` with ``depth_scale``, measured as :func:`sensor_depth`) of ``meshes``
     (obj_id = position + 1) on a table, seen by ``cameras``, or by ``n_views`` cameras on a ring
     at 25-60 degrees elevation. The depth passes through the meshes at positions ``see_through``
-    (glass: :func:`render_photos`), with blobs of holes on them (:func:`sensor_depth`)."""
+    (glass: :func:`render_photos`, drawn ``clear`` or not), with blobs of holes on them (:func:`sensor_depth`)."""
     import json
 
     folder = Path(folder)
@@ -170,7 +208,7 @@ def write_photo_scene(folder: str | Path, meshes: Sequence[Mesh], n_views: int, 
     cams = list(cameras) if cameras is not None else ring_cameras(n_views, rng, (25.0, 60.0), dist_range, None, width,
                                                                   height, (0.0, 0.0, 30.0), jitter_mm=30.0)
     masks = write_multi_scene(folder, meshes, list(range(1, len(meshes) + 1)), poses, cams)
-    photos, depths = render_photos(meshes, poses, cams, rng, see_through=see_through)
+    photos, depths = render_photos(meshes, poses, cams, rng, see_through=see_through, clear=clear)
     (folder / "rgb").mkdir(exist_ok=True)
     for i, img in enumerate(photos):
         cv2.imwrite(str(folder / "rgb" / f"{i:06d}.png"), img)
