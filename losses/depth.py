@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.geometry.camera import Camera, pixel_centres, uv_from_opencv
+from autoalign.geometry.camera import Camera, uv_from_opencv
 from autoalign.geometry.mesh import Mesh
 from autoalign.losses.silhouette import ViewTerms
 from autoalign.losses.term import Fragments, LevelViews, Stance, TermEvidence, TermValues
@@ -168,9 +168,7 @@ def depth_terms(caster: RayCaster, mesh: Mesh, T_wm: NDArray[np.float64], camera
         rows, cols, out.stride[k] = sample_pixels(cam, mesh, T_wm, measured, max_samples)
         if len(rows) == 0:
             continue
-        # rays through the pixel centres with unit z in the camera: t is depth
-        pix = np.column_stack([pixel_centres(cols, rows), np.ones(len(rows))])
-        d_w = (pix @ np.linalg.inv(cam.K).T) @ cam.R_w2c  # rows R_c2w K^-1 [u, v, 1]
+        d_w = cam.depth_rays(cols, rows)  # unit z in the camera: t is depth
         hits = caster.first_hits(T_wm, cam.centre, d_w.astype(np.float32))
         z_r = hits.t.astype(np.float64)
         z_m = measured[rows, cols].astype(np.float64)

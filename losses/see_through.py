@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.geometry.camera import Camera, pixel_centres
+from autoalign.geometry.camera import Camera
 from autoalign.geometry.mesh import Mesh
 from autoalign.losses.depth import MAX_SAMPLES, MIN_SAMPLES_TO_JUDGE, DepthNoise
 from autoalign.losses.term import Stance, TermEvidence
@@ -84,8 +84,7 @@ def see_through_shares(caster: RayCaster, mesh: Mesh, T_wm: NDArray[np.float64],
             continue
         step = max(1, int(np.ceil(len(rows) / max_samples)))
         rows, cols = rows[::step], cols[::step]
-        pix = np.column_stack([pixel_centres(cols, rows), np.ones(len(rows))])
-        d_w = (pix @ np.linalg.inv(cam.K).T) @ cam.R_w2c  # unit z in the camera: t is depth
+        d_w = cam.depth_rays(cols, rows)  # unit z in the camera: t is depth
         z_r = caster.first_hits(T_wm, cam.centre, d_w.astype(np.float32)).t.astype(np.float64)
         hit = np.isfinite(z_r)
         if hit.sum() < MIN_SAMPLES_TO_JUDGE:

@@ -121,6 +121,13 @@ class Camera:
         columns ``cols`` and rows ``rows`` (:func:`pixel_centres`)."""
         return self.ray_directions(pixel_centres(cols, rows))
 
+    def depth_rays(self, cols: ArrayLike, rows: ArrayLike) -> NDArray[np.float64]:
+        """World-frame directions (N, 3) of the rays through the centres of the pixels in columns
+        ``cols`` and rows ``rows``, scaled to unit z in the camera: a point ``centre + t d`` lies at
+        depth ``t`` (mm along the optical axis), as a depth image measures it."""
+        pix = np.column_stack([pixel_centres(cols, rows), np.ones(np.size(cols))])
+        return (pix @ np.linalg.inv(self.K).T) @ self.R_w2c  # rows R_c2w K^-1 [u, v, 1]
+
     def ray_directions(self, uv: NDArray[np.float64]) -> NDArray[np.float64]:
         """Unit world-frame directions of the rays through continuous pixel coordinates (N, 2)."""
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
