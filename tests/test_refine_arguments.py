@@ -38,7 +38,7 @@ def test_the_line_may_use_any_spelling_the_command_takes() -> None:
 
 @pytest.mark.parametrize("line, words", [
     (["--models", "m", "--workers", "2"], "--workers: an option of the whole batch"),
-    (["--models", "m", "--work", "2"], "options of the whole batch, not of one scene's line"),
+    (["--models", "m", "--work", "2"], "--workers: an option of the whole batch, not of one scene's line"),
     (["--models", "m", "--out", "x"], "--out: an option of the whole batch"),
     (["--models", "m", "--loss", "huber"], "invalid choice: 'huber'"),
     (["--models", "m", "--obj-id", "0"], "'0' must be 1 or more"),

@@ -178,14 +178,19 @@ def scene_job(scene: str, argv: Sequence[str], out: str) -> FolderJob:
     (the batch's shared ones, then its own line's, e.g. ``["--models", "models/", "--init", "coarse.json"]``),
     parsed by the command's own parser; an option of the whole run (``--workers`` ...) is refused."""
     words = list(argv)
+    refused = [name for name in BATCH_ONLY if name not in ("quiet", "json")]
     for word in words:
         name = word.split("=", 1)[0].lstrip("-").replace("-", "_")
-        if word.startswith("--") and name in BATCH_ONLY and name not in ("quiet", "json"):
+        if word.startswith("--") and name in refused:
             raise AutoalignError(f"{word.split('=', 1)[0]}: an option of the whole batch, not of one scene's line "
                                  "(see 'autoalign refine --help')")
-    args = _scene_parser().parse_args([str(scene), *words, "--out", str(out)])
-    if args.batch is not None or args.workers != 1 or args.scheduler is not None:  # spelt short, e.g. --work 2
-        raise AutoalignError("--batch, --workers and --scheduler are options of the whole batch, not of one scene's "
+    parser = _scene_parser()
+    args = parser.parse_args([str(scene), *words, "--out", str(out)])
+    # spelt short (--work 2 is --workers 2 to argparse): found by its value; --out is this function's own
+    given = [name for name in refused if name != "out" and getattr(args, name) != parser.get_default(name)]
+    if given:
+        what = "an option" if len(given) == 1 else "options"
+        raise AutoalignError(f"{', '.join('--' + n for n in given)}: {what} of the whole batch, not of one scene's "
                              "line (see 'autoalign refine --help')")
     return job_of(args)
 
