@@ -174,7 +174,7 @@ def test_refine_refuses_a_folder_or_a_path_for_scene_and_mesh(api_inputs) -> Non
 
 
 def test_jax_refine_refuses_a_scaled_start(api_inputs) -> None:
-    aj = pytest.importorskip("autoalign.jax")
+    import autoalign.jax as aj  # the test command installs jax: a missing one must fail, not skip
     scene, mesh, T = api_inputs
     with pytest.raises(AutoalignError, match=r"^T_init: its upper 3x3 is not a rotation \(det 8"):
         aj.refine(scene, mesh, np.diag([2.0, 2.0, 2.0, 1.0]) @ T)
@@ -426,21 +426,21 @@ def capture_with_depth(folder: Path, depth_value: int, dtype=np.uint16) -> Path:
 
 
 def test_recon_depth_in_tenths_of_a_mm_without_depth_scale(tmp_path, capsys) -> None:
-    pytest.importorskip("pycolmap")
+    import pycolmap  # noqa: F401 - installed by the test command: a missing one must fail, not skip
     capture = capture_with_depth(tmp_path / "capture", 6000)  # a table 600 mm away, in 0.1 mm
     refused(["recon", str(capture), "--out", str(tmp_path / "scene"), "--quiet"], capsys, str(capture / "depth"),
             "the median depth is 6000 mm with --depth-scale 1", "pass the --depth-scale", "probably 0.1")
 
 
 def test_recon_depth_in_metres(tmp_path, capsys) -> None:
-    pytest.importorskip("pycolmap")
+    import pycolmap  # noqa: F401 - installed by the test command: a missing one must fail, not skip
     capture = capture_with_depth(tmp_path / "capture", 1)
     refused(["recon", str(capture), "--out", str(tmp_path / "scene"), "--quiet"], capsys,
             "the median depth is 1 mm", "probably 1000")
 
 
 def test_recon_eight_bit_depth(tmp_path, capsys) -> None:
-    pytest.importorskip("pycolmap")
+    import pycolmap  # noqa: F401 - installed by the test command: a missing one must fail, not skip
     capture = capture_with_depth(tmp_path / "capture", 60, np.uint8)
     refused(["recon", str(capture), "--out", str(tmp_path / "scene"), "--quiet", "--depth-scale", "10"], capsys,
             str(capture / "depth" / "000000.png"), "8-bit depth")
@@ -448,7 +448,7 @@ def test_recon_eight_bit_depth(tmp_path, capsys) -> None:
 
 @pytest.mark.parametrize("scale", ["nan", "inf", "0"])
 def test_recon_depth_scale_that_is_no_factor(tmp_path, capsys, scale) -> None:
-    pytest.importorskip("pycolmap")
+    import pycolmap  # noqa: F401 - installed by the test command: a missing one must fail, not skip
     capture = capture_with_depth(tmp_path / "capture", 6000)
     refused(["recon", str(capture), "--out", str(tmp_path / "scene"), "--quiet", "--depth-scale", scale], capsys,
             f"--depth-scale {float(scale)}: must be positive")
@@ -464,7 +464,7 @@ def test_recon_depth_with_its_scale_is_taken(tmp_path) -> None:
 
 
 def test_recon_intrinsics_with_nan(tmp_path, capsys) -> None:
-    pytest.importorskip("pycolmap")
+    import pycolmap  # noqa: F401 - installed by the test command: a missing one must fail, not skip
     capture = capture_with_depth(tmp_path / "capture", 6000)
     K = write_json(tmp_path / "K.json", '{"fx": NaN, "fy": 80, "cx": 48, "cy": 36}')
     refused(["recon", str(capture), "--out", str(tmp_path / "scene"), "--quiet", "--depth-scale", "0.1",
