@@ -30,6 +30,21 @@ def pytest_configure(config: pytest.Config) -> None:
     which exec resets to the default, restores a terminal's conditions for them."""
     if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+    _session_mesh_cache(config)
+
+
+def _session_mesh_cache(config: pytest.Config) -> None:
+    """One mesh cache (:mod:`autoalign.geometry.mesh_cache`) for the whole run, new each run: the
+    workers and the commands they start share it (they inherit the environment), and no run reads
+    what an earlier one left in the user's cache."""
+    if "PYTEST_XDIST_WORKER" in os.environ or os.environ.get("AUTOALIGN_CACHE_DIR"):
+        return
+    import shutil
+    import tempfile
+
+    folder = tempfile.mkdtemp(prefix="autoalign-test-mesh-cache-")
+    os.environ["AUTOALIGN_CACHE_DIR"] = folder
+    config.add_cleanup(lambda: shutil.rmtree(folder, ignore_errors=True))
 
 
 @pytest.hookimpl(trylast=True)

@@ -1,7 +1,9 @@
 """Object meshes: loading with validation, and the edge/face topology the renderer needs.
 
 Models are in millimetres (BOP). Any format trimesh reads works; multi-part scenes are
-concatenated, non-watertight meshes are fine (open boundary edges count as contour edges).
+concatenated, non-watertight meshes are fine (open boundary edges count as contour edges). A mesh
+file read before comes from :mod:`autoalign.geometry.mesh_cache`, with its simplified levels; trimesh
+is imported only to read or process one that is not there.
 """
 
 from __future__ import annotations
@@ -9,12 +11,30 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
 from numpy.typing import NDArray
 
 from autoalign.errors import AutoalignError
+from autoalign.geometry import mesh_cache
+from autoalign.runtime.interrupts import Interrupts
+
+if TYPE_CHECKING:
+    import trimesh
+
+_CACHED = ("vertices", "faces", "face_normals", "edges", "edge_faces", "hull")
+"""What a cache entry of a mesh holds; the mesh as loaded also its :data:`_CACHED_LOADED`."""
+_CACHED_LOADED = ("diameter", "principal_axes")
+
+
+def trimesh_module() -> ModuleType:
+    """trimesh, imported on first use with Ctrl-C deferred (an extension module's import must not be
+    cut in two): a mesh read from the cache needs none of it."""
+    with Interrupts.deferred():
+        import trimesh
+    return trimesh
 
 
 @dataclass
@@ -43,11 +63,33 @@ class Mesh:
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64)
         self.faces = np.ascontiguousarray(self.faces, dtype=np.int64)
-        tm = trimesh.Trimesh(self.vertices, self.faces, process=False)
-        self.face_normals = np.asarray(tm.face_normals, dtype=np.float64)
+        self.face_normals = np.asarray(self.trimesh.face_normals, dtype=np.float64)
         self.edges, self.edge_faces = _edge_faces(self.faces)
         lo, hi = self.vertices.min(0), self.vertices.max(0)
         self.centre = (lo + hi) / 2.0
+        self._cache_key: str | None = None
+
+    @classmethod
+    def _restored(cls, arrays: dict[str, NDArray], name: str, key: str) -> "Mesh":
+        """The mesh of a cache entry (:func:`_cached`), as :meth:`__init__` and its properties made it."""
+        m = cls.__new__(cls)
+        m.vertices, m.faces, m.name = arrays["vertices"], arrays["faces"], name
+        m.face_normals, m.edges, m.edge_faces = arrays["face_normals"], arrays["edges"], arrays["edge_faces"]
+        lo, hi = m.vertices.min(0), m.vertices.max(0)
+        m.centre = (lo + hi) / 2.0
+        m.__dict__["hull"] = arrays["hull"]
+        if "diameter" in arrays:
+            m.__dict__["diameter"] = float(arrays["diameter"])
+            m.__dict__["principal_axes"] = arrays["principal_axes"]
+        m._cache_key = key
+        return m
+
+    def _cache_arrays(self, loaded: bool) -> dict[str, NDArray]:
+        """What a cache entry of this mesh holds (``loaded``: the mesh as loaded, with its diameter and axes)."""
+        arrays = {n: np.asarray(getattr(self, n)) for n in _CACHED}
+        if loaded:
+            arrays.update(diameter=np.float64(self.diameter), principal_axes=self.principal_axes)
+        return arrays
 
     @functools.cached_property
     def diameter(self) -> float:
@@ -68,9 +110,9 @@ class Mesh:
         return np.linalg.eigh(d.T @ d)[1][:, ::-1].T.copy()
 
     @property
-    def trimesh(self) -> trimesh.Trimesh:
+    def trimesh(self) -> "trimesh.Trimesh":
         """A trimesh view of the same geometry (no processing)."""
-        return trimesh.Trimesh(self.vertices, self.faces, process=False)
+        return trimesh_module().Trimesh(self.vertices, self.faces, process=False)
 
     def simplified(self, max_faces: int) -> "Mesh":
         """This mesh with at most about ``max_faces`` triangles (quadric decimation), same frame and centre.
@@ -82,7 +124,16 @@ class Mesh:
             return self
         cache = self.__dict__.setdefault("_simplified", {})
         if max_faces not in cache:
-            cache[max_faces] = self._decimated(max_faces)
+            key = getattr(self, "_cache_key", None)
+            stored = None if key is None else mesh_cache.read_entry(mesh_cache.level_key(key, max_faces), _CACHED)
+            if stored is not None:
+                out = Mesh._restored(stored, f"{self.name}@{len(stored['faces'])}", None)
+                out.centre, out.diameter, out.principal_axes = self.centre.copy(), self.diameter, self.principal_axes
+            else:
+                out = self._decimated(max_faces)
+                if key is not None:
+                    mesh_cache.write_entry(mesh_cache.level_key(key, max_faces), out._cache_arrays(loaded=False))
+            cache[max_faces] = out
         return cache[max_faces]
 
     def _decimated(self, max_faces: int) -> "Mesh":
@@ -98,7 +149,7 @@ class Mesh:
 
     def sample_points(self, n: int, seed: int = 0) -> NDArray[np.float64]:
         """``n`` points sampled uniformly on the surface (mm, model frame), reproducibly."""
-        pts, _ = trimesh.sample.sample_surface(self.trimesh, n, seed=seed)
+        pts, _ = trimesh_module().sample.sample_surface(self.trimesh, n, seed=seed)
         return np.asarray(pts, dtype=np.float64)
 
 
@@ -117,7 +168,7 @@ class ColouredMesh:
 def _diameter(V: NDArray[np.float64], max_points: int = 2500) -> float:
     """Largest vertex-to-vertex distance (exact on up to ``max_points`` convex-hull vertices)."""
     try:
-        pts = np.asarray(trimesh.convex.convex_hull(V).vertices)
+        pts = np.asarray(trimesh_module().convex.convex_hull(V).vertices)
     except Exception:  # degenerate (flat) point sets have no 3-D hull
         pts = V
     if len(pts) > max_points:
@@ -156,7 +207,7 @@ METRES_SUSPECT = 2.0
 """A mesh less than this many units across is taken for metres unless its units are given."""
 
 
-def weld(tm: trimesh.Trimesh) -> trimesh.Trimesh:
+def weld(tm: "trimesh.Trimesh") -> "trimesh.Trimesh":
     """``tm`` with vertices at the same position merged (in place) and the faces that this makes
     duplicate (the same three vertices, either winding) or degenerate dropped.
 
@@ -186,6 +237,26 @@ def load_mesh(path: str | Path, name: str | None = None, units: str | None = Non
     if units is not None and units not in UNITS_MM:
         raise AutoalignError(f"{path}: unknown units {units!r}; use one of {', '.join(UNITS_MM)}")
     try:
+        key = mesh_cache.file_key(path, units)
+    except OSError as exc:
+        raise AutoalignError(f"{path}: cannot read the mesh ({exc.strerror}); pass a mesh file you can read") from None
+    stored = mesh_cache.read_entry(key, _CACHED + _CACHED_LOADED)
+    if stored is not None:
+        return Mesh._restored(stored, name or path.stem, key)
+    mesh = Mesh(*_read_welded(path, units), name=name or path.stem)
+    try:
+        arrays = mesh._cache_arrays(loaded=True)
+    except (ValueError, IndexError, RuntimeError):  # no hull or axes (a flat mesh): computed again when asked
+        return mesh
+    mesh_cache.write_entry(key, arrays)
+    mesh._cache_key = key
+    return mesh
+
+
+def _read_welded(path: Path, units: str | None) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """The vertices (mm) and faces of the mesh file ``path``, welded (:func:`load_mesh`)."""
+    trimesh = trimesh_module()
+    try:
         loaded = trimesh.load(str(path), force="mesh", process=False, skip_materials=True)  # geometry only
     except Exception as exc:  # trimesh raises many kinds for unreadable files
         raise AutoalignError(f"{path}: cannot read the mesh ({type(exc).__name__}: {exc}); "
@@ -204,10 +275,9 @@ def load_mesh(path: str | Path, name: str | None = None, units: str | None = Non
         raise AutoalignError(f"{path}: the model is only {extent:.3g} units across, so it is probably in metres "
                              "(autoalign works in millimetres); pass --units m to scale it by 1000, or --units mm "
                              "if it really is that small")
-    V = V * UNITS_MM[units or "mm"]
-    return Mesh(V, np.asarray(tm.faces, dtype=np.int64), name=name or path.stem)
+    return V * UNITS_MM[units or "mm"], np.asarray(tm.faces, dtype=np.int64)
 
 
-def mesh_from_trimesh(tm: trimesh.Trimesh, name: str = "mesh") -> Mesh:
+def mesh_from_trimesh(tm: "trimesh.Trimesh", name: str = "mesh") -> Mesh:
     """Wrap an in-memory trimesh (mm) as it is (:func:`load_mesh` also welds it, see :func:`weld`)."""
     return Mesh(np.asarray(tm.vertices), np.asarray(tm.faces), name=name)

@@ -20,12 +20,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import trimesh
 from numpy.typing import NDArray
 
 from autoalign.errors import AutoalignError
 from autoalign.io.bop import read_json_file, whole_number_keys
-from autoalign.geometry.mesh import ColouredMesh, Mesh, load_mesh
+from autoalign.geometry.mesh import ColouredMesh, Mesh, load_mesh, trimesh_module
 from autoalign.geometry.se3 import Symmetries
 from autoalign.rasterizers.pyramid import MeshPyramid
 
@@ -43,6 +42,7 @@ def load_coloured_mesh(path: str | Path) -> ColouredMesh:
     them in their vertex order); face colours are spread to the vertices, and a mesh without
     colours is grey (``has_colours`` False)."""
     path = Path(path)
+    trimesh = trimesh_module()
     try:
         loaded = trimesh.load(str(path), process=False)
     except Exception as exc:  # trimesh raises many kinds

@@ -52,7 +52,7 @@ def refine_folder(job: FolderJob, log: RunLog | None = None, progress: Stages | 
     t_start = time.perf_counter() if t_start is None else t_start
     log = log if log is not None else RunLog()
     progress = progress if progress is not None else NoProgress()
-    preload("numpy", "cv2", "scipy.spatial", "trimesh")  # extension modules, with Ctrl-C deferred
+    preload("numpy", "cv2")  # extension modules, with Ctrl-C deferred (trimesh: only for a mesh not in the cache)
     click = None
     if job.click is not None:
         from autoalign.engine.seeding import Click

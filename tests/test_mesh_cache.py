@@ -1,0 +1,100 @@
+"""The mesh cache (:mod:`autoalign.geometry.mesh_cache`): a mesh read again comes from disk exactly as
+it was made, without trimesh, and a changed file, other units, a broken entry or an unusable folder
+never give a wrong mesh."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from autoalign.geometry.mesh import Mesh, load_mesh
+from autoalign.geometry.mesh_cache import CACHE_ENV
+
+EXAMPLE_MODEL = Path(__file__).resolve().parents[1] / "autoalign" / "data" / "example" / "model.ply"
+ARRAYS = ("vertices", "faces", "face_normals", "edges", "edge_faces", "centre", "hull", "principal_axes")
+LEVELS = (20000, 5000, 1500)
+
+
+def _same(a: Mesh, b: Mesh) -> bool:
+    return (all(np.array_equal(getattr(a, n), getattr(b, n)) for n in ARRAYS) and a.diameter == b.diameter
+            and a.name == b.name)
+
+
+def _fine_mesh(path: Path, scale: float = 1.0) -> Path:
+    """An icosphere of 20,480 triangles (radius 40 mm x ``scale``): big enough for every level to simplify it."""
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=40.0 * scale)
+    sphere.export(path)
+    return path
+
+
+def _load_with_levels(path: Path, units: str | None = None) -> tuple[Mesh, list[Mesh]]:
+    m = load_mesh(path, units=units)
+    return m, [m.simplified(n) for n in LEVELS]
+
+
+def test_a_mesh_read_again_is_the_mesh_made_without_the_cache(tmp_path, monkeypatch):
+    model = _fine_mesh(tmp_path / "sphere.ply")
+    monkeypatch.setenv(CACHE_ENV, "off")
+    made, made_levels = _load_with_levels(model)
+    assert not any(tmp_path.glob("cache/*"))
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
+    first, first_levels = _load_with_levels(model)
+    assert len(list((tmp_path / "cache").glob("*.npz"))) == 1 + 3  # the mesh and its three simplified levels
+    again, again_levels = _load_with_levels(model)
+    for got in ((first, *first_levels), (again, *again_levels)):
+        assert all(_same(a, b) for a, b in zip(got, (made, *made_levels)))
+    assert len(made.faces) == 20480 and all(1000 < len(m.faces) <= n for m, n in zip(made_levels, LEVELS))
+
+
+def test_a_second_command_reads_the_mesh_without_importing_trimesh(tmp_path):
+    env = {**os.environ, CACHE_ENV: str(tmp_path / "cache")}
+    code = ("import sys; from autoalign.geometry.mesh import load_mesh; "
+            f"m = load_mesh({str(EXAMPLE_MODEL)!r}); h = m.hull, m.diameter, m.principal_axes; "
+            "print(len(m.faces), 'trimesh' in sys.modules, 'scipy' in sys.modules)")
+    runs = [subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+            for _ in range(2)]
+    assert [r.returncode for r in runs] == [0, 0], runs[0].stderr + runs[1].stderr
+    assert runs[0].stdout.split() == ["1176", "True", "True"]  # made: trimesh read and welded it
+    assert runs[1].stdout.split() == ["1176", "False", "False"]  # read again: no trimesh, no scipy
+
+
+def test_a_changed_file_or_other_units_is_never_read_from_an_old_entry(tmp_path, monkeypatch):
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
+    model = _fine_mesh(tmp_path / "sphere.ply")
+    small = load_mesh(model)
+    _fine_mesh(model, scale=1.5)  # the same name, other bytes
+    big = load_mesh(model)
+    assert big.diameter == pytest.approx(1.5 * small.diameter, rel=1e-6)  # the file holds single precision
+    in_metres = load_mesh(model, units="m")
+    assert in_metres.diameter == pytest.approx(1000 * big.diameter, rel=1e-9)
+    assert len(list((tmp_path / "cache").glob("*.npz"))) == 3
+
+
+def test_a_broken_entry_is_made_again(tmp_path, monkeypatch):
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
+    model = _fine_mesh(tmp_path / "sphere.ply")
+    made = load_mesh(model)
+    (entry,) = (tmp_path / "cache").glob("*.npz")
+    entry.write_bytes(entry.read_bytes()[:100])  # cut short, as a full disk would leave it
+    again = load_mesh(model)
+    assert _same(again, made)
+    assert load_mesh(model).diameter == made.diameter  # and written whole again
+    assert entry.stat().st_size > 1000
+
+
+def test_a_folder_that_cannot_be_written_leaves_the_cache_off(tmp_path, monkeypatch):
+    blocker = tmp_path / "not_a_folder"
+    blocker.write_text("a file where the cache folder would be")
+    monkeypatch.setenv(CACHE_ENV, str(blocker / "cache"))
+    model = _fine_mesh(tmp_path / "sphere.ply")
+    monkeypatch.setenv(CACHE_ENV, "off")
+    made = load_mesh(model)
+    monkeypatch.setenv(CACHE_ENV, str(blocker / "cache"))
+    assert _same(load_mesh(model), made)
+    assert blocker.read_text().startswith("a file")
