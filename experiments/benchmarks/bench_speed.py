@@ -1,0 +1,133 @@
+"""Speed before and after a change: whole commands run by two checkouts of the code, alternating
+run by run, so that a busy machine slows both alike; wall time (median of the repeats) and peak
+memory (``/usr/bin/time``'s maximum resident set) of each, and their ratios.
+
+The cases: ``autoalign refine --help`` (start-up); the import and initialisation a refine needs
+before its first render (its modules and mitsuba's LLVM backend); the bundled example seeded and
+unseeded; ``bench_scene``'s scenes of 1, 4 and 8 objects x 40 views from 10 mm / 15 deg off
+(:func:`~autoalign.experiments.benchmarks.bench_scene.make_bench_scene`), with the uncertainty.
+Each command runs once per checkout before the timed repeats (its first-run wall is reported too):
+drjit's kernel cache and the mesh cache (:mod:`autoalign.geometry.mesh_cache`, a new folder for
+this run) are then warm, as from a user's second command on. The label page's click is timed by
+``bench_label_page``.
+
+``python -m autoalign.experiments.benchmarks.bench_speed --before /tmp/before_repo [--after .] [--repeats 3]``
+(``--before``: e.g. ``git archive REV | tar -x -C /tmp/before_repo``). Results: ``experiments/results/bench_speed.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from autoalign.experiments import RESULTS
+from autoalign.experiments.benchmarks.bench_scene import make_bench_scene
+from autoalign.experiments.result_files import write_results
+
+EXAMPLE = Path(__file__).resolve().parents[2] / "autoalign" / "data" / "example"
+INIT_CODE = ("import autoalign.cli.main, autoalign.jobs.refine_folder, autoalign.engine.refine, autoalign.io.evidence, "
+             "autoalign.jobs.report; from autoalign.runtime.backend import mitsuba; mitsuba()")
+
+
+@dataclass
+class Case:
+    """One command: its arguments after ``python``, and what it took in each checkout."""
+
+    name: str
+    argv: list[str]
+    out: Path | None = None
+    first: dict[str, float] = field(default_factory=dict)
+    walls: dict[str, list[float]] = field(default_factory=lambda: {"before": [], "after": []})
+    peaks_mb: dict[str, list[float]] = field(default_factory=lambda: {"before": [], "after": []})
+
+
+def cases(work: Path) -> list[Case]:
+    """The commands timed (the bench scenes are written into ``work``)."""
+    ex = EXAMPLE
+    refine = ["-m", "autoalign.cli.main", "refine"]
+    out = [Case("refine --help (start-up)", [*refine, "--help"]),
+           Case("a refine's imports and LLVM start", ["-c", INIT_CODE]),
+           Case("example seeded", [*refine, str(ex / "scene"), "--model", str(ex / "model.ply"), "--init",
+                                   str(ex / "init_gt.json"), "--quiet"], work / "out"),
+           Case("example unseeded", [*refine, str(ex / "scene"), "--model", str(ex / "model.ply"), "--quiet"],
+                work / "out")]
+    for n in (1, 4, 8):
+        root = work / f"bench_{n}"
+        make_bench_scene(root, n)
+        out.append(Case(f"bench_scene {n} object(s) x 40 views", [*refine, str(root / "scene"), "--models",
+                                                                  str(root / "models"), "--init",
+                                                                  str(root / "init_gt.json"), "--quiet"],
+                        work / "out"))
+    return out
+
+
+def run_once(checkout: Path, case: Case, env: dict[str, str]) -> tuple[float, float]:
+    """Wall time (s) and peak resident memory (MB) of ``case`` run by ``checkout``'s code."""
+    argv = list(case.argv)
+    if case.out is not None:
+        subprocess.run(["rm", "-rf", str(case.out)], check=True)
+        argv += ["--out", str(case.out)]
+    with tempfile.NamedTemporaryFile("r", suffix=".time") as stats:
+        t0 = time.perf_counter()
+        p = subprocess.run(["/usr/bin/time", "-f", "%M", "-o", stats.name, sys.executable, *argv], cwd=checkout,
+                           env=env, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        peak_kb = float(stats.read().strip().splitlines()[-1])
+    if p.returncode not in (0, 3):
+        raise RuntimeError(f"{checkout}: {case.name} failed ({p.returncode}): {p.stderr[-1000:]}")
+    return wall, peak_kb / 1024.0
+
+
+def measure(before: Path, after: Path, work: Path, repeats: int) -> list[Case]:
+    """Every case: once per checkout untimed, then ``repeats`` times each, the checkouts alternating."""
+    env = {**os.environ, "AUTOALIGN_CACHE_DIR": str(work / "mesh_cache")}
+    checkouts = {"before": before, "after": after}
+    todo = cases(work)
+    for case in todo:
+        for tag, checkout in checkouts.items():
+            case.first[tag] = run_once(checkout, case, env)[0]
+        for _ in range(repeats):
+            for tag, checkout in checkouts.items():
+                wall, peak = run_once(checkout, case, env)
+                case.walls[tag].append(wall)
+                case.peaks_mb[tag].append(peak)
+        b, a = (statistics.median(case.walls[t]) for t in ("before", "after"))
+        print(f"{case.name}: {b:.2f} s -> {a:.2f} s ({a / b:.2f})", flush=True)
+    return todo
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--before", type=Path, required=True, help="a checkout of the older code")
+    ap.add_argument("--after", type=Path, default=Path(__file__).resolve().parents[2], help="default: this checkout")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    args = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        done = measure(args.before.resolve(), args.after.resolve(), Path(tmp), args.repeats)
+    med = statistics.median
+    table = ["# Speed before and after", "",
+             f"`{args.before}` against `{args.after}` on {platform.node()} ({os.cpu_count()} cores): whole commands, "
+             f"median wall of {args.repeats} runs each after one untimed run (its wall is the first-run column), "
+             "the checkouts alternating run by run; peak memory is the largest resident set of the process.", "",
+             "| command | first run before s | first run after s | wall before s | wall after s | ratio | "
+             "peak before MB | peak after MB |", "|---|---|---|---|---|---|---|---|"]
+    for c in done:
+        b, a = med(c.walls["before"]), med(c.walls["after"])
+        table.append(f"| {c.name} | {c.first['before']:.2f} | {c.first['after']:.2f} | {b:.2f} | {a:.2f} | "
+                     f"{a / b:.2f} | {max(c.peaks_mb['before']):.0f} | {max(c.peaks_mb['after']):.0f} |")
+    rows = [{"case": c.name, "first": c.first, "walls": c.walls, "peaks_mb": c.peaks_mb} for c in done]
+    write_results("bench_speed", {"before": str(args.before), "after": str(args.after), "repeats": args.repeats,
+                                  "rows": rows}, table, args.out)
+
+
+if __name__ == "__main__":
+    main()
