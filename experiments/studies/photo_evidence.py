@@ -8,7 +8,9 @@ Conditions:
 * ``photos``: 40 views around the table, every mask withheld (``--masks none``), start 10 mm / 15 deg off.
 * ``cut``: the same scenes, every mask cut by a random straight line so that it misses 30-60% of the
   object (the rate of the real SAM masks that miss parts: ``sam_mask_rates.md``), start 10 mm / 15
-  deg off; with the photos (``--photos on``) and, for comparison, masks alone (``cut-masks-only``).
+  deg off; with the photos (``--photos on``) and, for comparison, masks alone (``cut-masks-only``);
+  and the same without a seed (``cut-no-seed``, ``cut-no-seed-masks-only``: no ``--init``, the
+  objects' ids from the scene's ``scene_gt.json``), where the orientation search must find each pose.
 * ``rgbd``: 8 views from nearly one viewpoint with sensor-like depth (noise growing with z squared,
   holes, one pixel of misregistration), masks eroded by 4 px, start 20 mm along the first view's
   ray and 10 deg off; with the depth (and the photos, as by default), without the depth
@@ -48,7 +50,8 @@ from autoalign.geometry.se3 import invert, make_pose, transform_points
 from autoalign.io.atomic_files import write_json_atomic
 from autoalign.io.bop import scene_gt_of
 
-CONDITIONS = ("photos", "cut", "cut-masks-only", "rgbd", "rgbd-no-depth", "rgbd-masks-only")
+CONDITIONS = ("photos", "cut", "cut-masks-only", "cut-no-seed", "cut-no-seed-masks-only", "rgbd", "rgbd-no-depth",
+              "rgbd-masks-only")
 OBJECTS_PER_SCENE = 4
 
 
@@ -113,9 +116,10 @@ def run(ps: PhotoScene, symmetries: list[Symmetries], condition: str, seed: int,
     write_json_atomic(init, scene_gt_of([(j + 1, T) for j, T in enumerate(starts)], ps.cameras,
                                         list(range(len(ps.cameras)))))
     out = tmp / f"out_{condition}_{seed}"
-    args = ["refine", str(scene), "--models", str(ps.folder.parent / "models"), "--init", str(init), "--out", str(out),
-            "--quiet"]
+    seeded = [] if "no-seed" in condition else ["--init", str(init)]
+    args = ["refine", str(scene), "--models", str(ps.folder.parent / "models"), *seeded, "--out", str(out), "--quiet"]
     args += {"photos": ["--masks", "none"], "cut": ["--photos", "on"], "cut-masks-only": ["--photos", "off"],
+             "cut-no-seed": ["--photos", "on"], "cut-no-seed-masks-only": ["--photos", "off"],
              "rgbd": [], "rgbd-no-depth": ["--depth", "off"],
              "rgbd-masks-only": ["--depth", "off", "--photos", "off"]}[condition]
     wall = run_autoalign(*args).check().wall_s
