@@ -70,8 +70,9 @@ class Mesh:
         self._cache_key: str | None = None
 
     @classmethod
-    def _restored(cls, arrays: dict[str, NDArray], name: str, key: str) -> "Mesh":
-        """The mesh of a cache entry (:func:`_cached`), as :meth:`__init__` and its properties made it."""
+    def _restored(cls, arrays: dict[str, NDArray], name: str, key: str | None) -> "Mesh":
+        """The mesh of a cache entry (:mod:`~autoalign.geometry.mesh_cache`), as :meth:`__post_init__` and
+        its properties made it; ``key``: the entry's, for the simplified levels (``None`` for a level)."""
         m = cls.__new__(cls)
         m.vertices, m.faces, m.name = arrays["vertices"], arrays["faces"], name
         m.face_normals, m.edges, m.edge_faces = arrays["face_normals"], arrays["edges"], arrays["edge_faces"]
