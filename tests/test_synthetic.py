@@ -353,3 +353,43 @@ def test_pixel_rays_pass_through_pixel_centres():
     for i, j in [(0, 0), (0, 639), (479, 0), (123, 456)]:
         uv = cam.project((o + 350.0 * d[i * 640 + j])[None])[0]
         assert np.abs(uv - [j + 0.5, i + 0.5]).max() < 1e-9
+
+
+def _full_image_hits(meshes, poses, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """open3d's first hits of one ray per pixel centre of the whole image (``t_hit`` finite, and the
+    geometry hit), cast here without the box the product casts in."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    ids = [scene.add_triangles(o3d.core.Tensor(transform_points(T, m.vertices).astype(np.float32)),
+                               o3d.core.Tensor(m.faces.astype(np.uint32))) for m, T in zip(meshes, poses)]
+    u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+    d = np.stack([u, v, np.ones_like(u)], -1).reshape(-1, 3) @ np.linalg.inv(cam.K).T @ cam.R_w2c
+    rays = np.hstack([np.broadcast_to(cam.centre, d.shape), d]).astype(np.float32)
+    hit = scene.cast_rays(o3d.core.Tensor(rays))
+    shape = (cam.height, cam.width)
+    return np.isfinite(hit["t_hit"].numpy()).reshape(shape), np.asarray(ids), hit["geometry_ids"].numpy().reshape(shape)
+
+
+@pytest.mark.parametrize("where", ["inside", "across the border", "around the camera"])
+def test_masks_cast_in_the_projections_box_are_the_whole_images(where):
+    """Only the rays through the box of the meshes' projection are cast: the masks are those of one ray
+    per pixel of the whole image, with an object cut by the image's border and with the camera
+    inside an object's extent (some vertices behind it: the whole image is cast)."""
+    from autoalign.experiments.scenes.synthetic import raycast_visible_masks
+
+    cam = _frontal_camera(500.0)
+    offset = {"inside": [0.0, 0.0, 0.0], "across the border": [210.0, -60.0, 0.0],
+              "around the camera": [0.0, 0.0, -470.0]}[where]
+    rng = np.random.default_rng(11)
+    meshes = [mesh_from_trimesh(trimesh.creation.icosphere(subdivisions=3, radius=r)) for r in (60.0, 35.0)]
+    poses = [make_pose(random_rotation(rng), np.add(offset, [0.0, 0.0, 0.0])),
+             make_pose(random_rotation(rng), np.add(offset, [-90.0, 40.0, -20.0]))]
+    single = raycast_masks(meshes[0], poses[0], [cam])[0]
+    full, _, _ = _full_image_hits(meshes[:1], poses[:1], cam)
+    assert np.array_equal(single, full) and full.any()
+    visible = raycast_visible_masks(meshes, poses, [cam])[0]
+    full, ids, geom = _full_image_hits(meshes, poses, cam)
+    for g, m in zip(ids, visible):
+        assert np.array_equal(m, full & (geom == g))
+    assert visible[0].any()  # (around the camera the big sphere hides the small one)
