@@ -126,27 +126,24 @@ class Mesh:
         cache = self.__dict__.setdefault("_simplified", {})
         if max_faces not in cache:
             key = getattr(self, "_cache_key", None)
-            stored = None if key is None else mesh_cache.read_entry(mesh_cache.level_key(key, max_faces), _CACHED)
-            if stored is not None:
-                out = Mesh._restored(stored, f"{self.name}@{len(stored['faces'])}", None)
-                out.centre, out.diameter, out.principal_axes = self.centre.copy(), self.diameter, self.principal_axes
-            else:
-                out = self._decimated(max_faces)
-                if key is not None:
-                    mesh_cache.write_entry(mesh_cache.level_key(key, max_faces), out._cache_arrays(loaded=False))
+            level = None if key is None else mesh_cache.level_key(key, max_faces)
+            stored = None if level is None else mesh_cache.read_entry(level, _CACHED)
+            out = Mesh._restored(stored, self.name, None) if stored is not None else Mesh(*self._decimated(max_faces))
+            out.name = f"{self.name}@{len(out.faces)}"
+            out.centre = self.centre.copy()  # twists turn about the same point at every level
+            out.diameter, out.principal_axes = self.diameter, self.principal_axes
+            if stored is None and level is not None:
+                mesh_cache.write_entry(level, out._cache_arrays(loaded=False))
             cache[max_faces] = out
         return cache[max_faces]
 
-    def _decimated(self, max_faces: int) -> "Mesh":
+    def _decimated(self, max_faces: int) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+        """The vertices and faces of this mesh decimated to at most about ``max_faces`` triangles."""
         tm = self.trimesh.simplify_quadric_decimation(face_count=int(max_faces))
         # the decimator leaves collapsed triangles behind as duplicates: drop them and unused vertices
         tm.update_faces(tm.unique_faces() & tm.nondegenerate_faces())
         tm.remove_unreferenced_vertices()
-        out = Mesh(np.asarray(tm.vertices), np.asarray(tm.faces), name=f"{self.name}@{len(tm.faces)}")
-        out.centre = self.centre.copy()  # twists turn about the same point at every level
-        out.diameter = self.diameter
-        out.principal_axes = self.principal_axes
-        return out
+        return np.asarray(tm.vertices), np.asarray(tm.faces)
 
     def sample_points(self, n: int, seed: int = 0) -> NDArray[np.float64]:
         """``n`` points sampled uniformly on the surface (mm, model frame), reproducibly."""
