@@ -31,7 +31,7 @@ from pathlib import Path
 
 from autoalign.experiments import RESULTS
 from autoalign.experiments.benchmarks.bench_scene import make_bench_scene
-from autoalign.experiments.commands import CommandRun, autoalign_command
+from autoalign.experiments.commands import CommandRun
 from autoalign.experiments.result_files import write_results
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "autoalign" / "data" / "example"
@@ -41,7 +41,7 @@ INIT_CODE = ("import autoalign.cli.main, autoalign.jobs.refine_folder, autoalign
 
 @dataclass
 class Case:
-    """One command: its command line, and what it took in each checkout."""
+    """One command: its arguments after ``python``, and what it took in each checkout."""
 
     name: str
     argv: list[str]
@@ -54,9 +54,9 @@ class Case:
 def cases(work: Path) -> list[Case]:
     """The commands timed (the bench scenes are written into ``work``)."""
     ex = EXAMPLE
-    refine = autoalign_command("refine")
+    refine = ["-m", "autoalign.cli.main", "refine"]
     out = [Case("refine --help (start-up)", [*refine, "--help"]),
-           Case("a refine's imports and LLVM start", [sys.executable, "-c", INIT_CODE]),
+           Case("a refine's imports and LLVM start", ["-c", INIT_CODE]),
            Case("example seeded", [*refine, str(ex / "scene"), "--model", str(ex / "model.ply"), "--init",
                                    str(ex / "init_gt.json"), "--quiet"], work / "out"),
            Case("example unseeded", [*refine, str(ex / "scene"), "--model", str(ex / "model.ply"), "--quiet"],
@@ -72,20 +72,21 @@ def cases(work: Path) -> list[Case]:
 
 
 def run_once(checkout: Path, case: Case, env: dict[str, str]) -> tuple[float, float]:
-    """Wall time (s) and peak resident memory (MB, the child's ``ru_maxrss``) of ``case`` run by
-    ``checkout``'s code (its working folder: it imports that checkout)."""
+    """Wall time (s) and peak resident memory (MB) of ``case`` run by ``checkout``'s code. The peak is
+    ``/usr/bin/time``'s: a child forked by this process (which holds the bench scenes' libraries)
+    would count this process's memory in its own ``ru_maxrss``."""
     argv = list(case.argv)
     if case.out is not None:
         shutil.rmtree(case.out, ignore_errors=True)
         argv += ["--out", str(case.out)]
-    with tempfile.TemporaryFile("w+") as err:
+    with tempfile.NamedTemporaryFile("r", suffix=".time") as stats:
         t0 = time.perf_counter()
-        pid = subprocess.Popen(argv, cwd=checkout, env=env, stdout=subprocess.DEVNULL, stderr=err).pid
-        _, status, usage = os.wait4(pid, 0)
+        p = subprocess.run(["/usr/bin/time", "-f", "%M", "-o", stats.name, sys.executable, *argv], cwd=checkout,
+                           env=env, capture_output=True, text=True)
         wall = time.perf_counter() - t0
-        err.seek(0)
-        CommandRun(argv, wall, os.waitstatus_to_exitcode(status), err.read()).check()
-    return wall, usage.ru_maxrss / 1024.0
+        CommandRun([sys.executable, *argv], wall, p.returncode, p.stderr).check()
+        peak_kb = float(stats.read().strip().splitlines()[-1])
+    return wall, peak_kb / 1024.0
 
 
 def measure(before: Path, after: Path, work: Path, repeats: int) -> list[Case]:
