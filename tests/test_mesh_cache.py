@@ -64,6 +64,25 @@ def test_a_second_command_reads_the_mesh_without_importing_trimesh(tmp_path):
     assert runs[1].stdout.split() == ["1176", "False", "False"]  # read again: no trimesh, no scipy
 
 
+def test_a_coloured_mesh_read_again_is_the_file_as_trimesh_reads_it(tmp_path, monkeypatch):
+    """The check's meshes (the file's vertices and colours): equal to trimesh's reading, array for
+    array, from a new process that imports neither trimesh nor scipy."""
+    env = {**os.environ, CACHE_ENV: str(tmp_path / "cache")}
+    code = ("import sys; import numpy as np; from autoalign.io.models import load_coloured_mesh; "
+            f"m = load_coloured_mesh({str(EXAMPLE_MODEL)!r}); "
+            f"np.savez({str(tmp_path)!r} + f'/got{{sys.argv[1]}}.npz', v=m.vertices, f=m.faces, c=m.colours); "
+            "print(m.has_colours, 'trimesh' in sys.modules, 'scipy' in sys.modules)")
+    runs = [subprocess.run([sys.executable, "-c", code, str(k)], env=env, capture_output=True, text=True, timeout=120)
+            for k in range(2)]
+    assert [r.returncode for r in runs] == [0, 0], runs[0].stderr + runs[1].stderr
+    assert [r.stdout.split() for r in runs] == [["True", "True", "True"], ["True", "False", "False"]]
+    ref = trimesh.load(EXAMPLE_MODEL, process=False)  # independent: trimesh's own reading of the file
+    for k in range(2):
+        with np.load(tmp_path / f"got{k}.npz") as got:
+            assert np.array_equal(got["v"], np.asarray(ref.vertices)) and np.array_equal(got["f"], ref.faces)
+            assert np.array_equal(got["c"], np.asarray(ref.visual.vertex_colors)[:, :3].astype(np.float32) / 255)
+
+
 def test_a_changed_file_or_other_units_is_never_read_from_an_old_entry(tmp_path, monkeypatch):
     monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
     model = _fine_mesh(tmp_path / "sphere.ply")

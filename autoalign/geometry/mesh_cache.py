@@ -2,7 +2,7 @@
 welded and decimated again, and trimesh (about 1 s to import, with scipy) is not imported at all.
 
 An entry is keyed by the file's bytes, the units it was read in, the level (the mesh as loaded, or
-simplified to at most N triangles) and the versions of the code that made it (:data:`FORMAT`,
+simplified to at most N triangles, or as the file gives it with its vertex colours) and the versions of the code that made it (:data:`FORMAT`,
 numpy, trimesh and fast_simplification), so a changed file or library makes a new entry and never
 reads an old one. Entries are ``.npz`` files written atomically; one that cannot be read is made
 again. The folder is ``$AUTOALIGN_CACHE_DIR``, else ``$XDG_CACHE_HOME/autoalign/meshes``, else
@@ -69,6 +69,11 @@ def file_key(path: Path, units: str | None) -> str:
 def level_key(key: str, max_faces: int) -> str:
     """The key of the mesh of ``key`` simplified to at most ``max_faces`` triangles."""
     return f"{key}-f{int(max_faces)}"
+
+
+def coloured_key(key: str) -> str:
+    """The key of the mesh of ``key`` as its file gives it, with its vertex colours (for the check)."""
+    return f"{key}-coloured"
 
 
 def read_entry(key: str, names: tuple[str, ...]) -> dict[str, NDArray] | None:

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from autoalign.errors import AutoalignError
 from autoalign.io.bop import read_json_file, whole_number_keys
+from autoalign.geometry import mesh_cache
 from autoalign.geometry.mesh import ColouredMesh, Mesh, load_mesh, trimesh_module
 from autoalign.geometry.se3 import Symmetries
 from autoalign.rasterizers.pyramid import MeshPyramid
@@ -40,8 +41,28 @@ GREY = (0.5, 0.5, 0.5)
 def load_coloured_mesh(path: str | Path) -> ColouredMesh:
     """A mesh file (mm) with its per-vertex colours (``trimesh.load(path, process=False)`` keeps
     them in their vertex order); face colours are spread to the vertices, and a mesh without
-    colours is grey (``has_colours`` False)."""
+    colours is grey (``has_colours`` False). A file read before comes from
+    :mod:`~autoalign.geometry.mesh_cache`, without trimesh."""
     path = Path(path)
+    try:
+        key = mesh_cache.coloured_key(mesh_cache.file_key(path, None))
+    except OSError as exc:
+        raise AutoalignError(f"{path}: cannot read the mesh ({exc.strerror}); pass a mesh file you can read") from None
+    stored = mesh_cache.read_entry(key, _COLOURED)
+    if stored is not None:
+        return ColouredMesh(stored["vertices"], stored["faces"], stored["colours"], bool(stored["has_colours"]), path)
+    mesh = _read_coloured(path)
+    mesh_cache.write_entry(key, {"vertices": mesh.vertices, "faces": mesh.faces, "colours": mesh.colours,
+                                 "has_colours": np.asarray(mesh.has_colours)})
+    return mesh
+
+
+_COLOURED = ("vertices", "faces", "colours", "has_colours")
+"""The arrays of a coloured mesh's cache entry."""
+
+
+def _read_coloured(path: Path) -> ColouredMesh:
+    """:func:`load_coloured_mesh` of a file not in the cache: read by trimesh."""
     trimesh = trimesh_module()
     try:
         loaded = trimesh.load(str(path), process=False)
