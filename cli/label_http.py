@@ -373,7 +373,7 @@ def export_session(session: Any, progress: Any = None) -> Path:
     check_replaceable(out / "bop", "export.json")  # before anything is written or rendered
     out.mkdir(parents=True, exist_ok=True)
     write_files_atomic({labels_path: json.dumps(labels, indent=1).encode(),
-                        out / "labels.json": json.dumps(session.decisions(), indent=1).encode()})
+                        out / "labels.json": json.dumps(session.state.decisions(), indent=1).encode()})
     cameras = cameras_to_export(session.scene_dir, labels_path, None)
     dataset = export_dataset(session.scene_dir, labels_path, session.models, cameras, progress=progress)
     replace_folder(out / "bop", dataset.files, marker="export.json")

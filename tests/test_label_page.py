@@ -32,6 +32,7 @@ from autoalign.experiments.pages.label_page_driver import (
     open_page,
     wait_drawn,
     wait_job_done,
+    wait_state,
 )
 from autoalign.experiments.scenes.synthetic import shaded_photos
 from autoalign.geometry.se3 import rotation_angle_deg
@@ -105,7 +106,12 @@ def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
         assert "no instance mask under pixel 5,5 of image 0" in page.inner_text("#status")
         assert not (out / "session.json").exists()
 
-        # choose object 1 and click instance 0 in view 0: placed, refined, outlined in every view
+        # choose object 1 and click instance 0 in view 0: placed, refined, outlined in every view; the
+        # orientation search's pose is outlined first, dashed, then the refined one
+        page.evaluate("window.searchedOutlines = 0; new MutationObserver((changes) => { for (const c of changes) "
+                      "for (const n of c.addedNodes) if (n.classList && n.classList.contains('searched')) "
+                      "window.searchedOutlines++; }).observe(document.querySelector('#views'), "
+                      "{childList: true, subtree: true})")
         page.select_option("#object", "1")
         col, row = mask_pixel(mask_of(labelled.scene, 0, 0))
         click_view(page, 0, col, row, W, H)
@@ -114,7 +120,13 @@ def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
         assert state["job"]["error"] is None
         n_outlined = page.evaluate("document.querySelectorAll('.view polyline[data-instance=\"0\"]').length")
         assert n_outlined >= N_VIEWS  # at least one outline per view (the object is in all of them)
-        page.wait_for_function("document.body.dataset.clickToContoursMs !== undefined")
+        page.wait_for_function("document.body.dataset.clickToContoursMs !== undefined && "
+                               "document.body.dataset.clickToFirstOutlinesMs !== undefined")
+        assert page.evaluate("window.searchedOutlines") >= N_VIEWS
+        assert page.evaluate("document.querySelectorAll('.view polyline.searched').length") == 0
+        first, refined_ms = (float(page.evaluate(f"document.body.dataset.{k}"))
+                             for k in ("clickToFirstOutlinesMs", "clickToContoursMs"))
+        assert first < refined_ms
         page.screenshot(path=str(shots / "2-placed.png"))
         placed = session_instance(out, 0)
         assert placed["obj_id"] == 1 and placed["source"] == "click" and placed["verdict"] == "ok"
@@ -127,8 +139,7 @@ def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
         page.hover('.view[data-image-id="0"] img.tint')
         for _ in range(3):
             page.keyboard.press("ArrowRight")
-        page.wait_for_function("fetch('/api/state').then(r => r.json()).then(s => "
-                               f"s.instances.find(i => i.index === 0).pose_revision >= {rev + 3})", polling=200)
+        wait_state(page, f"s.instances.find(i => i.index === 0).pose_revision >= {rev + 3}")
         rev = wait_drawn(page, 0, rev + 2)
         nudged = session_instance(out, 0)
         T0, T1 = np.array(placed["T_wm"]), np.array(nudged["T_wm"])
@@ -208,6 +219,48 @@ def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
         {"images": N_VIEWS, "entries": N_VIEWS}
 
 
+@pytest.mark.slow
+def test_a_click_shows_the_searched_pose_first_and_keeps_only_the_refined_one(labelled, tmp_path):
+    """While a click is refined, the orientation search's pose is the instance's (so the page outlines
+    it at once), marked as being refined, never saved to session.json nor kept for undo; the refined
+    pose replaces it. A click that fails after it was shown leaves the instance as it was."""
+    from autoalign.errors import AutoalignError
+    from autoalign.label.records import BEING_REFINED
+    from autoalign.label.session import LabelSession
+
+    models = ModelSet.read(labelled.models)
+    session = LabelSession(labelled.scene, models, tmp_path / "out")
+    col, row = mask_pixel(mask_of(labelled.scene, 0, 0))
+    seen = []
+
+    def watch(stage: str, done: int, total: int) -> None:  # on the refining thread, mid-refinement
+        inst = session.instances[0]
+        if inst.placed:
+            seen.append((inst.source, inst.reasons, inst.verdict, session.session_path.exists()))
+
+    assert session.place(1, 0, float(col), float(row), watch) == 0
+    assert seen and {s[:3] == ("search", [BEING_REFINED], None) for s in seen} == {True}, seen[:3]
+    assert not any(saved for *_, saved in seen)  # nothing written while only the searched pose was there
+    placed = session_instance(tmp_path / "out", 0)
+    assert placed["source"] == "click" and placed["verdict"] == "ok"
+    mm, deg = pose_error(np.array(placed["T_wm"]), labelled.truth[0], models.mesh(1).centre)
+    assert mm < 1.0 and deg < 1.0
+    with pytest.raises(AutoalignError, match="nothing to undo"):  # the searched pose is no step back
+        session.undo(0)
+
+    class Stop(Exception):
+        pass
+
+    def fail_once_shown(stage: str, done: int, total: int) -> None:
+        if session.instances[1].placed:
+            raise Stop
+    col, row = mask_pixel(mask_of(labelled.scene, 3, 1))
+    with pytest.raises(Stop):
+        session.place(2, 3, float(col), float(row), fail_once_shown)
+    assert not session.instances[1].placed and session.contours(1)[1] == {}
+    assert [i["index"] for i in json.loads(session.session_path.read_text())["instances"] if i["obj_id"]] == [0]
+
+
 def _listening_address(port: int) -> str:
     """The local address a TCP socket listens on at ``port``, from /proc/net/tcp (the kernel's own view)."""
     for line in Path("/proc/net/tcp").read_text().splitlines()[1:]:
@@ -270,6 +323,9 @@ def test_restart_two_tabs_binding_and_paths(labelled, tmp_path):
                 wait_drawn(tab, k)
                 wait_job_done(tab)
             before = {k: np.array(session_instance(out, k)["T_wm"]) for k in (0, 1)}
+            placed_rev = {k: session_instance(out, k)["pose_revision"] for k in (0, 1)}  # after 10 nudges: +10
+            all_nudged = " && ".join(f"s.instances.find(i => i.index === {k}).pose_revision === {placed_rev[k] + 10}"
+                                     for k in (0, 1))
             nudges = "Promise.all([...Array(10)].map(() => fetch('/api/nudge', {method: 'POST', " \
                      "headers: {'X-Autoalign-Token': token}, " \
                      "body: JSON.stringify({instance: %d, image_id: 0, move_mm: [0, 0, 1], turn_deg: [0, 0, 0]})})))"
@@ -284,13 +340,12 @@ def test_restart_two_tabs_binding_and_paths(labelled, tmp_path):
                 after = np.array(session_instance(out, k)["T_wm"])
                 np.testing.assert_allclose(after[:3, 3] - before[k][:3, 3], R_w2c.T @ [0.0, 0.0, 10.0], atol=1e-6)
             for tab in (tab_a, tab_b):  # both tabs see the same state
-                tab.wait_for_function("fetch('/api/state').then(r => r.json()).then(s => "
-                                      "s.instances.every(i => i.pose_revision === 11))", polling=200)
-                wait_drawn(tab, 0, 10)
-                wait_drawn(tab, 1, 10)
+                wait_state(tab, all_nudged)
+                wait_drawn(tab, 0, placed_rev[0] + 9)
+                wait_drawn(tab, 1, placed_rev[1] + 9)
             # a change to one instance leaves the other's row as it was: a click on a button that a
             # redraw replaced under it is lost (tab B's accept was, once, while tab A's arrived)
-            tab_b.wait_for_function("state.instances.every(i => i.pose_revision === 11)", polling=200)  # the page's own
+            tab_b.wait_for_function(all_nudged.replace("s.instances", "state.instances"), polling=200)  # the page's own
             tab_b.evaluate("window.kept = document.querySelector('.instance[data-index=\"1\"] button[data-act=\"accept\"]')")
             tab_a.click('.instance[data-index="0"] button[data-act="accept"]')
             tab_b.wait_for_selector('.instance[data-index="0"][data-decision="accepted"]')
@@ -312,8 +367,8 @@ def test_restart_two_tabs_binding_and_paths(labelled, tmp_path):
                 for tab in (tab_a, page):
                     tab.wait_for_selector('.instance[data-index="0"][data-decision="accepted"]')
                     tab.wait_for_selector('.instance[data-index="1"][data-decision="accepted"]')
-                wait_drawn(page, 0, 10)
-                wait_drawn(page, 1, 10)
+                wait_drawn(page, 0, placed_rev[0] + 9)
+                wait_drawn(page, 1, placed_rev[1] + 9)
                 state = page.evaluate("fetch('/api/state').then(r => r.json())")
                 for inst in saved["instances"]:
                     again = next(i for i in state["instances"] if i["index"] == inst["index"])
@@ -393,9 +448,9 @@ def test_3d_view_draws_the_session_and_its_gizmo_moves_the_object(labelled, tmp_
         np.testing.assert_allclose(Rotation.from_quat(np.roll(frustum.wxyz, -1)).as_matrix(), cam.R_w2c.T, atol=1e-9)
         col, row = mask_pixel(mask_of(labelled.scene, 0, 0))
         session.place(1, 0, col, row)
-        T = session.instances[0].T_wm
+        T, refined = session.instances[0].T_wm, (1, session.instances[0].pose_revision)
         t0 = time.monotonic()
-        while 0 not in viewer._handles and time.monotonic() - t0 < 10:
+        while viewer._shown.get(0) != refined and time.monotonic() - t0 < 10:  # the searched pose came first
             time.sleep(0.05)
         mesh = viewer._handles[0]
         np.testing.assert_allclose(mesh.position, T[:3, 3] / 1000.0, atol=1e-9)

@@ -58,6 +58,24 @@ def test_click_and_no_seed_reach_1mm_1deg(meshes, kind: str) -> None:
 
 
 @pytest.mark.slow
+def test_a_click_previews_the_searchs_first_pose_and_ends_as_without(meshes) -> None:
+    """``preview`` is called once, before any descent, with a pose at the click's position (its
+    centre within a tenth of the diameter of the truth's), and the result is the same to the bit."""
+    from autoalign.engine.seeding import Click
+
+    s = make_study_scene(1, "click", meshes)
+    shown: list[np.ndarray] = []
+    seen = refine(s.scene, s.mesh, Click(*s.click), preview=shown.append)
+    plain = refine(s.scene, s.mesh, Click(*s.click))
+    assert len(shown) == 1
+    centre = lambda T: T[:3, :3] @ s.mesh.centre + T[:3, 3]  # noqa: E731
+    assert np.linalg.norm(centre(shown[0]) - centre(s.T_gt)) < 0.1 * s.mesh.diameter
+    assert np.array_equal(seen.T_wm, plain.T_wm) and seen.iterations == plain.iterations
+    e_mm, e_deg = pose_errors(seen.T_wm, s.T_gt, s.mesh.centre)
+    assert e_mm < TOLERANCES["click"][0] and e_deg < TOLERANCES["click"][1], (e_mm, e_deg)
+
+
+@pytest.mark.slow
 def test_thirty_percent_corrupted_masks_stay_within_2mm_2deg(meshes) -> None:
     s = _study(meshes, "corrupt", 4)
     assert s["success"] >= 0.9, s

@@ -6,9 +6,10 @@
 from __future__ import annotations
 
 import enum
+import functools
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any, TypeVar
+from typing import Any, Callable, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -350,10 +351,16 @@ def final_uncertainty(obj: SilhouetteObjective, ev: Evaluation, T_wm: NDArray[np
     return with_turn_profiles(obj, T_wm, u, ev.weights, last.sigma, groups)
 
 
+PosePreview = Callable[[NDArray[np.float64]], None]
+"""``preview(T_wm)``: the orientation search's first answer (world-from-model, 4x4, mm), before any
+descent, disambiguation or verdict; for showing something at once (the label page's click)."""
+
+
 def _seed(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,
-          progress: Progress | None) -> list[NDArray[np.float64]]:
+          progress: Progress | None, preview: PosePreview | None = None) -> list[NDArray[np.float64]]:
     """Stage 1: the starting poses: the seed itself, or the best-scoring orientations of a rotation
-    grid placed at the click's or the visual hull's centre, each climbed to the best of its small turns."""
+    grid placed at the click's or the visual hull's centre, each climbed to the best of its small
+    turns. The best-scoring one goes to ``preview``."""
     if seed is not None and not isinstance(seed, Click):
         return [np.asarray(seed, dtype=np.float64)]
     mesh, search = pyramid.mesh, pyramid.with_faces(opts.detail.search)
@@ -362,6 +369,8 @@ def _seed(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,
     if progress is not None:
         progress("scoring orientations", 0, 1)
     top = best_poses(search, scene, poses, opts.search.n_starts, anchor=centre)
+    if preview is not None:
+        preview(top[0].copy())
     starts = list(climb_poses(search, scene, top, opts.search.climb_deg, anchor=centre))
     if progress is not None:
         progress("scoring orientations", 1, 1)
@@ -562,7 +571,8 @@ def checked_inputs(scene: Any, mesh: Any, seed: Any, anchor: Any) -> tuple[Seed,
 
 
 def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: RefineOptions | None = None,
-           progress: Progress | None = None, anchor: NDArray[np.float64] | None = None) -> RefineResult:
+           progress: Progress | None = None, anchor: NDArray[np.float64] | None = None,
+           preview: PosePreview | None = None) -> RefineResult:
     """Find the world-from-model pose of ``mesh`` whose silhouettes match the masks of ``scene``.
 
     The stages: seed (:func:`_seed`) -> search (:func:`_search`, when there are several starts)
@@ -583,21 +593,32 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
         progress: called as ``progress(stage, done, total)`` while it works.
         anchor: the pose ``options.seed_radius`` is measured from (default: a seed pose; the photo
             rounds pass the person's seed while refining from their own last pose).
+        preview: called with the best-scoring orientation of the search's grid at the seed's
+            centre when a search starts (a click or no seed), before any descent: once, or twice
+            when depth that sees through the object is set aside and the search run again. The
+            result is unchanged by it.
     """
     seed, anchor = checked_inputs(scene, mesh, seed, anchor)
     opts = options or RefineOptions()
     pyramid = mesh if isinstance(mesh, MeshPyramid) else MeshPyramid(mesh)
+    evidence = _evidence_engine(preview)
     if scene.depths is not None and opts.depth is not None:
-        return refine_minding_see_through(scene, pyramid, seed, opts, progress, anchor, _refine_evidence)
-    return _refine_evidence(scene, pyramid, seed, opts, progress, anchor)
+        return refine_minding_see_through(scene, pyramid, seed, opts, progress, anchor, evidence)
+    return evidence(scene, pyramid, seed, opts, progress, anchor)
+
+
+def _evidence_engine(preview: PosePreview | None) -> Callable[..., RefineResult]:
+    """:func:`_refine_evidence` passing ``preview`` on, for the stages that call it back (photos, see-through)."""
+    return _refine_evidence if preview is None else functools.partial(_refine_evidence, preview=preview)
 
 
 def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,
-                     progress: Progress | None = None, anchor: NDArray[np.float64] | None = None) -> RefineResult:
+                     progress: Progress | None = None, anchor: NDArray[np.float64] | None = None,
+                     preview: PosePreview | None = None) -> RefineResult:
     """:func:`refine` on its evidence as given: with the photos (:mod:`autoalign.engine.photo_evidence`,
     which calls this on its targets), else the masks (and the depth) alone."""
     if scene.photos is not None and opts.region is not None:
-        return refine_with_photos(scene, pyramid, seed, opts, _refine_evidence, progress)
+        return refine_with_photos(scene, pyramid, seed, opts, _evidence_engine(preview), progress)
     scene = scene.without_empty_masks()
     if len(scene) == 0:
         raise AutoalignError("every mask of the scene is empty; there is nothing to align the object with")
@@ -605,13 +626,13 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
     timings: dict[str, float] = {}
     given_pose = seed is not None and not isinstance(seed, Click)
     mesh = pyramid.mesh
-    obj = SilhouetteObjective(pyramid, scene, opts.loss, opts.robust, opts.detail, opts.depth)
     levels = opts.schedule
-    timings["setup"] = time.perf_counter() - t_start
+    starts = _seed(scene, pyramid, seed, opts, progress, preview)  # first: a click's preview needs no objective
+    timings["seed"] = time.perf_counter() - t_start
 
     t0 = time.perf_counter()
-    starts = _seed(scene, pyramid, seed, opts, progress)
-    timings["seed"] = time.perf_counter() - t0
+    obj = SilhouetteObjective(pyramid, scene, opts.loss, opts.robust, opts.detail, opts.depth)
+    timings["setup"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     if len(starts) > 1:

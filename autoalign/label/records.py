@@ -23,6 +23,11 @@ DECISIONS = ("open", "accepted", "rejected")
 """What the person decided about an instance: nothing yet, its label is right, or it is not wanted."""
 WORST_VIEWS = 3
 MOVED_BY_HAND = "moved by hand since the last refinement: refine from here to judge it"
+SEARCHED = "search"
+"""The source of a click's first pose, the orientation search's best, shown while it is refined (not saved)."""
+BEING_REFINED = "the orientation search's best pose, shown while it is refined and judged"
+NEW_PLACEMENT = ("click", SEARCHED)
+"""Sources that place an object anew: its decision starts over."""
 MAX_POSITION_MM = 1e6
 """A pose farther than this (1 km) from the world's origin is refused: nothing a scene shows is there,
 and a pose pushed there (a nudge of 1e308 mm) ends in inf and NaN."""
@@ -72,7 +77,8 @@ class LabelledInstance:
         T_wm: world-from-model pose (4x4, mm), ``None`` until placed.
         decision: one of :data:`DECISIONS`.
         symmetric: the person marked the object symmetric (a turn about its axis is not an error).
-        source: what set the pose last (``click``, ``refine``, ``nudge``, ``3d``, ``together``).
+        source: what set the pose last (``click``, ``refine``, ``nudge``, ``3d``, ``together``, or
+            :data:`SEARCHED` while a click is refined).
         verdict: autoalign's ``ok`` / ``check`` / ``failed`` after a refinement, ``None`` once the
             pose was moved by hand since (``reasons`` says so).
         reasons: why the verdict is what it is.
@@ -178,16 +184,17 @@ def moved(inst: LabelledInstance, obj_id: int, T_wm: NDArray[np.float64], source
           judged: Judgement | None) -> LabelledInstance:
     """``inst`` as object ``obj_id`` at ``T_wm`` (4x4, mm), set by ``source``, fitting its masks by
     ``ious``; with ``judged`` (after a refinement) its verdict and uncertainty, else none (moved by
-    hand). A click starts its decision over."""
+    hand, or :data:`SEARCHED`: not yet refined). A click starts its decision over."""
     u = None if judged is None else judged.uncertainty
+    unjudged = BEING_REFINED if source == SEARCHED else MOVED_BY_HAND
     return replace(
         inst, obj_id=obj_id, T_wm=T_wm, source=source, ious=ious, pose_revision=inst.pose_revision + 1,
         verdict=None if judged is None else judged.verdict.status,
-        reasons=[MOVED_BY_HAND] if judged is None else list(judged.verdict.reasons),
+        reasons=[unjudged] if judged is None else list(judged.verdict.reasons),
         sigma_mm=None if u is None else [float(x) for x in u.sigma_mm],
         sigma_deg=None if u is None else [float(x) for x in u.sigma_deg],
         weakly_observed=[] if u is None else list(u.weak),
-        decision="open" if source == "click" else inst.decision)
+        decision="open" if source in NEW_PLACEMENT else inst.decision)
 
 
 @dataclass

@@ -52,6 +52,7 @@ from autoalign.label.page_geometry import (
 )
 from autoalign.label.records import (
     DECISIONS,
+    SEARCHED,
     JobState,
     Judgement,
     LabelledInstance,
@@ -94,7 +95,7 @@ class LabelSession(SessionScene):
         instances = {k: LabelledInstance(k) for k in self.indices}
         saved = self.file.read(self.object_ids)
         for inst in saved.instances if saved else []:
-            if inst.index in instances and inst.decision in DECISIONS:
+            if inst.index in instances and inst.decision in DECISIONS and inst.source != SEARCHED:  # never refined
                 instances[inst.index] = inst
         self.state = SessionState(instances, saved.revision if saved else 0, self.file.write)
         self.jobs = JobRunner(self.state)
@@ -176,18 +177,19 @@ class LabelSession(SessionScene):
                     judged: Judgement | None = None, click: tuple[int, float, float] | None = None) -> None:
         """Set the pose (and its judgement; placed from a ``click``, image id and OpenCV u, v: far from it, flagged).
         Raises, changing nothing, if the pose is not a finite rigid transform near the scene
-        (:func:`~autoalign.label.records.pose_problem`)."""
+        (:func:`~autoalign.label.records.pose_problem`). A click's searched pose (:data:`SEARCHED`)
+        is shown but neither saved nor kept for undo: the refined pose replaces it."""
         T_wm = checked_pose(T_wm, f"instance {index}: refused a pose ({source})")
         silhouettes = self._renderer.silhouettes(obj_id, T_wm)  # ray-cast once for the fit and the outlines
         judged = judged if click is None or judged is None else far_from_click(judged, silhouettes[click[0]], *click)
         ious, polys = fit(self.scene_of(index), silhouettes), outlines(silhouettes)
         with self.state.lock:
             inst = self.instances[index]
-            if inst.placed:
+            if inst.placed and inst.source != SEARCHED:
                 self._undo.push(inst)
             self.instances[index] = moved(inst, obj_id, T_wm, source, ious, judged)
             self._contours[index] = (inst.pose_revision + 1, polys)
-            self.state.changed()
+            self.state.changed(save=source != SEARCHED)
 
     def _judged(self, index: int, obj_id: int, result: RefineResult) -> Judgement:
         """The verdict on a refinement of instance ``index`` (as ``refine`` gives it) and its uncertainty."""
@@ -217,10 +219,18 @@ class LabelSession(SessionScene):
         index, *near = self.click_target(image_id, u, v)  # off a mask but next to one: seeded from its mask
         iu, iv = uv_from_opencv(np.array(near, dtype=np.float64))
         with self._render:
-            result = refine(self.scene_of(index), self.models.pyramid(obj_id), Click(image_id, float(iu), float(iv)),
-                            self.options, progress=progress)
-            self._store_pose(index, obj_id, result.T_wm, "click", self._judged(index, obj_id, result),
-                             (image_id, float(u), float(v)))  # the person's own click, for the distance
+            with self.state.lock:
+                before = self._known(index)
+            try:
+                result = refine(self.scene_of(index), self.models.pyramid(obj_id),
+                                Click(image_id, float(iu), float(iv)), self.options, progress=progress,
+                                preview=lambda T: self._store_pose(index, obj_id, T, SEARCHED))
+                self._store_pose(index, obj_id, result.T_wm, "click", self._judged(index, obj_id, result),
+                                 (image_id, float(u), float(v)))  # the person's own click, for the distance
+            except BaseException:
+                if self.state.put_back(before):  # the searched pose shown meanwhile was not a label
+                    self._contours.pop(index, None)
+                raise
         return index
 
     def refine_from_here(self, index: int, progress: Progress | None = None) -> None:
@@ -311,10 +321,3 @@ class LabelSession(SessionScene):
         if not chosen:
             raise AutoalignError("no instance is accepted yet; accept the labels to export first")
         return scene_gt_of(chosen, self.views, self.image_ids)
-
-    def decisions(self) -> dict[str, Any]:
-        """Every placed instance's record and the accepted ones' numbers (``labels.json`` of the export)."""
-        with self.state.lock:
-            return {"instances": [i.record() for i in self.instances.values() if i.placed],
-                    "accepted": [i.index for i in self.instances.values() if i.decision == "accepted" and i.placed],
-                    "labels": "scene_gt.json lists the accepted instances, in this order"}

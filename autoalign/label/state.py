@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
+from dataclasses import replace
+from typing import Any
 
 from autoalign.label.records import LabelledInstance
 
@@ -41,3 +43,21 @@ class SessionState:
         with self._changed:
             self._changed.wait_for(lambda: self.revision != since, timeout=timeout_s)
             return self.revision
+
+    def put_back(self, before: LabelledInstance) -> bool:
+        """Its instance as ``before`` again (not saved: as ``session.json`` still has it) if its pose
+        changed since; whether it did."""
+        with self.lock:
+            now = self.instances[before.index]
+            if now.pose_revision == before.pose_revision:
+                return False
+            self.instances[before.index] = replace(before, pose_revision=now.pose_revision + 1)
+            self.changed(save=False)
+            return True
+
+    def decisions(self) -> dict[str, Any]:
+        """Every placed instance's record and the accepted ones' numbers (``labels.json`` of the export)."""
+        with self.lock:
+            return {"instances": [i.record() for i in self.instances.values() if i.placed],
+                    "accepted": [i.index for i in self.instances.values() if i.decision == "accepted" and i.placed],
+                    "labels": "scene_gt.json lists the accepted instances, in this order"}

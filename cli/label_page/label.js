@@ -11,7 +11,7 @@ let selected = null;          // instance number
 let activeView = null;        // image id whose camera axes the keys use
 const drawn = {};             // instance -> pose_revision drawn
 const rowHtml = {};           // instance -> the HTML of its row in the list, as last written
-let clickedAt = null;         // {instance, t0} of the last click, to time click -> outlines on screen
+let clickedAt = null;         // {job, t0, first} of the last click, to time click -> first and refined outlines on screen
 let shownJob = 0;
 let pressedAt = null;         // where the last click began: pointer events have sub-pixel positions, clicks not
 // The server's token, sent with every change: a page on another site cannot read it, so its POSTs are
@@ -83,7 +83,7 @@ async function clickView(e, v) {
   const t0 = performance.now();
   status(`placing obj ${obj}…`);
   const reply = await post("/api/place", {obj_id: obj, image_id: v.image_id, u: u, v: y});
-  if (reply) clickedAt = {job: reply.job, t0: t0};
+  if (reply) clickedAt = {job: reply.job, t0: t0, first: false};
 }
 
 function instanceRow(inst) {
@@ -176,6 +176,7 @@ async function drawContours() {
         const el = document.createElementNS("http://www.w3.org/2000/svg", "polyline");
         el.setAttribute("points", poly.concat([poly[0]]).map((p) => p.join(",")).join(" "));
         el.setAttribute("stroke", colour);
+        el.classList.toggle("searched", inst.source === "search");   // dashed until refined
         el.dataset.instance = inst.index;
         svg.appendChild(el);
       }
@@ -206,6 +207,17 @@ async function apply(s) {
   showJob();
   await drawContours();
   const j = s.job;
+  const clicked = clickedAt && clickedAt.job === j.number && j.instance != null ?
+    s.instances.find((i) => i.index === j.instance) : null;
+  if (clicked && !clickedAt.first && drawn[j.instance] === clicked.pose_revision &&
+      (clicked.source === "search" || (!j.running && !j.error))) {
+    // the first outlines of this click: the orientation search's pose (dashed), or the refined one
+    const t0 = clickedAt.t0;
+    clickedAt.first = true;
+    requestAnimationFrame(() => requestAnimationFrame(() => {
+      document.body.dataset.clickToFirstOutlinesMs = (performance.now() - t0).toFixed(0);
+    }));
+  }
   if (clickedAt && clickedAt.job === j.number && !j.running && !j.error && j.instance != null &&
       drawn[j.instance] !== undefined) {
     const t0 = clickedAt.t0;

@@ -42,7 +42,8 @@ def launch_browser(playwright: Any) -> Any:
 class LabelServerProcess:
     """``autoalign label SCENE --models MODELS --out OUT --no-browser`` in a child process.
 
-    ``url`` is the page's address, read from the line the command prints when it is ready.
+    ``url`` is the page's address, read from the line the command prints when it is ready. With
+    ``cwd`` (a checkout of other code) the server is that checkout's, with its page.
     """
 
     scene: Path
@@ -52,11 +53,12 @@ class LabelServerProcess:
     proc: subprocess.Popen | None = None
     url: str = ""
     output: str = ""
+    cwd: Path | None = None
 
     def start(self) -> "LabelServerProcess":
         cmd = autoalign_command("label", str(self.scene), "--models", str(self.models), "--out", str(self.out),
                                 "--no-browser", *self.extra)
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=self.cwd)
         t0 = time.monotonic()
         lines = []
         assert self.proc.stdout is not None
@@ -136,23 +138,35 @@ def wait_drawn(page: Any, instance: int, after_revision: int = 0, timeout_s: flo
     return int(m.group(2))
 
 
+def wait_state(page: Any, predicate: str, timeout_s: float = 60.0) -> dict:
+    """The session's state (``GET /api/state``) once the JavaScript expression ``predicate`` of it
+    (``s``) is true. Polled from here: ``page.wait_for_function`` takes a promise for a true value."""
+    end = time.monotonic() + timeout_s
+    while True:
+        met, state = page.evaluate(f"fetch('/api/state').then(r => r.json()).then(s => [!!({predicate}), s])")
+        if met:
+            return state
+        if time.monotonic() > end:
+            raise TimeoutError(f"the label server's state did not come to {predicate} in {timeout_s:g} s: {state['job']}")
+        time.sleep(0.2)
+
+
 def wait_job_done(page: Any, number: int | None = None, timeout_s: float = 120.0) -> dict:
     """The session's state once its job (number ``number``, default the latest) has finished."""
-    page.wait_for_function(
-        "fetch('/api/state').then(r => r.json()).then(s => !s.job.running"
-        + (f" && s.job.number >= {number}" if number is not None else "") + ")", timeout=timeout_s * 1000,
-        polling=250)
-    return page.evaluate("fetch('/api/state').then(r => r.json())")
+    return wait_state(page, "!s.job.running" + (f" && s.job.number >= {number}" if number is not None else ""),
+                      timeout_s)
 
 
 @dataclass
 class Placement:
-    """One click of :func:`place_in_largest_view`: the view clicked, the time from the click to the
-    outlines on screen (s, measured in the page), and the session's state once the job ended."""
+    """One click of :func:`place_in_largest_view`: the view clicked, the times from the click to the
+    first outlines on screen (the orientation search's pose, dashed) and to the refined pose's
+    outlines (s, measured in the page), and the session's state once the job ended."""
 
     image_id: int
     click_to_outlines_s: float
     state: dict
+    click_to_first_outlines_s: float | None  # None: the page draws no outline before the refined pose
 
     def instance(self, index: int) -> dict:
         return next(i for i in self.state["instances"] if i["index"] == index)
@@ -171,7 +185,7 @@ def place_in_largest_view(page: Any, scene: Path, index: int, obj_id: int) -> Pl
     w, h = sizes[im]  # the masks may have been downscaled on reading: click in the views' resolution
     mask = cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
     page.select_option("#object", str(obj_id))
-    page.evaluate("delete document.body.dataset.clickToContoursMs")
+    page.evaluate("delete document.body.dataset.clickToContoursMs; delete document.body.dataset.clickToFirstOutlinesMs")
     col, row = mask_pixel(mask)
     click_view(page, im, col, row, w, h)
     try:
@@ -180,4 +194,5 @@ def place_in_largest_view(page: Any, scene: Path, index: int, obj_id: int) -> Pl
         raise RuntimeError(f"instance {index}: no outlines; the page says {page.inner_text('#status')!r}") from None
     page.wait_for_function("document.body.dataset.clickToContoursMs !== undefined")
     ms = float(page.evaluate("document.body.dataset.clickToContoursMs"))
-    return Placement(im, ms / 1000.0, wait_job_done(page))
+    first_ms = page.evaluate("document.body.dataset.clickToFirstOutlinesMs")  # set first, by pages that draw it
+    return Placement(im, ms / 1000.0, wait_job_done(page), None if first_ms is None else float(first_ms) / 1000.0)
