@@ -115,7 +115,7 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
     if seed is None or isinstance(seed, Click):
         if not has_mask:
             raise AutoalignError("without masks the photos refine a coarse pose: give --init (a coarse scene_gt.json)")
-        T_seed = refine(replace(scene, photos=None), pyramid, seed, masks_only, progress).T_wm
+        T_seed = refine(replace(scene, photos=None), pyramid, seed, masks_only, progress, pose_only=True).T_wm
     else:
         T_seed = np.asarray(seed, dtype=np.float64)
     rast = pyramid.fine(options.detail)

@@ -320,15 +320,16 @@ def _polish(obj: SilhouetteObjective, finalists: list[Hypothesis], levels: tuple
 
 
 def _final_state(obj: SilhouetteObjective, best: Hypothesis, weights: NDArray[np.float64],
-                 levels: tuple[Level, ...], rule: StepRule) -> tuple[Evaluation, Uncertainty]:
+                 levels: tuple[Level, ...], rule: StepRule,
+                 with_uncertainty: bool = True) -> tuple[Evaluation, Uncertainty | None]:
     """The full-resolution evaluation at the best pose (the optimiser's last one when it has it)
-    and the pose's uncertainty from it."""
+    and the pose's uncertainty from it (``None`` when not ``with_uncertainty``)."""
     last_level, last_trace = best.path[-1] if best.path else (None, None)
     if last_trace is not None and last_trace.final is not None and last_level.scale == 1.0 and last_level.max_views is None:
         ev = last_trace.final
     else:
         ev = obj.evaluate(best.T_final, Level(1.0, levels[-1].sigma, 0), weights=weights)
-    return ev, final_uncertainty(obj, ev, best.T_final, levels[-1], rule)
+    return ev, final_uncertainty(obj, ev, best.T_final, levels[-1], rule) if with_uncertainty else None
 
 
 def final_uncertainty(obj: SilhouetteObjective, ev: Evaluation, T_wm: NDArray[np.float64],
@@ -451,8 +452,8 @@ def _with_orbit(obj: SilhouetteObjective, scene: Scene, final: list[Finalist], s
 
 
 def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: list[Finalist],
-                  others: list[Hypothesis], given_pose: bool, opts: RefineOptions,
-                  progress: Progress | None) -> tuple[list[Finalist], Standing, Evaluation, Uncertainty, float | None]:
+                  others: list[Hypothesis], given_pose: bool, opts: RefineOptions, progress: Progress | None,
+                  pose_only: bool = False) -> tuple[list[Finalist], Standing, Evaluation, Uncertainty | None, float | None]:
     """Stage 4: poses the polish cannot tell apart from the best by descent.
 
     * **Orbits.** When the runner-up is competitive and a 1/n turn away, the rest of that turn's
@@ -468,7 +469,7 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
       turn fits is returned (``turn_gap``; ``None`` when none were tried).
 
     Returns the finalists, their standing, the full-resolution evaluation and the uncertainty of
-    the best, and the turn gap.
+    the best (``None`` for ``pose_only`` without a given pose: then nothing reads it), and the turn gap.
     """
     levels = opts.schedule
     final, standing = _with_orbit(obj, scene, final, _rank(final, others, mesh.centre, opts), mesh.centre, others,
@@ -482,9 +483,10 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
         if len(final) > before:  # the near turns' minima may be a 1/n turn apart (a keyed gear's teeth)
             final, standing = _with_orbit(obj, scene, final, standing, mesh.centre, others, opts, progress)
     best = final[0]
-    ev, uncertainty = _final_state(obj, best.hypothesis, best.weights, levels, opts.optimizer)
+    ev, uncertainty = _final_state(obj, best.hypothesis, best.weights, levels, opts.optimizer,
+                                   with_uncertainty=given_pose or not pose_only)
     turn_gap = None
-    if given_pose and opts.disambiguation.weak_turns and uncertainty.weak_turn_axes:
+    if given_pose and opts.disambiguation.weak_turns and uncertainty is not None and uncertainty.weak_turn_axes:
         final, turn_gap = _with_best_turn(obj, scene, final, best.hypothesis, uncertainty.weak_turn_axes,
                                           opts.disambiguation.weak_turns, opts.disambiguation.margin, Stage.WEAK_TURN,
                                           opts, progress)
@@ -614,9 +616,11 @@ def _evidence_engine(preview: PosePreview | None) -> Callable[..., RefineResult]
 
 def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,
                      progress: Progress | None = None, anchor: NDArray[np.float64] | None = None,
-                     preview: PosePreview | None = None) -> RefineResult:
+                     preview: PosePreview | None = None, pose_only: bool = False) -> RefineResult:
     """:func:`refine` on its evidence as given: with the photos (:mod:`autoalign.engine.photo_evidence`,
-    which calls this on its targets), else the masks (and the depth) alone."""
+    which calls this on its targets), else the masks (and the depth) alone. ``pose_only``: the
+    caller reads only ``T_wm`` (the photos' start from the masks), so without a given pose the
+    uncertainty, which would change nothing of it, is not computed."""
     if scene.photos is not None and opts.region is not None:
         return refine_with_photos(scene, pyramid, seed, opts, _evidence_engine(preview), progress)
     scene = scene.without_empty_masks()
@@ -645,8 +649,8 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
 
     t0 = time.perf_counter()
     final, dropped = _polish(obj, finalists, rest, opts, progress)
-    final, standing, final_ev, uncertainty, turn_gap = _disambiguate(obj, scene, mesh, final,
-                                                                     others + dropped, given_pose, opts, progress)
+    final, standing, final_ev, uncertainty, turn_gap = _disambiguate(obj, scene, mesh, final, others + dropped,
+                                                                     given_pose, opts, progress, pose_only)
     timings["refine"] = time.perf_counter() - t0
     hold = None
     if given_pose or anchor is not None:
