@@ -222,8 +222,9 @@ def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
 @pytest.mark.slow
 def test_a_click_shows_the_searched_pose_first_and_keeps_only_the_refined_one(labelled, tmp_path):
     """While a click is refined, the orientation search's pose is the instance's (so the page outlines
-    it at once), marked as being refined, never saved to session.json nor kept for undo; the refined
-    pose replaces it. A click that fails after it was shown leaves the instance as it was."""
+    it at once), marked as being refined, never saved to session.json (not even by another change
+    saved meanwhile) nor kept for undo; the refined pose replaces it. A click that fails after it
+    was shown leaves the instance as it was."""
     from autoalign.errors import AutoalignError
     from autoalign.label.records import BEING_REFINED
     from autoalign.label.session import LabelSession
@@ -236,11 +237,13 @@ def test_a_click_shows_the_searched_pose_first_and_keeps_only_the_refined_one(la
     def watch(stage: str, done: int, total: int) -> None:  # on the refining thread, mid-refinement
         inst = session.instances[0]
         if inst.placed:
-            seen.append((inst.source, inst.reasons, inst.verdict, session.session_path.exists()))
+            session.mark_symmetric(1, False)  # a change of another instance, saved (as from another tab)
+            saved = json.loads(session.session_path.read_text())["instances"]
+            seen.append((inst.source, inst.reasons, inst.verdict, [i["obj_id"] for i in saved]))
 
     assert session.place(1, 0, float(col), float(row), watch) == 0
     assert seen and {s[:3] == ("search", [BEING_REFINED], None) for s in seen} == {True}, seen[:3]
-    assert not any(saved for *_, saved in seen)  # nothing written while only the searched pose was there
+    assert {tuple(objs) for *_, objs in seen} == {(None, None)}  # saved meanwhile: instance 0 as it was
     placed = session_instance(tmp_path / "out", 0)
     assert placed["source"] == "click" and placed["verdict"] == "ok"
     mm, deg = pose_error(np.array(placed["T_wm"]), labelled.truth[0], models.mesh(1).centre)

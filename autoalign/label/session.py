@@ -178,7 +178,7 @@ class LabelSession(SessionScene):
         """Set the pose (and its judgement; placed from a ``click``, image id and OpenCV u, v: far from it, flagged).
         Raises, changing nothing, if the pose is not a finite rigid transform near the scene
         (:func:`~autoalign.label.records.pose_problem`). A click's searched pose (:data:`SEARCHED`)
-        is shown but neither saved nor kept for undo: the refined pose replaces it."""
+        is shown but neither saved (:meth:`SessionState.put`) nor kept for undo: the refined pose replaces it."""
         T_wm = checked_pose(T_wm, f"instance {index}: refused a pose ({source})")
         silhouettes = self._renderer.silhouettes(obj_id, T_wm)  # ray-cast once for the fit and the outlines
         judged = judged if click is None or judged is None else far_from_click(judged, silhouettes[click[0]], *click)
@@ -187,9 +187,8 @@ class LabelSession(SessionScene):
             inst = self.instances[index]
             if inst.placed and inst.source != SEARCHED:
                 self._undo.push(inst)
-            self.instances[index] = moved(inst, obj_id, T_wm, source, ious, judged)
             self._contours[index] = (inst.pose_revision + 1, polys)
-            self.state.changed(save=source != SEARCHED)
+            self.state.put(moved(inst, obj_id, T_wm, source, ious, judged), shown_only=source == SEARCHED)
 
     def _judged(self, index: int, obj_id: int, result: RefineResult) -> Judgement:
         """The verdict on a refinement of instance ``index`` (as ``refine`` gives it) and its uncertainty."""
@@ -219,8 +218,6 @@ class LabelSession(SessionScene):
         index, *near = self.click_target(image_id, u, v)  # off a mask but next to one: seeded from its mask
         iu, iv = uv_from_opencv(np.array(near, dtype=np.float64))
         with self._render:
-            with self.state.lock:
-                before = self._known(index)
             try:
                 result = refine(self.scene_of(index), self.models.pyramid(obj_id),
                                 Click(image_id, float(iu), float(iv)), self.options, progress=progress,
@@ -228,7 +225,7 @@ class LabelSession(SessionScene):
                 self._store_pose(index, obj_id, result.T_wm, "click", self._judged(index, obj_id, result),
                                  (image_id, float(u), float(v)))  # the person's own click, for the distance
             except BaseException:
-                if self.state.put_back(before):  # the searched pose shown meanwhile was not a label
+                if self.state.put_back(index):  # the searched pose shown meanwhile was not a label
                     self._contours.pop(index, None)
                 raise
         return index

@@ -17,7 +17,10 @@ Save = Callable[[int, list[LabelledInstance]], None]
 
 class SessionState:
     """Instances by mask number, the focus and the revision; change them with :attr:`lock` held
-    (short: no rendering under it), then call :meth:`changed`."""
+    (short: no rendering under it), then call :meth:`changed`.
+
+    An instance can be shown at a pose that is not a label yet (:meth:`put` ``shown_only``: a click's
+    first pose while it is refined): the pages see it, ``session.json`` keeps it as it was."""
 
     def __init__(self, instances: dict[int, LabelledInstance], revision: int, save: Save) -> None:
         self.instances = instances
@@ -26,14 +29,26 @@ class SessionState:
         self.lock = threading.RLock()
         self._changed = threading.Condition(self.lock)
         self._save = save
+        self._kept: dict[int, LabelledInstance] = {}  # instance -> as saved, while it is shown elsewhere
 
     def changed(self, save: bool = True) -> None:
         """Count a change, save it (lock held) and wake everyone waiting in :meth:`wait`."""
         with self.lock:
             self.revision += 1
             if save:
-                self._save(self.revision, list(self.instances.values()))
+                self._save(self.revision, [self._kept.get(i.index, i) for i in self.instances.values()])
             self._changed.notify_all()
+
+    def put(self, inst: LabelledInstance, shown_only: bool = False) -> None:
+        """Set ``inst`` and count the change: saved, or with ``shown_only`` only shown (``session.json``
+        keeps the instance as it was before, until :meth:`put_back` or the next change saved)."""
+        with self.lock:
+            if shown_only:
+                self._kept.setdefault(inst.index, self.instances[inst.index])
+            else:
+                self._kept.pop(inst.index, None)
+            self.instances[inst.index] = inst
+            self.changed(save=not shown_only)
 
     def wait(self, since: int, timeout_s: float) -> int:
         """Block until the revision differs from ``since`` or ``timeout_s`` passed; the revision.
@@ -44,14 +59,14 @@ class SessionState:
             self._changed.wait_for(lambda: self.revision != since, timeout=timeout_s)
             return self.revision
 
-    def put_back(self, before: LabelledInstance) -> bool:
-        """Its instance as ``before`` again (not saved: as ``session.json`` still has it) if its pose
-        changed since; whether it did."""
+    def put_back(self, index: int) -> bool:
+        """Instance ``index`` as saved again if it is shown elsewhere (:meth:`put` ``shown_only``);
+        whether it was."""
         with self.lock:
-            now = self.instances[before.index]
-            if now.pose_revision == before.pose_revision:
+            kept = self._kept.pop(index, None)
+            if kept is None:
                 return False
-            self.instances[before.index] = replace(before, pose_revision=now.pose_revision + 1)
+            self.instances[index] = replace(kept, pose_revision=self.instances[index].pose_revision + 1)
             self.changed(save=False)
             return True
 
