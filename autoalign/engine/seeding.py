@@ -102,6 +102,9 @@ def hull_centre(scene: Scene, diameter: float, grid: int = 40, min_fraction: flo
     """
     origins, dirs = [], []
     for cam, m in zip(scene.cameras, scene.masks):
+        if start is not None:  # only the views with a mask count: no centroid rays are needed
+            origins += [cam.centre] if np.any(m > 0.5) else []
+            continue
         ys, xs = np.nonzero(m > 0.5)
         if len(xs) == 0:
             continue
