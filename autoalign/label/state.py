@@ -40,8 +40,8 @@ class SessionState:
             self._changed.notify_all()
 
     def put(self, inst: LabelledInstance, shown_only: bool = False) -> None:
-        """Set ``inst`` and count the change: saved, or with ``shown_only`` only shown (``session.json``
-        keeps the instance as it was before, until :meth:`put_back` or the next change saved)."""
+        """Set ``inst`` and count the change: saved, or with ``shown_only`` only shown (every save
+        writes the instance as it was before, until a ``put`` that is not ``shown_only`` or :meth:`put_back`)."""
         with self.lock:
             if shown_only:
                 self._kept.setdefault(inst.index, self.instances[inst.index])
