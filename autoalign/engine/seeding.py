@@ -100,20 +100,19 @@ def hull_centre(scene: Scene, diameter: float, grid: int = 40, min_fraction: flo
     dilated) mask in at least ``min_fraction`` of the views with a non-empty mask, so a few wrong
     masks do not empty the hull.
     """
-    origins, dirs = [], []
-    for cam, m in zip(scene.cameras, scene.masks):
-        if start is not None:  # only the views with a mask count: no centroid rays are needed
-            origins += [cam.centre] if np.any(m > 0.5) else []
-            continue
-        ys, xs = np.nonzero(m > 0.5)
-        if len(xs) == 0:
-            continue
-        origins.append(cam.centre)
-        dirs.append(cam.pixel_rays(xs.mean(), ys.mean())[0])
-    if not origins:
+    n_views = sum(bool(np.any(m > 0.5)) for m in scene.masks)
+    if n_views == 0:
         raise AutoalignError("the masks are empty in every view; check the segmentation or --instance")
-    centre = closest_point_to_rays(np.array(origins), np.array(dirs)) if start is None else np.asarray(start, float)
-    n_views = len(origins)
+    if start is None:
+        origins, dirs = [], []
+        for cam, m in zip(scene.cameras, scene.masks):
+            ys, xs = np.nonzero(m > 0.5)
+            if len(xs):
+                origins.append(cam.centre)
+                dirs.append(cam.pixel_rays(xs.mean(), ys.mean())[0])
+        centre = closest_point_to_rays(np.array(origins), np.array(dirs))
+    else:
+        centre = np.asarray(start, float)
     for half in (1.5 * diameter, 0.75 * diameter):
         ax = np.linspace(-half, half, grid)
         X = centre + np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)

@@ -95,7 +95,7 @@ class LabelSession(SessionScene):
         instances = {k: LabelledInstance(k) for k in self.indices}
         saved = self.file.read(self.object_ids)
         for inst in saved.instances if saved else []:
-            if inst.index in instances and inst.decision in DECISIONS and inst.source != SEARCHED:  # never refined
+            if inst.index in instances and inst.decision in DECISIONS:
                 instances[inst.index] = inst
         self.state = SessionState(instances, saved.revision if saved else 0, self.file.write)
         self.jobs = JobRunner(self.state)
