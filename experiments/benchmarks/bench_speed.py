@@ -8,8 +8,11 @@ unseeded; ``bench_scene``'s scenes of 1, 4 and 8 objects x 40 views from 10 mm /
 (:func:`~autoalign.experiments.benchmarks.bench_scene.make_bench_scene`), with the uncertainty.
 Each command runs once per checkout before the timed repeats (its first-run wall is reported too):
 drjit's kernel cache and the mesh cache (:mod:`autoalign.geometry.mesh_cache`, a new folder for
-this run) are then warm, as from a user's second command on. The label page's click is timed by
-``bench_label_page``.
+this run) are then warm, as from a user's second command on. So is the code's bytecode: pip compiles
+an installed package's modules, but a checkout run with ``PYTHONDONTWRITEBYTECODE`` set (as on the
+development machines) would compile about 75 of them again in every command, 0.3-0.4 s each time;
+the children write theirs under a prefix in the run's folder instead. The label page's click is
+timed by ``bench_label_page``.
 
 ``python -m autoalign.experiments.benchmarks.bench_speed --before /tmp/before_repo [--after .] [--repeats 3]``
 (``--before``: e.g. ``git archive REV | tar -x -C /tmp/before_repo``). Results: ``experiments/results/bench_speed.md``.
@@ -91,7 +94,8 @@ def run_once(checkout: Path, case: Case, env: dict[str, str]) -> tuple[float, fl
 
 def measure(before: Path, after: Path, work: Path, repeats: int) -> list[Case]:
     """Every case: once per checkout untimed, then ``repeats`` times each, the checkouts alternating."""
-    env = {**os.environ, "AUTOALIGN_CACHE_DIR": str(work / "mesh_cache")}
+    env = {**{k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"},
+           "AUTOALIGN_CACHE_DIR": str(work / "mesh_cache"), "PYTHONPYCACHEPREFIX": str(work / "bytecode")}
     checkouts = {"before": before, "after": after}
     todo = cases(work)
     for case in todo:
