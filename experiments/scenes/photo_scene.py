@@ -20,6 +20,13 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from autoalign.experiments.scenes.path_traced import (
+    SEE_THROUGH,
+    SPECULAR,
+    PathTracing,
+    facing_backdrop,
+    path_traced_photos,
+)
 from autoalign.experiments.scenes.stream import DEPTH_SCALE, SolidTexture, table_mesh
 from autoalign.experiments.scenes.synthetic import (
     pixel_rays,
@@ -62,14 +69,21 @@ class TintedTexture:
         return np.clip(self.base * (1.0 - self.contrast) + self.contrast * t, 0.0, 1.0)
 
 
-def place_on_table(meshes: Sequence[Mesh], rng: np.random.Generator, radius_mm: float | None = None) -> list[NDArray[np.float64]]:
+def place_on_table(meshes: Sequence[Mesh], rng: np.random.Generator, radius_mm: float | None = None,
+                   upright: Sequence[bool] = ()) -> list[NDArray[np.float64]]:
     """World-from-model poses: each mesh turned at random, resting on its lowest point, on a ring
-    (radius 90 mm for up to 4 objects, growing with their number beyond: neighbours ~140 mm apart)."""
+    (radius 90 mm for up to 4 objects, growing with their number beyond: neighbours ~140 mm apart).
+    A mesh whose ``upright`` entry is true stands on its model's -z side (glassware), turned about
+    the vertical only."""
     radius_mm = radius_mm if radius_mm is not None else 90.0 * max(1.0, len(meshes) / 4.0)
     poses = []
     for j, m in enumerate(meshes):
         a = 2 * np.pi * j / len(meshes) + rng.uniform(-0.2, 0.2)
-        R = random_rotation(rng)
+        if j < len(upright) and upright[j]:
+            c, s = np.cos(t := rng.uniform(0, 2 * np.pi)), np.sin(t)
+            R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        else:
+            R = random_rotation(rng)
         low = float((m.vertices @ R.T)[:, 2].min())
         r = 0.0 if len(meshes) == 1 else radius_mm
         poses.append(make_pose(R, np.array([r * np.cos(a), r * np.sin(a), -low])))
@@ -194,27 +208,43 @@ def write_photo_scene(folder: str | Path, meshes: Sequence[Mesh], n_views: int, 
                       width: int = 640, height: int = 480, depth: bool = False,
                       dist_range: tuple[float, float] = (350.0, 600.0),
                       cameras: Sequence[Camera] | None = None, see_through: Sequence[int] = (),
-                      clear: bool = False) -> PhotoScene:
+                      clear: bool = False, materials: Sequence[str] = (), tracing: PathTracing | None = None,
+                      upright: Sequence[bool] = ()) -> PhotoScene:
     """A BOP scene folder (``scene_camera.json``, ``scene_gt.json``, ``mask_visib/``, ``rgb/``,
     optionally ``depth/`` with ``depth_scale``, measured as :func:`sensor_depth`) of ``meshes``
     (obj_id = position + 1) on a table, seen by ``cameras``, or by ``n_views`` cameras on a ring
     at 25-60 degrees elevation. The depth passes through the meshes at positions ``see_through``
-    (glass: :func:`render_photos`, drawn ``clear`` or not), with blobs of holes on them (:func:`sensor_depth`)."""
+    (glass: :func:`render_photos`, drawn ``clear`` or not), with blobs of holes on them (:func:`sensor_depth`).
+
+    With ``materials`` (one of :data:`~.path_traced.MATERIALS` per mesh) the depth passes through
+    the glass, has blobs of holes on glass and metal, and with ``tracing`` the photos are
+    path-traced (:func:`~.path_traced.path_traced_photos`; with a backdrop, the ring's cameras in
+    front of it, ``n_views`` of them). ``upright``: which meshes stand (:func:`place_on_table`)."""
     import json
 
     folder = Path(folder)
     rng = np.random.default_rng(seed)
-    poses = place_on_table(meshes, rng)
-    cams = list(cameras) if cameras is not None else ring_cameras(n_views, rng, (25.0, 60.0), dist_range, None, width,
-                                                                  height, (0.0, 0.0, 30.0), jitter_mm=30.0)
+    poses = place_on_table(meshes, rng, upright=upright)
+    if cameras is not None:
+        cams = list(cameras)
+    else:
+        backdrop = tracing.backdrop_y_mm if tracing is not None else None
+        cams = ring_cameras(n_views if backdrop is None else 3 * n_views, rng, (25.0, 60.0), dist_range, None, width,
+                            height, (0.0, 0.0, 30.0), jitter_mm=30.0)
+        cams = cams if backdrop is None else facing_backdrop(cams, backdrop)[:n_views]
+    if materials:
+        see_through = [j for j, m in enumerate(materials) if m in SEE_THROUGH]
     masks = write_multi_scene(folder, meshes, list(range(1, len(meshes) + 1)), poses, cams)
     photos, depths = render_photos(meshes, poses, cams, rng, see_through=see_through, clear=clear)
+    if tracing is not None:
+        photos = path_traced_photos(meshes, poses, materials or ["opaque"] * len(meshes), cams, rng, tracing)
     (folder / "rgb").mkdir(exist_ok=True)
     for i, img in enumerate(photos):
         cv2.imwrite(str(folder / "rgb" / f"{i:06d}.png"), img)
     if depth:
         (folder / "depth").mkdir(exist_ok=True)
-        glass = [np.any([masks[i][j] for j in see_through], axis=0) if see_through else None for i in range(len(cams))]
+        holey = [j for j, m in enumerate(materials) if m in SPECULAR] if materials else list(see_through)
+        glass = [np.any([masks[i][j] for j in holey], axis=0) if holey else None for i in range(len(cams))]
         for i, z in enumerate(sensor_depth(z, rng, blobs_on=g) for z, g in zip(depths, glass)):
             cv2.imwrite(str(folder / "depth" / f"{i:06d}.png"), np.round(z / DEPTH_SCALE).astype(np.uint16))
         cams_json = json.loads((folder / "scene_camera.json").read_text())
