@@ -44,7 +44,7 @@ _LAZY = {
     "RankingOptions": "autoalign.engine.options", "DisambiguationOptions": "autoalign.engine.options",
     "MeshDetail": "autoalign.rasterizers.pyramid", "MeshPyramid": "autoalign.rasterizers.pyramid",
     "LevenbergMarquardt": "autoalign.engine.solver", "GaussNewton": "autoalign.engine.solver",
-    "Adam": "autoalign.engine.solver",
+    "Adam": "autoalign.engine.solver", "TablePlane": "autoalign.losses.contact",
 }
 
 # ``check`` (autoalign.jobs.check) is left out below: it reaches autoalign.jobs.report, which imports
@@ -65,6 +65,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from autoalign.geometry.mesh import Mesh, load_mesh, mesh_from_trimesh  # noqa: F401
     from autoalign.io.bop import Scene, read_init_pose, read_scene  # noqa: F401
     from autoalign.io.evidence import read_evidence  # noqa: F401
+    from autoalign.losses.contact import TablePlane  # noqa: F401
     from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid  # noqa: F401
 
 

@@ -160,6 +160,17 @@ class Term(Protocol):
         ...
 
 
+class PoseTerm(Protocol):
+    """A term on the pose alone, which needs no render: its value and derivatives at a pose (the
+    joint stage holds instances with these)."""
+
+    name: str
+
+    def term(self, T_wm: NDArray[np.float64]) -> PoseTerms:
+        """The term at world-from-model ``T_wm`` (4x4, mm)."""
+        ...
+
+
 def evaluate_terms(terms: tuple[Term, ...], fragments: Fragments) -> tuple[Fragments, tuple[TermValues, ...]]:
     """Every term at one render, in order; the fragments the last term saw (hidden pixels off) and the values."""
     values = []

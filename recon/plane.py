@@ -45,7 +45,7 @@ def fit_table_plane(points: NDArray[np.float64], camera_centres: NDArray[np.floa
     P = points[inl]
     # refine by least squares on the inliers (RANSAC's plane comes from three of them)
     centre = P.mean(0)
-    n_ls = np.linalg.svd(P - centre)[2][2]
+    n_ls = np.linalg.svd(P - centre, full_matrices=False)[2][2]  # not the (N, N) U of a full SVD
     n = n_ls if n_ls @ n > 0 else -n_ls
     if (camera_centres.mean(0) - centre) @ n < 0:
         n = -n

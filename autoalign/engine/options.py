@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from autoalign.engine.objective import Level
 from autoalign.engine.seed_region import SEED_RADIUS
 from autoalign.engine.solver import FTOL, STEP_RULES, StepRule
+from autoalign.losses.contact import TablePlane
 from autoalign.losses.depth import DepthNoise
 from autoalign.losses.region import RegionOptions
 from autoalign.rasterizers.pyramid import MeshDetail
@@ -134,6 +135,9 @@ class RefineOptions:
         seed_radius: the stated uncertainty of a given seed pose (mm at the model's centre,
             degrees): a result farther from it is returned only when it fits clearly better than the
             best pose within it (:mod:`autoalign.engine.seed_region`); ``None``: the seed is only a start.
+        resting: the table plane the object is declared to rest on (:mod:`autoalign.losses.contact`):
+            the result is polished again with its lowest point held to the plane, unless the masks
+            then fit clearly worse (it stands on something else); ``None``: no contact.
     """
 
     loss: str = "l2"
@@ -147,3 +151,4 @@ class RefineOptions:
     depth: DepthNoise | None = DepthNoise()
     region: RegionOptions | None = RegionOptions()
     seed_radius: tuple[float, float] | None = SEED_RADIUS
+    resting: TablePlane | None = None

@@ -45,6 +45,7 @@ from autoalign.geometry.se3 import pose_change, symmetric_pose_change, transform
 from autoalign.io.bop import Scene
 from autoalign.losses import targets_in_crops
 from autoalign.losses.silhouette import boundary_bias_grads
+from autoalign.losses.contact import CONTACT_IOU_DROP, CONTACT_STIFFNESS, Contact, RestingContact
 from autoalign.losses.term import Measured, TermEvidence, ViewTermsRecord
 from autoalign.losses.overlap import iou_from_counts, view_ious
 from autoalign.rasterizers.pyramid import MeshPyramid
@@ -532,6 +533,33 @@ def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best:
     return Finalist(near, ev_near.weights), ev_near, uncertainty, hold
 
 
+def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, opts: RefineOptions,
+             progress: Progress | None) -> tuple[Finalist, Evaluation, Contact]:
+    """Stage 4c, a declared resting contact (:mod:`autoalign.losses.contact`): ``best`` polished
+    again through the schedule with its lowest point held to ``opts.resting``'s plane, from its own
+    pose and from its start (the start's orientation may be the nearer one: masks seen from one side
+    turn a pose they also slide along the rays), the better held fit, and what the contact did. It
+    is kept unless the masks fit that pose clearly worse (median IoU at full resolution lower by
+    more than :data:`~autoalign.losses.contact.CONTACT_IOU_DROP` than ``ev``'s): then the object
+    stands on something else, and ``best`` stays."""
+    assert opts.resting is not None
+    h = best.hypothesis
+    mesh = obj.pyramid.mesh
+    term = RestingContact(opts.resting, mesh.hull, obj.centre_m, CONTACT_STIFFNESS * len(obj.scene), mesh.resting_downs)
+    held = obj.with_pose_term(term)
+    full = Level(1.0, opts.schedule[-1].sigma, 0)
+    runs = [run_schedule(held, T, opts.schedule, opts.optimizer, progress, "resting on the table")
+            for T in (h.T_final, h.T_init)]
+    T_on, traces = min(runs, key=lambda run: held.evaluate(run[0], full).value)
+    ev_on = obj.evaluate(T_on, full)
+    iou, iou_on = float(np.median(ev.terms.iou)), float(np.median(ev_on.terms.iou))
+    contact = Contact(opts.resting, term.gap_mm(h.T_final), term.gap_mm(T_on), term.tilt_deg(h.T_final),
+                      term.tilt_deg(T_on), iou, iou_on, iou_on >= iou - CONTACT_IOU_DROP, CONTACT_IOU_DROP)
+    on = Hypothesis(h.T_init, T_on, ev_on.value / len(ev_on.weights), float(np.mean(ev_on.terms.iou)), Stage.FINAL,
+                    tuple(zip(opts.schedule, traces)))
+    return Finalist(on, ev_on.weights), ev_on, contact
+
+
 POSE_FIX = "give a 4x4 world-from-model pose: a rotation (det +1, no scale) and a translation in mm, last row 0 0 0 1"
 SEED_FIX = POSE_FIX.replace("give a 4x4", "give None (search from the masks), an autoalign.Click, or a 4x4")
 
@@ -660,6 +688,16 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
         if held_unc is not None:  # the pose within the radius: the far pose's turn gap says nothing of it
             final, uncertainty, turn_gap = [kept] + final, held_unc, None
         timings["seed"] += time.perf_counter() - t0
+    contact = None
+    if opts.resting is not None:
+        t0 = time.perf_counter()
+        rested, rested_ev, contact = _resting(obj, final[0], final_ev, opts, progress)
+        if contact.kept:
+            final, final_ev = [rested] + final, rested_ev
+            if uncertainty is not None:
+                uncertainty = final_uncertainty(obj, final_ev, rested.hypothesis.T_final, opts.schedule[-1],
+                                                opts.optimizer)
+        timings["contact"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     best = final[0].hypothesis
@@ -674,4 +712,5 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
         iterations=sum(tr.iterations for _, tr in best.path), renders=obj.renders, timings=timings,
         hypotheses=standing.ranked, ambiguous=standing.ambiguous, runner_up=standing.runner_up,
         weights=final[0].weights, history=history, image_ids=list(scene.image_ids), uncertainty=uncertainty,
-        turn_gap=turn_gap, terms=final_ev.record(), measured=final_ev.measured, seed_hold=hold)
+        turn_gap=turn_gap, terms=final_ev.record(), measured=final_ev.measured + ((contact,) if contact else ()),
+        seed_hold=hold)

@@ -104,6 +104,14 @@ class Mesh:
         return np.asarray(hull, dtype=np.float64)
 
     @functools.cached_property
+    def resting_downs(self) -> NDArray[np.float64]:
+        """(K, 3) unit directions (model frame) that point down, onto a table, in the poses the
+        object can rest in: trimesh's stable poses (faces of the convex hull over which the centre
+        of mass lies), most probable first. Computed on first use."""
+        transforms, _ = trimesh_module().poses.compute_stable_poses(self.trimesh)
+        return np.array([-np.asarray(T)[2, :3] for T in transforms], dtype=np.float64).reshape(-1, 3)
+
+    @functools.cached_property
     def principal_axes(self) -> NDArray[np.float64]:
         """(3, 3) rows: unit principal axes of the surface (second moments of surface samples
         about ``centre``), major first; model frame."""

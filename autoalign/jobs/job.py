@@ -101,7 +101,8 @@ class FolderJob:
     from ``init``); ``photos``: ``auto`` uses the photos as evidence when the folder has ``rgb/``
     (:func:`~autoalign.jobs.refine_folder.refine_folder` goes on with the masks alone, and one
     warning, when a view lacks its photo), ``on`` always (a photo missing is an error), ``off`` never
-    (:meth:`uses_photos`)."""
+    (:meth:`uses_photos`); ``resting``: the objects rest on a table plane, found in the scene
+    (``table``) or given as ``NX,NY,NZ,D`` (:mod:`autoalign.jobs.table_plane`), ``None``: no contact."""
 
     scene: str
     out: str
@@ -122,6 +123,7 @@ class FolderJob:
     masks: str = "auto"
     photos: str = "auto"
     seed_radius: str | None = None
+    resting: str | None = None
 
     @property
     def seed_radius_mm_deg(self) -> tuple[float, float]:
@@ -173,6 +175,11 @@ class FolderJob:
             if value not in allowed:
                 raise AutoalignError(f"{name} {value}: choose one of {', '.join(a for a in allowed if a)}")
         self.seed_radius_mm_deg  # a malformed --seed-radius fails here, before anything is read
+        if self.resting is not None:
+            from autoalign.jobs.table_plane import FOUND, parse_plane
+
+            if self.resting != FOUND:
+                parse_plane(self.resting)  # so does a malformed --resting plane
         if self.masks == "none" and self.photos == "off":
             raise AutoalignError("--masks none leaves the photos as the only evidence: drop --photos off")
         if self.masks == "none" and self.init is None:

@@ -116,6 +116,12 @@ def _add_algorithm_arguments(p: argparse.ArgumentParser) -> None:
                      help="how far (mm at the model's centre, degrees) the --init pose may be off: a result "
                           "farther from it is returned only when it fits at least twice as well as the best pose "
                           "within it, and is flagged for a check either way (default 25,30)")
+    alg.add_argument("--resting", nargs="?", const="table", metavar="NX,NY,NZ,D",
+                     help="the objects stand on the table: each result is polished again with its lowest point held "
+                          "to the table plane (what masks fix worst, along the viewing rays; glass most of all), "
+                          "unless its masks then fit clearly worse (it stands on something else). The plane: "
+                          "recon.json's table (z = 0), else fitted to the measured depth, or given as "
+                          "NX x + NY y + NZ z + D = 0 (world frame, mm, normal towards the objects)")
     alg.add_argument("--masks", choices=MASK_MODES, default="auto",
                      help="auto (default): the instance masks of mask_visib/; none: withhold every mask, the photos "
                           "(rgb/) place the objects from --init")
@@ -157,7 +163,8 @@ def job_of(args: argparse.Namespace, photos: str | None = None) -> FolderJob:
                      obj_id=args.obj_id, instance=args.instance, instances=args.instances, init=args.init,
                      click=args.click, loss=args.loss, optimizer=args.optimizer, refine_cameras=args.refine_cameras,
                      solve_scale=args.solve_scale, robust=not args.no_robust, depth=args.depth, masks=args.masks,
-                     photos=args.photos if photos is None else photos, seed_radius=args.seed_radius)
+                     photos=args.photos if photos is None else photos, seed_radius=args.seed_radius,
+                     resting=args.resting)
 
 
 class _LineParser(argparse.ArgumentParser):

@@ -94,6 +94,7 @@ def _refine_object(job: FolderJob, click: Any, log: RunLog, progress: Stages) ->
     from autoalign.engine.refine import refine
     from autoalign.geometry.mesh import load_mesh
     from autoalign.io.evidence import read_evidence
+    from autoalign.jobs.table_plane import resting_plane
     from autoalign.quality.overlay import render_overlay
     from autoalign.rasterizers.pyramid import MeshPyramid
 
@@ -101,7 +102,7 @@ def _refine_object(job: FolderJob, click: Any, log: RunLog, progress: Stages) ->
     mesh = load_mesh(job.model, units=job.units)
     pyramid = MeshPyramid(mesh)
     seed, seed_record = _seed(job, scene, click)
-    options = job.refine_options()
+    options = replace(job.refine_options(), resting=resting_plane(job.resting, job.scene, [scene]))
     progress.start("loading the renderer" if seed_record.kind == "init" else "seeding")
     try:
         result = refine(scene, pyramid, seed, options, progress=progress)

@@ -37,6 +37,7 @@ from autoalign.jobs.job import (
     one_line,
     write_json_outputs,
 )
+from autoalign.jobs.table_plane import resting_plane
 from autoalign.jobs.report import (
     InstanceReport,
     ScaleReport,
@@ -74,7 +75,7 @@ def refine_scene_folder(job: FolderJob, log: RunLog, progress: Stages, t_start: 
     from autoalign.quality.overlay import encode_png
 
     inputs = read_scene_inputs(job, log)
-    options = job.refine_options()
+    options = replace(job.refine_options(), resting=resting_plane(job.resting, job.scene, inputs.found.scenes))
     progress.start("loading the renderer")
     try:
         refined = refine_scene(inputs.found, inputs.models, inputs.seeds, options, job.refine_cameras,

@@ -24,14 +24,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.engine.objective import Level
-from autoalign.engine.seed_region import SeedRegion
 from autoalign.engine.solver import FTOL, LevenbergMarquardt, Stop, StepRule, minimise
 from autoalign.engine.uncertainty import Uncertainty, jackknife, uncertainty_of, viewpoint_groups, viewpoints_seen
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import apply_twist, transform_points
 from autoalign.io.instances import InstanceScenes
 from autoalign.losses.depth import DepthNoise
-from autoalign.losses.term import PoseTerms
+from autoalign.losses.term import PoseTerm, PoseTerms
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.scene.cameras import CameraPrior, camera_block
 from autoalign.scene.occlusion import JointEvaluation, OcclusionObjective
@@ -118,7 +117,7 @@ class JointProblem:
     with_cameras: bool
     with_scale: bool
     scale_from: list[bool] | None
-    holds: list[SeedRegion | None] | None = None  # per instance, the seed region its pose is held in
+    holds: list[tuple[PoseTerm, ...]] | None = None  # per instance, what holds its pose (seed region, resting contact)
     _using: JointState | None = field(default=None, repr=False)  # the iterate whose cameras are in use
 
     def __post_init__(self) -> None:
@@ -162,9 +161,10 @@ class JointProblem:
         return JointPoint(ev, (self.prior.cost(x.d) if self.with_cameras else 0.0) + held)
 
     def _hold_terms(self, x: JointState) -> list[tuple[int, PoseTerms]]:
-        """Each held instance's seed-region penalty at ``x`` (:class:`~autoalign.engine.seed_region.SeedRegion`),
-        with the instance's index: a pose held within its seed's radius alone stays held here."""
-        return [(k, h.term(T)) for k, (h, T) in enumerate(zip(self.holds or [], x.poses)) if h is not None]
+        """Each held instance's terms on its pose at ``x`` with the instance's index: the seed-region
+        penalty (:class:`~autoalign.engine.seed_region.SeedRegion`; a pose held within its seed's
+        radius alone stays held here) and the resting contact (:class:`~autoalign.losses.contact.RestingContact`)."""
+        return [(k, h.term(T)) for k, (hs, T) in enumerate(zip(self.holds or [], x.poses)) for h in hs]
 
     def reweighted(self, point: JointPoint) -> JointPoint:
         return replace(point, ev=point.ev.reweighted())
@@ -277,7 +277,7 @@ def refine_jointly(found: InstanceScenes, pyramids: list[MeshPyramid], poses: li
                    detail: MeshDetail = MeshDetail(), robust: bool = True, with_scale: bool = False,
                    depth: DepthNoise | None = None,
                    scale_from: list[bool] | None = None, progress: Progress | None = None,
-                   rule: StepRule | None = None, holds: list[SeedRegion | None] | None = None) -> JointRefinement:
+                   rule: StepRule | None = None, holds: list[tuple[PoseTerm, ...]] | None = None) -> JointRefinement:
     """Refine the poses of all instances of ``found`` (their meshes: ``pyramids``, drawn at
     ``detail.fine``) together from ``poses`` (world from model, mm), occlusion-aware, with
     ``with_cameras`` a correction of every camera and with ``with_scale`` the scene's scale
@@ -285,9 +285,10 @@ def refine_jointly(found: InstanceScenes, pyramids: list[MeshPyramid], poses: li
     ``depth``: the sensor's noise, for the instances whose scenes have measured depth). ``scale_from`` (per instance, default all): the
     instances whose fit decides the scale; the others move with it but do not pull it.
     Levenberg-Marquardt (:func:`~autoalign.engine.solver.minimise`; or the step ``rule`` given) with
-    IRLS view weights. ``holds``: per instance, the seed region (:class:`~autoalign.engine.seed_region.SeedRegion`)
-    its pose was held in alone (``None``: free), whose penalty joins the solve (not the covariance,
-    as alone)."""
+    IRLS view weights. ``holds``: per instance, the terms on its pose alone that held it when it was
+    refined alone (the seed region, :class:`~autoalign.engine.seed_region.SeedRegion`; the resting
+    contact, :class:`~autoalign.losses.contact.RestingContact`; none: free), which join the solve
+    (not the covariance, as alone)."""
     objective = OcclusionObjective(found, pyramids, robust, detail, depth)
     centres_m = objective.centres_m
     p = np.mean([transform_points(T, c[None])[0] for T, c in zip(poses, centres_m)], axis=0)

@@ -45,8 +45,10 @@ from autoalign.geometry.se3 import pose_change, symmetric_pose_change, transform
 from autoalign.errors import AutoalignError
 from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
+from autoalign.losses.contact import CONTACT_STIFFNESS, Contact, RestingContact
 from autoalign.losses.region import RegionOptions
 from autoalign.losses.see_through import SeeThrough
+from autoalign.losses.term import PoseTerm
 from autoalign.losses.outline_offset import shared_outline_offset
 from autoalign.losses.overlap import view_ious
 from autoalign.quality.verdict import PoseEvidence, Verdict, judge
@@ -183,7 +185,12 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
             distance = float(np.median([np.linalg.norm(centre_w - c.centre) for c in found.scenes[k].cameras]))
             unc = with_scale_sigma(unc, joint.scale_sigma, distance)
         evidence = had_photo if photo[k] is None or had_photo is None else replace(photo[k], rounds=had_photo.rounds)
-        measured = tuple(m for m in (depth, evidence) if m is not None)
+        contact = r.result.measurement(Contact)
+        if contact is not None and contact.kept:  # held to the plane in the joint stage too: its gap there
+            mesh = pyramids[k].mesh
+            on = RestingContact(contact.plane, mesh.hull, mesh.centre, 1.0, mesh.resting_downs)
+            contact = replace(contact, gap_after_mm=on.gap_mm(joint.poses[k]), tilt_after_deg=on.tilt_deg(joint.poses[k]))
+        measured = tuple(m for m in (depth, evidence, contact) if m is not None)
         after.append(replace(r.result, T_wm=joint.poses[k], iou_after=iou, weights=joint.evaluation.weights[k],
                              uncertainty=unc, turn_gap=gap, terms=joint.evaluation.record(k), measured=measured))
     return after
@@ -204,17 +211,25 @@ def _all_flagged(results: list[InstanceResult], reason: str) -> list[InstanceRes
                                        reasons=r.verdict.reasons + [reason])) for r in results]
 
 
-def seed_holds(alone: list[InstanceResult], pyramids: list[MeshPyramid], seeds: dict[int, NDArray[np.float64]],
-               radius: tuple[float, float]) -> list[SeedRegion | None]:
-    """Per instance, the region its seed holds it in, where its result alone is the best pose within
-    its seed's radius (:class:`~autoalign.engine.seed_region.SeedHold`, the far pose not kept): the
-    joint stage keeps it there too (it moved a held pose 3.3 mm off where the pose alone was 0.5 mm)."""
-    out: list[SeedRegion | None] = []
+def pose_holds(alone: list[InstanceResult], pyramids: list[MeshPyramid], seeds: dict[int, NDArray[np.float64]],
+               radius: tuple[float, float]) -> list[tuple[PoseTerm, ...]]:
+    """Per instance, the terms on its pose that held it alone, for the joint stage to keep: the
+    region its seed holds it in, where its result alone is the best pose within its seed's radius
+    (:class:`~autoalign.engine.seed_region.SeedHold`, the far pose not kept; the joint stage moved
+    such a pose 3.3 mm off where the pose alone was 0.5 mm), and the resting contact it was held to
+    (:class:`~autoalign.losses.contact.Contact` kept)."""
+    out: list[tuple[PoseTerm, ...]] = []
     for r, pyramid in zip(alone, pyramids):
         hold, seed = r.result.seed_hold, seeds.get(r.instance.index)
-        held = hold is not None and not hold.kept_far and seed is not None
-        out.append(SeedRegion(np.asarray(seed, dtype=np.float64), pyramid.mesh.centre, radius,
-                              STIFFNESS * len(r.result.image_ids), pyramid.symmetries) if held else None)
+        terms: list[PoseTerm] = []
+        if hold is not None and not hold.kept_far and seed is not None:
+            terms.append(SeedRegion(np.asarray(seed, dtype=np.float64), pyramid.mesh.centre, radius,
+                                    STIFFNESS * len(r.result.image_ids), pyramid.symmetries))
+        contact = r.result.measurement(Contact)
+        if contact is not None and contact.kept:
+            terms.append(RestingContact(contact.plane, pyramid.mesh.hull, pyramid.mesh.centre,
+                                        CONTACT_STIFFNESS * len(r.result.image_ids), pyramid.mesh.resting_downs))
+        out.append(tuple(terms))
     return out
 
 
@@ -267,7 +282,7 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
                 continue
         pyramids = [models.pyramid(r.instance.obj_id) for r in alone]
         start = [r.result.T_wm for r in alone]
-        holds = seed_holds(alone, pyramids, given_seeds, seed_radius)
+        holds = pose_holds(alone, pyramids, given_seeds, seed_radius)
         t0 = time.perf_counter()
         given = found  # the instances as read: their own masks and photos
         photo_alone: list[PhotoEvidence | None] = [None] * len(alone)

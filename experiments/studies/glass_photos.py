@@ -11,6 +11,7 @@ glass and the metal. Masks eroded by 3 px, and in 1 view in 4 cut by a straight 
 
 Conditions, each ``autoalign refine --models`` from ``--init`` 10 mm / 15 deg off, nothing
 declared in ``materials.json``: ``all`` (the degraded masks, photos and depth: the defaults),
+``resting`` (as ``all``, with ``--resting``: held to the table plane fitted to the depth),
 ``masks`` (the degraded masks alone: ``--photos off --depth off``), ``exact-masks`` and
 ``exact-all`` (the same with the exact masks: does a term pull a pose away from where exact masks
 put it?), and ``none`` (as ``all``, without ``--init``: do the glasses come out standing the right
@@ -32,6 +33,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from autoalign.experiments import RESULTS
 from autoalign.experiments.commands import run_autoalign
@@ -42,14 +44,15 @@ from autoalign.experiments.scenes.procedural_models import models_info_entry, pr
 from autoalign.experiments.scenes.synthetic import perturb_pose
 from autoalign.experiments.studies.metrics import Symmetries, pose_errors
 from autoalign.experiments.studies.photo_evidence import cut_mask
-from autoalign.geometry.mesh import mesh_from_trimesh
-from autoalign.io.bop import scene_gt_of
+from autoalign.geometry.mesh import Mesh, mesh_from_trimesh
+from autoalign.geometry.se3 import make_pose
+from autoalign.io.bop import read_scene, scene_gt_of
 
 GLASSWARE = ("mug", "can_plain", "bottle_plain", "travel_mug", "pitcher", "bowl", "oil_can")
 """Procedural models that stand on their -z side, as glassware: cups with a handle (mug, pitcher:
 not symmetric), a tumbler-like can, a bottle, a bowl."""
 GLASS_PER_SCENE = 5
-CONDITIONS = ("all", "masks", "exact-masks", "exact-all", "none")
+CONDITIONS = ("all", "resting", "masks", "exact-masks", "exact-all", "none")
 MASKS_ONLY = ["--photos", "off", "--depth", "off"]
 
 
@@ -63,8 +66,10 @@ def degrade_masks(scene: Path, rng: np.random.Generator) -> None:
         cv2.imwrite(str(path), m.astype(np.uint8) * 255)
 
 
-def run_scene(seed: int, work: Path, views: int, spp: int, conditions: list[str]) -> list[dict]:
-    """One scene (module doc), refined under each condition; one row per instance and condition."""
+def make_scene(seed: int, work: Path, views: int, spp: int) -> tuple[list[Mesh], list[str], list[Symmetries]]:
+    """The scene of ``seed`` (module doc) written into ``work`` (``scene/``, ``scene_degraded/``,
+    ``models/``, ``init.json``), or found there from an earlier run (``--keep``: the renders are
+    the slow part); its meshes, materials and symmetries."""
     rng = np.random.default_rng([seed, 4545])
     pool = {p.name: p for p in procedural_models()}
     glass = [pool[n] for n in rng.choice(GLASSWARE, GLASS_PER_SCENE, replace=False)]
@@ -73,29 +78,48 @@ def run_scene(seed: int, work: Path, views: int, spp: int, conditions: list[str]
     chosen = [*glass, metal, opaque]
     materials = [("glass", "frosted")[j % 2] for j in range(GLASS_PER_SCENE)] + [("metal", "brushed")[seed % 2], "opaque"]
     meshes = [mesh_from_trimesh(p.mesh, p.name) for p in chosen]
+    syms = [Symmetries.from_info(models_info_entry(p)) for p in chosen]
+    if (work / "init.json").is_file():
+        return meshes, materials, syms
     tracing = PathTracing(spp=spp, backdrop_y_mm=300.0 if seed % 2 else None, seed=seed)
     ps = write_photo_scene(work / "scene", meshes, views, seed=seed, depth=True, dist_range=(450.0, 700.0),
                            materials=materials, tracing=tracing, upright=[j < GLASS_PER_SCENE for j in range(len(chosen))])
-    degraded = work / "scene_degraded"
-    shutil.copytree(ps.folder, degraded)
-    degrade_masks(degraded, rng)
-    syms = [Symmetries.from_info(models_info_entry(p)) for p in chosen]
+    shutil.copytree(ps.folder, work / "scene_degraded")
+    degrade_masks(work / "scene_degraded", rng)
     models = work / "models"
     models.mkdir()
     for j, p in enumerate(chosen):
         p.mesh.export(models / f"obj_{j + 1:06d}.ply")
     (models / "models_info.json").write_text(json.dumps({str(j + 1): models_info_entry(p) for j, p in enumerate(chosen)}))
     starts = [perturb_pose(T, 10.0, 15.0, rng, m.centre) for T, m in zip(ps.poses, meshes)]
-    init = work / "init.json"
-    init.write_text(json.dumps(scene_gt_of([(j + 1, T) for j, T in enumerate(starts)], ps.cameras[:1], [0])))
+    (work / "init.json").write_text(json.dumps(scene_gt_of([(j + 1, T) for j, T in enumerate(starts)],
+                                                           ps.cameras[:1], [0])))
+    return meshes, materials, syms
+
+
+def true_poses(scene: Path) -> list[NDArray[np.float64]]:
+    """The world-from-model poses (mm) of ``scene``'s instances, from its first image's labels."""
+    first = read_scene(scene).cameras[0]
+    entries = json.loads((scene / "scene_gt.json").read_text())["0"]
+    return [np.linalg.inv(first.T_cw) @ make_pose(np.reshape(e["cam_R_m2c"], (3, 3)), np.asarray(e["cam_t_m2c"]))
+            for e in entries]
+
+
+def run_scene(seed: int, work: Path, views: int, spp: int, conditions: list[str]) -> list[dict]:
+    """One scene (module doc), refined under each condition; one row per instance and condition."""
+    meshes, materials, syms = make_scene(seed, work, views, spp)
+    poses = true_poses(work / "scene")
     rows = []
     for condition in conditions:
         out = work / f"out_{condition}"
-        scene = ps.folder if condition.startswith("exact") else degraded
-        extra = (MASKS_ONLY if condition.endswith("masks") else []) + ([] if condition == "none" else ["--init", str(init)])
-        run = run_autoalign("refine", str(scene), "--models", str(models), *extra, "--out", str(out), "--quiet").check()
+        shutil.rmtree(out, ignore_errors=True)
+        scene = work / ("scene" if condition.startswith("exact") else "scene_degraded")
+        extra = ((MASKS_ONLY if condition.endswith("masks") else []) + ([] if condition == "none" else
+                 ["--init", str(work / "init.json")]) + (["--resting"] if condition == "resting" else []))
+        run = run_autoalign("refine", str(scene), "--models", str(work / "models"), *extra, "--out", str(out),
+                            "--quiet").check()
         report = json.loads((out / "refine.json").read_text())["instances"]
-        for inst, T_true, mesh, sym, material in zip(report, ps.poses, meshes, syms, materials):
+        for inst, T_true, mesh, sym, material in zip(report, poses, meshes, syms, materials):
             e = pose_errors(np.asarray(inst["pose"]["T_wm"]), T_true, mesh.centre, None, sym)
             depth = inst.get("depth") or {}
             rows.append({"seed": seed, "condition": condition, "object": mesh.name, "material": material,
@@ -142,7 +166,7 @@ def write(rows: list[dict], args: argparse.Namespace, scenes_done: int) -> None:
           f"with mitsuba ({args.spp} samples a pixel), {args.views} views of 640x480, every other scene before a "
           "mirror; depth through the glass with holes on glass and metal; masks eroded 3 px, 1 view in 4 cut to "
           "half (`exact-`: exact masks); `refine --models` from `--init` 10 mm / 15 deg off (`none`: no seed), "
-          "nothing declared; `masks`: photos and depth off. Errors are symmetry-aware; upside down: more than "
+          "nothing declared; `resting`: with `--resting` (the table plane fitted to the depth); `masks`: photos and depth off. Errors are symmetry-aware; upside down: more than "
           "90 deg off.", "", *table(rows), "",
           "| scene | condition | object | material | err mm | err deg | verdict | sees through |",
           "|---|---|---|---|---|---|---|---|",
@@ -158,7 +182,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--views", type=int, default=32)
     p.add_argument("--spp", type=int, default=32, help="path-tracing samples per pixel")
     p.add_argument("--conditions", default=",".join(CONDITIONS), help="comma-separated, of: " + ", ".join(CONDITIONS))
-    p.add_argument("--keep", type=Path, help="keep the scenes and outputs in this folder")
+    p.add_argument("--keep", type=Path, help="keep the scenes and outputs in this folder (a scene found there "
+                                             "from an earlier run is refined again, not rendered again)")
     p.add_argument("--out", type=Path, default=RESULTS)
     args = p.parse_args(argv)
     conditions = args.conditions.split(",")
@@ -169,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
         root = args.keep or Path(tmp)
         for seed in range(args.scenes):
             work = root / f"scene_{seed}"
-            work.mkdir(parents=True)
+            work.mkdir(parents=True, exist_ok=True)
             rows += run_scene(seed, work, args.views, args.spp, conditions)
             write(rows, args, seed + 1)  # after every scene: a long run's results so far
             print(f"scene {seed}: {len(rows)} rows", file=sys.stderr, flush=True)

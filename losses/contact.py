@@ -1,0 +1,173 @@
+"""Resting contact: an object standing on the table touches its plane.
+
+Masks fix a pose worst along the viewing rays, and glass, whose depth is no evidence, has nothing
+else to fix it there; an object that rests on the table has its lowest point on the table's plane,
+which fixes that direction from one viewpoint. :class:`RestingContact` is that statement as an
+evidence term on the pose alone: one residual, the object's height above the plane (mm; below it:
+negative) in units of :data:`CONTACT_SIGMA_MM`, the lowest point a soft minimum over the model's
+hull vertices (their heights' mean under softmax weights of temperature :data:`SOFT_MIN_MM`: a flat
+base's many lowest vertices give exactly their height), so that the residual is smooth as the
+object tilts from one rim point to the next. An object at rest also stands on one of its stable
+faces (:attr:`~autoalign.geometry.mesh.Mesh.resting_downs`, trimesh's stable poses): three more
+residuals, the nearest stable face's downward direction less the plane's downward normal, in units
+of :data:`TILT_SIGMA_DEG` (masks seen from one side trade a tilt against a slide along the rays,
+and a lowest point on the plane alone lets an object stand on one rim point).
+
+Twists are ``(v [mm], w [rad])`` in the world frame about the object centre, as the engine's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from autoalign.losses.term import Fragments, PoseTerms, Stance, TermEvidence, TermValues
+
+CONTACT_SIGMA_MM = 1.0
+"""How far a resting object's lowest point may lie from the plane (mm, one sigma): a scanned mesh's
+base and a table's flatness, each about a millimetre."""
+CONTACT_STIFFNESS = 1.0
+"""Per view, the term's weight: a resting object 1 mm off the plane costs 0.5 per view, where a
+view's whole mask loss is at most 1 and moving a 60 mm object 1 mm at 500 mm changes it by a few
+hundredths. Along the plane's normal the contact outweighs the masks; across it, it says nothing."""
+CONTACT_IOU_DROP = 0.1
+"""A contact is set aside when the masks fit the pose on the plane worse than this in median IoU:
+held to a table it does not touch, an object standing on another leaves its masks by far more
+(a 60 mm object moved 20 mm loses 0.3 and more), while masks eroded by a few pixels move a pose
+that rests by a millimetre or two along the normal, which costs them less than 0.01."""
+TILT_SIGMA_DEG = 2.0
+"""How far a resting object may lean from its stable face (degrees, one sigma): a scanned base
+that is not quite flat, a table not quite level."""
+SOFT_MIN_MM = 0.5
+"""The soft minimum's temperature (mm): vertices more than a few of these above the lowest count
+for nothing."""
+
+
+@dataclass(frozen=True)
+class TablePlane:
+    """The plane objects rest on (world frame, mm): its unit ``normal`` pointing to the side the
+    objects stand on, and a ``point`` on it."""
+
+    normal: NDArray[np.float64]
+    point: NDArray[np.float64]
+
+    @staticmethod
+    def of(normal: Any, point: Any) -> "TablePlane":
+        """A plane through ``point`` with ``normal`` (any length but zero)."""
+        n = np.asarray(normal, dtype=np.float64)
+        return TablePlane(n / np.linalg.norm(n), np.asarray(point, dtype=np.float64))
+
+    def heights(self, X_w: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Signed heights (mm) of world points (N, 3) above the plane."""
+        return (np.asarray(X_w, dtype=np.float64) - self.point) @ self.normal
+
+    def record(self) -> dict[str, list[float]]:
+        return {"normal": self.normal.tolist(), "point_mm": self.point.tolist()}
+
+
+@dataclass(frozen=True)
+class RestingContact:
+    """The object with hull ``vertices_m`` (model frame, mm) rests on ``plane``, on one of its stable
+    faces ``downs_m`` (unit downward directions, model frame; none: any tilt); ``centre_m`` the point
+    its twists turn about, ``weight`` the term's scale (:data:`CONTACT_STIFFNESS` x views)."""
+
+    plane: TablePlane
+    vertices_m: NDArray[np.float64]
+    centre_m: NDArray[np.float64]
+    weight: float
+    downs_m: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+    name = "contact"
+
+    def residuals(self, fragments: Fragments) -> TermValues:
+        """The contact as an evidence term on the pose alone."""
+        return TermValues(self.name, pose=self.term(fragments.T_wm))
+
+    def _lowest(self, T_wm: NDArray[np.float64]) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
+        """The soft-minimum height (mm), its derivatives by each vertex's height, and the vertices (world)."""
+        X = self.vertices_m @ T_wm[:3, :3].T + T_wm[:3, 3]
+        h = self.plane.heights(X)
+        p = np.exp(-(h - h.min()) / SOFT_MIN_MM)
+        p /= p.sum()
+        low = float(p @ h)
+        return low, p * (1.0 - (h - low) / SOFT_MIN_MM), X
+
+    def gap_mm(self, T_wm: NDArray[np.float64]) -> float:
+        """The object's lowest point above the plane at ``T_wm`` (mm; negative: below it), the
+        soft minimum the term uses."""
+        return self._lowest(np.asarray(T_wm, dtype=np.float64))[0]
+
+    def tilt_deg(self, T_wm: NDArray[np.float64]) -> float:
+        """The angle (degrees) between the nearest stable face's downward direction at ``T_wm`` and
+        the plane's downward normal (NaN without stable faces)."""
+        if len(self.downs_m) == 0:
+            return float("nan")
+        down = self._down(np.asarray(T_wm, dtype=np.float64))
+        return float(np.degrees(np.arccos(np.clip(-down @ self.plane.normal, -1.0, 1.0))))
+
+    def _down(self, T_wm: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The stable face's downward direction (world) nearest the plane's downward normal."""
+        downs = self.downs_m @ T_wm[:3, :3].T
+        return downs[int(np.argmax(-downs @ self.plane.normal))]
+
+    def term(self, T_wm: NDArray[np.float64]) -> PoseTerms:
+        """``0.5 * weight * |r|^2`` and its derivatives with respect to the twist, ``r`` the gap over
+        its sigma and the tilt residual over its. A vertex at ``X`` moves by ``v + w x (X - c)``, so
+        its height by ``n . v + w . ((X - c) x n)``; a direction ``d`` turns by ``w x d``."""
+        T_wm = np.asarray(T_wm, dtype=np.float64)
+        gap, dgap, X = self._lowest(T_wm)
+        c = T_wm[:3, :3] @ self.centre_m + T_wm[:3, 3]
+        n = self.plane.normal
+        s = np.sqrt(self.weight)
+        J = [np.concatenate([dgap.sum() * n, dgap @ np.cross(X - c, n)]) * (s / CONTACT_SIGMA_MM)]
+        r = [s * gap / CONTACT_SIGMA_MM]
+        if len(self.downs_m):
+            d = self._down(T_wm)
+            k = s / np.radians(TILT_SIGMA_DEG)
+            r += list(k * (d + n))
+            cross = np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])
+            J += list(np.hstack([np.zeros((3, 3)), -k * cross]))
+        Jm, e = np.array(J), np.array(r)
+        return PoseTerms(0.5 * float(e @ e), Jm.T @ e, Jm.T @ Jm)
+
+
+@dataclass
+class Contact:
+    """What the resting contact did to a result: the plane, the lowest point's height above it
+    (mm) and the lean from the nearest stable face (degrees) at the pose the other evidence gave
+    and at the result, the masks' median IoU at both, and whether the contact was kept:
+    it is not when the masks fit the pose on the plane clearly worse (median IoU lower by more than
+    ``iou_drop``), which says that the object stands on something else."""
+
+    plane: TablePlane
+    gap_before_mm: float
+    gap_after_mm: float
+    tilt_before_deg: float
+    tilt_after_deg: float
+    iou_before: float
+    iou_after: float
+    kept: bool
+    iou_drop: float
+    name = "contact"
+
+    def record(self) -> dict[str, Any]:
+        return {"plane": self.plane.record(), "gap_before_mm": self.gap_before_mm, "gap_after_mm": self.gap_after_mm,
+                "tilt_before_deg": self.tilt_before_deg, "tilt_after_deg": self.tilt_after_deg,
+                "median_iou_before": self.iou_before, "median_iou_on_plane": self.iou_after, "kept": self.kept,
+                "rule": f"kept unless the masks fit the pose on the plane worse by more than {self.iou_drop:g} "
+                        "in median IoU"}
+
+    def evidence(self) -> TermEvidence:
+        """A kept contact supports the pose along the plane's normal; one set aside is said, never
+        held against the pose (the object may stand on another)."""
+        if self.kept:
+            return TermEvidence(self.name, Stance.NEUTRAL, 1.0,
+                                f"rests on the table: its lowest point {self.gap_before_mm:+.1f} mm from the plane "
+                                f"and {self.tilt_before_deg:.1f} deg from standing at the masks' pose, "
+                                f"{self.gap_after_mm:+.1f} mm and {self.tilt_after_deg:.1f} deg at the result")
+        return TermEvidence(self.name, Stance.NO_EVIDENCE, 0.0,
+                            f"declared resting, but not on the table: on the plane the masks fit worse (median IoU "
+                            f"{self.iou_after:.2f} against {self.iou_before:.2f}); its lowest point is "
+                            f"{self.gap_before_mm:+.1f} mm from the plane")
