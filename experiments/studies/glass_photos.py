@@ -105,28 +105,42 @@ def true_poses(scene: Path) -> list[NDArray[np.float64]]:
             for e in entries]
 
 
-def run_scene(seed: int, work: Path, views: int, spp: int, conditions: list[str]) -> list[dict]:
-    """One scene (module doc), refined under each condition; one row per instance and condition."""
+def run_scene(seed: int, work: Path, views: int, spp: int, conditions: list[str], reuse: bool = False) -> list[dict]:
+    """One scene (module doc), refined under each condition (``reuse``: a condition's output kept
+    from an earlier run is read, not refined again); one row per instance and condition."""
     meshes, materials, syms = make_scene(seed, work, views, spp)
     poses = true_poses(work / "scene")
     rows = []
     for condition in conditions:
         out = work / f"out_{condition}"
-        shutil.rmtree(out, ignore_errors=True)
-        scene = work / ("scene" if condition.startswith("exact") else "scene_degraded")
-        extra = ((MASKS_ONLY if condition.endswith("masks") else []) + ([] if condition == "none" else
-                 ["--init", str(work / "init.json")]) + (["--resting"] if condition == "resting" else []))
-        run = run_autoalign("refine", str(scene), "--models", str(work / "models"), *extra, "--out", str(out),
-                            "--quiet").check()
-        report = json.loads((out / "refine.json").read_text())["instances"]
-        for inst, T_true, mesh, sym, material in zip(report, poses, meshes, syms, materials):
+        if not (reuse and (out / "refine.json").is_file()):
+            shutil.rmtree(out, ignore_errors=True)
+            scene = work / ("scene" if condition.startswith("exact") else "scene_degraded")
+            extra = ((MASKS_ONLY if condition.endswith("masks") else []) + ([] if condition == "none" else
+                     ["--init", str(work / "init.json")]) + (["--resting"] if condition == "resting" else []))
+            run_autoalign("refine", str(scene), "--models", str(work / "models"), *extra, "--out", str(out),
+                          "--quiet").check()
+        doc = json.loads((out / "refine.json").read_text())
+        for inst, T_true, mesh, sym, material in zip(doc["instances"], poses, meshes, syms, materials):
             e = pose_errors(np.asarray(inst["pose"]["T_wm"]), T_true, mesh.centre, None, sym)
             depth = inst.get("depth") or {}
             rows.append({"seed": seed, "condition": condition, "object": mesh.name, "material": material,
                          "err_mm": e.pos_err_mm, "err_deg": e.rot_err_deg, "verdict": inst["verdict"],
                          "sees_through": bool(depth.get("sees_through", False)), "reasons": inst["reasons"],
-                         "wall_s": run.wall_s})
+                         "T_wm": inst["pose"]["T_wm"], "wall_s": doc["timings"]["total"]})
+    moved_by_terms(rows, meshes, syms)
     return rows
+
+
+def moved_by_terms(rows: list[dict], meshes: list[Mesh], syms: list[Symmetries]) -> None:
+    """On each ``exact-all`` row, how far the photos and the depth moved the instance from where the
+    exact masks alone put it (``exact-masks``; symmetry-aware, mm / deg), in place."""
+    alone = [r for r in rows if r["condition"] == "exact-masks"]
+    together = [r for r in rows if r["condition"] == "exact-all"]
+    if len(alone) == len(together) == len(meshes):
+        for a, b, mesh, sym in zip(alone, together, meshes, syms):
+            e = pose_errors(np.asarray(b["T_wm"]), np.asarray(a["T_wm"]), mesh.centre, None, sym)
+            b["moved_mm"], b["moved_deg"] = e.pos_err_mm, e.rot_err_deg
 
 
 def kind_of(material: str) -> str:
@@ -139,7 +153,8 @@ def table(rows: list[dict]) -> list[str]:
     recognition."""
     lines = ["| condition | kind | instances | within 1 mm / 1 deg | within 2 mm / 2 deg | within 3 mm / 3 deg | "
              "median err mm / deg | ok/check/failed | outside 3 mm / 3 deg and ok | upside down | "
-             "read as seeing through |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "read as seeing through | largest move from the exact masks alone, mm / deg |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for condition in CONDITIONS:
         for kind in ("glass", "metal", "opaque"):
             sel = [r for r in rows if r["condition"] == condition and kind_of(r["material"]) == kind]
@@ -151,7 +166,7 @@ def table(rows: list[dict]) -> list[str]:
             within = [f"{np.mean((mm <= t) & (deg <= t)):.0%}" for t in (1, 2, 3)]
             lines.append(f"| {condition} | {kind} | {len(sel)} | {' | '.join(within)} | "
                          f"{np.median(mm):.2f} / {np.median(deg):.2f} | {verdicts} | {wrong_ok} | {int(np.sum(deg > 90))} | "
-                         f"{sum(r['sees_through'] for r in sel)} of {len(sel)} |")
+                         f"{sum(r['sees_through'] for r in sel)} of {len(sel)} | {_largest_move(sel)} |")
     return lines
 
 
@@ -176,6 +191,12 @@ def write(rows: list[dict], args: argparse.Namespace, scenes_done: int) -> None:
                   shown=4 + len(conditions) * 3)
 
 
+def _largest_move(rows: list[dict]) -> str:
+    """The rows' largest move from the exact masks' pose (:func:`moved_by_terms`), or ``-``."""
+    moved = [(r["moved_mm"], r["moved_deg"]) for r in rows if "moved_mm" in r]
+    return f"{max(m for m, _ in moved):.2f} / {max(d for _, d in moved):.2f}" if moved else "-"
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", type=int, default=8)
@@ -184,6 +205,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--conditions", default=",".join(CONDITIONS), help="comma-separated, of: " + ", ".join(CONDITIONS))
     p.add_argument("--keep", type=Path, help="keep the scenes and outputs in this folder (a scene found there "
                                              "from an earlier run is refined again, not rendered again)")
+    p.add_argument("--reuse", action="store_true", help="with --keep: read a condition's output kept there instead "
+                                                        "of refining it again")
     p.add_argument("--out", type=Path, default=RESULTS)
     args = p.parse_args(argv)
     conditions = args.conditions.split(",")
@@ -195,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
         for seed in range(args.scenes):
             work = root / f"scene_{seed}"
             work.mkdir(parents=True, exist_ok=True)
-            rows += run_scene(seed, work, args.views, args.spp, conditions)
+            rows += run_scene(seed, work, args.views, args.spp, conditions, args.reuse and args.keep is not None)
             write(rows, args, seed + 1)  # after every scene: a long run's results so far
             print(f"scene {seed}: {len(rows)} rows", file=sys.stderr, flush=True)
     return 0
