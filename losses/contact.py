@@ -40,6 +40,11 @@ Measured (``tests/test_contact.py``, ``glass_photos``): standing glass held to t
 0.001; a bottle seen from one side with masks eroded by 3 px, 0.055 (the masks slid it 26 mm along
 the rays); a box standing on another, 0.80; objects lying in no stable pose forced onto a stable
 face, 0.30 and 0.38."""
+CONTACT_MAX_LEAN_DEG = 10.0
+"""A contact is also set aside when, at the pose the other evidence gives, the object leans more
+than this from every one of its stable faces: no object at rest does, so it leans on something
+(measured: standing glass 0.1-4.9 deg; objects lying in no stable pose 19-69 deg, one of them, a
+kettle at 19 deg, losing only 0.05 in IoU when forced onto a face)."""
 TILT_SIGMA_DEG = 2.0
 """How far a resting object may lean from its stable face (degrees, one sigma): a scanned base
 that is not quite flat, a table not quite level."""
@@ -139,9 +144,10 @@ class RestingContact:
 class Contact:
     """What the resting contact did to a result: the plane, the lowest point's height above it
     (mm) and the lean from the nearest stable face (degrees) at the pose the other evidence gave
-    and at the result, the masks' median IoU at both, and whether the contact was kept:
-    it is not when the masks fit the pose on the plane clearly worse (median IoU lower by more than
-    ``iou_drop``), which says that the object stands on something else."""
+    and at the result, the masks' median IoU at both, and whether the contact was kept: it is not
+    when the masks fit the pose on the plane clearly worse (median IoU lower by more than
+    :data:`CONTACT_IOU_DROP`), which says that the object stands on something else, or when at the
+    masks' pose it leans more than :data:`CONTACT_MAX_LEAN_DEG` from every stable face."""
 
     plane: TablePlane
     gap_before_mm: float
@@ -150,16 +156,29 @@ class Contact:
     tilt_after_deg: float
     iou_before: float
     iou_after: float
-    kept: bool
-    iou_drop: float
     name = "contact"
+
+    @property
+    def fits_worse(self) -> bool:
+        """On the plane the masks fit clearly worse."""
+        return self.iou_after < self.iou_before - CONTACT_IOU_DROP
+
+    @property
+    def leans(self) -> bool:
+        """At the masks' pose it leans beyond any stable face (False without stable faces)."""
+        return bool(self.tilt_before_deg > CONTACT_MAX_LEAN_DEG)
+
+    @property
+    def kept(self) -> bool:
+        return not (self.fits_worse or self.leans)
 
     def record(self) -> dict[str, Any]:
         return {"plane": self.plane.record(), "gap_before_mm": self.gap_before_mm, "gap_after_mm": self.gap_after_mm,
                 "tilt_before_deg": self.tilt_before_deg, "tilt_after_deg": self.tilt_after_deg,
                 "median_iou_before": self.iou_before, "median_iou_on_plane": self.iou_after, "kept": self.kept,
-                "rule": f"kept unless the masks fit the pose on the plane worse by more than {self.iou_drop:g} "
-                        "in median IoU"}
+                "rule": f"kept unless the masks fit the pose on the plane worse by more than {CONTACT_IOU_DROP:g} "
+                        f"in median IoU, or it leans more than {CONTACT_MAX_LEAN_DEG:g} deg from every stable face "
+                        "at the masks' pose"}
 
     def evidence(self) -> TermEvidence:
         """A kept contact supports the pose along the plane's normal; one set aside is said, never
@@ -169,7 +188,8 @@ class Contact:
                                 f"rests on the table: its lowest point {self.gap_before_mm:+.1f} mm from the plane "
                                 f"and {self.tilt_before_deg:.1f} deg from standing at the masks' pose, "
                                 f"{self.gap_after_mm:+.1f} mm and {self.tilt_after_deg:.1f} deg at the result")
+        why = (f"it leans {self.tilt_before_deg:.0f} deg from every face it could rest on" if self.leans else
+               f"on the plane the masks fit worse (median IoU {self.iou_after:.2f} against {self.iou_before:.2f})")
         return TermEvidence(self.name, Stance.NO_EVIDENCE, 0.0,
-                            f"declared resting, but not on the table: on the plane the masks fit worse (median IoU "
-                            f"{self.iou_after:.2f} against {self.iou_before:.2f}); its lowest point is "
+                            f"declared resting, but not resting on the table: {why}; its lowest point is "
                             f"{self.gap_before_mm:+.1f} mm from the plane")

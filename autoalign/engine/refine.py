@@ -45,7 +45,7 @@ from autoalign.geometry.se3 import pose_change, symmetric_pose_change, transform
 from autoalign.io.bop import Scene
 from autoalign.losses import targets_in_crops
 from autoalign.losses.silhouette import boundary_bias_grads
-from autoalign.losses.contact import CONTACT_IOU_DROP, CONTACT_STIFFNESS, Contact, RestingContact
+from autoalign.losses.contact import CONTACT_STIFFNESS, Contact, RestingContact
 from autoalign.losses.term import Measured, TermEvidence, ViewTermsRecord
 from autoalign.losses.overlap import iou_from_counts, view_ious
 from autoalign.rasterizers.pyramid import MeshPyramid
@@ -540,8 +540,9 @@ def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, opts: Ref
     pose and from its start (the start's orientation may be the nearer one: masks seen from one side
     turn a pose they also slide along the rays), the better held fit, and what the contact did. It
     is kept unless the masks fit that pose clearly worse (median IoU at full resolution lower by
-    more than :data:`~autoalign.losses.contact.CONTACT_IOU_DROP` than ``ev``'s): then the object
-    stands on something else, and ``best`` stays."""
+    more than :data:`~autoalign.losses.contact.CONTACT_IOU_DROP` than ``ev``'s) or ``best`` leans
+    beyond any stable face (:attr:`~autoalign.losses.contact.Contact.kept`): then the object stands
+    on something else, and ``best`` stays."""
     assert opts.resting is not None
     h = best.hypothesis
     mesh = obj.pyramid.mesh
@@ -554,7 +555,7 @@ def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, opts: Ref
     ev_on = obj.evaluate(T_on, full)
     iou, iou_on = float(np.median(ev.terms.iou)), float(np.median(ev_on.terms.iou))
     contact = Contact(opts.resting, term.gap_mm(h.T_final), term.gap_mm(T_on), term.tilt_deg(h.T_final),
-                      term.tilt_deg(T_on), iou, iou_on, iou_on >= iou - CONTACT_IOU_DROP, CONTACT_IOU_DROP)
+                      term.tilt_deg(T_on), iou, iou_on)
     on = Hypothesis(h.T_init, T_on, ev_on.value / len(ev_on.weights), float(np.mean(ev_on.terms.iou)), Stage.FINAL,
                     tuple(zip(opts.schedule, traces)))
     return Finalist(on, ev_on.weights), ev_on, contact
