@@ -207,6 +207,8 @@ def main(argv: list[str] | None = None) -> int:
                                              "from an earlier run is refined again, not rendered again)")
     p.add_argument("--reuse", action="store_true", help="with --keep: read a condition's output kept there instead "
                                                         "of refining it again")
+    p.add_argument("--picture", type=Path, help="write the README's picture here: the first two rows of scene 1's "
+                                                "overlay under --resting (needs both)")
     p.add_argument("--out", type=Path, default=RESULTS)
     args = p.parse_args(argv)
     conditions = args.conditions.split(",")
@@ -221,7 +223,18 @@ def main(argv: list[str] | None = None) -> int:
             rows += run_scene(seed, work, args.views, args.spp, conditions, args.reuse and args.keep is not None)
             write(rows, args, seed + 1)  # after every scene: a long run's results so far
             print(f"scene {seed}: {len(rows)} rows", file=sys.stderr, flush=True)
+        overlay = root / "scene_1" / "out_resting" / "overlay.png"
+        if args.picture is not None and overlay.is_file():
+            write_picture(cv2.imread(str(overlay)), args.picture)
     return 0
+
+
+def write_picture(overlay: NDArray[np.uint8], path: Path, width: int = 800) -> None:
+    """The top two of the overlay's three rows of views (under its title band), ``width`` pixels wide."""
+    top = overlay[30:30 + 2 * (overlay.shape[0] - 30) // 3]
+    h, w = top.shape[:2]
+    cv2.imwrite(str(path), cv2.resize(top, (width, round(h * width / w)), interpolation=cv2.INTER_AREA),
+                [cv2.IMWRITE_PNG_COMPRESSION, 9])
 
 
 if __name__ == "__main__":
