@@ -44,7 +44,7 @@ CONTACT_MAX_LEAN_DEG = 10.0
 """A contact is also set aside when, at the pose the other evidence gives, the object leans more
 than this from every one of its stable faces: no object at rest does, so it leans on something
 (measured in ``glass_photos``: 40 standing glass instances 0.1-7.9 deg; 16 objects lying in no
-stable pose 14-79 deg, six of them losing less than 0.1 of IoU when forced onto a face)."""
+stable pose 14-79 deg, four of them losing less than 0.1 of IoU when forced onto a face)."""
 TILT_SIGMA_DEG = 2.0
 """How far a resting object may lean from its stable face (degrees, one sigma): a scanned base
 that is not quite flat, a table not quite level."""
