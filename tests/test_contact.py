@@ -53,6 +53,11 @@ def test_contact_term_derivatives_and_soft_minimum() -> None:
     assert upright.tilt_deg(np.eye(4)) < 1e-6
     raised = make_pose(np.eye(3), np.array([0.0, 0.0, 4.0]))
     assert upright.gap_mm(raised) == pytest.approx(4.0, abs=1e-9)
+    open_box = trimesh.creation.box((40.0, 30.0, 20.0))
+    open_box.update_faces(np.arange(len(open_box.faces)) != 0)  # a scan's hole: not watertight
+    assert len(mesh_from_trimesh(open_box, "open").resting_downs) == 6  # on its hull's six faces
+    flat = mesh_from_trimesh(trimesh.creation.box((40.0, 30.0, 1e-9)), "flat")
+    assert flat.resting_downs.shape == (0, 3)  # nothing to rest on; trimesh would never return
 
 
 def _eroded_masks(mesh, T_true, cams, others=(), px: int = 3) -> Scene:

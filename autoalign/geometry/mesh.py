@@ -107,8 +107,16 @@ class Mesh:
     def resting_downs(self) -> NDArray[np.float64]:
         """(K, 3) unit directions (model frame) that point down, onto a table, in the poses the
         object can rest in: trimesh's stable poses (faces of the convex hull over which the centre
-        of mass lies), most probable first. Computed on first use."""
-        transforms, _ = trimesh_module().poses.compute_stable_poses(self.trimesh)
+        of mass lies: the mesh's own when it is watertight, else its hull's), most probable first;
+        none for a flat mesh. Computed on first use."""
+        tm = self.trimesh
+        with np.errstate(invalid="ignore", divide="ignore"):  # a flat hull's centre of mass divides by 0
+            hull = tm.convex_hull
+            volume = float(hull.volume)
+        if not volume > 1e-9 * self.diameter ** 3:  # flat: no face to rest on (trimesh would not return)
+            return np.zeros((0, 3))
+        centre_of_mass = tm.center_mass if tm.is_watertight else hull.center_mass
+        transforms, _ = trimesh_module().poses.compute_stable_poses(tm, center_mass=centre_of_mass)
         return np.array([-np.asarray(T)[2, :3] for T in transforms], dtype=np.float64).reshape(-1, 3)
 
     @functools.cached_property
