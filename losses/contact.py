@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from autoalign.geometry.se3 import hat3
 from autoalign.losses.term import Fragments, PoseTerms, Stance, TermEvidence, TermValues
 
 CONTACT_SIGMA_MM = 1.0
@@ -134,8 +135,7 @@ class RestingContact:
             d = self._down(T_wm)
             k = s / np.radians(TILT_SIGMA_DEG)
             r += list(k * (d + n))
-            cross = np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])
-            J += list(np.hstack([np.zeros((3, 3)), -k * cross]))
+            J += list(np.hstack([np.zeros((3, 3)), -k * hat3(d)]))
         Jm, e = np.array(J), np.array(r)
         return PoseTerms(0.5 * float(e @ e), Jm.T @ e, Jm.T @ Jm)
 
