@@ -551,8 +551,9 @@ def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, opts: Ref
     full = Level(1.0, opts.schedule[-1].sigma, 0)
     runs = [run_schedule(held, T, opts.schedule, opts.optimizer, progress, "resting on the table")
             for T in (h.T_final, h.T_init)]
-    T_on, traces = min(runs, key=lambda run: held.evaluate(run[0], full).value)
-    ev_on = obj.evaluate(T_on, full)
+    evs = [obj.evaluate(T, full) for T, _ in runs]  # the held value: the masks' plus the contact's, one render
+    k = int(np.argmin([e.value + term.term(T).value for e, (T, _) in zip(evs, runs)]))
+    (T_on, traces), ev_on = runs[k], evs[k]
     iou, iou_on = float(np.median(ev.terms.iou)), float(np.median(ev_on.terms.iou))
     contact = Contact(opts.resting, term.gap_mm(h.T_final), term.gap_mm(T_on), term.tilt_deg(h.T_final),
                       term.tilt_deg(T_on), iou, iou_on)

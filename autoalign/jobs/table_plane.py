@@ -35,8 +35,7 @@ def parse_plane(text: str) -> TablePlane:
         raise AutoalignError(f"--resting {text}: expected NX,NY,NZ,D (the table plane NX x + NY y + NZ z + D = 0 in "
                              "the world frame, mm, its normal towards the objects), e.g. 0,0,1,0; or --resting alone "
                              "to find it in the scene")
-    normal = n[:3] / np.linalg.norm(n[:3])
-    return TablePlane.of(normal, -n[3] / np.linalg.norm(n[:3]) * normal)
+    return TablePlane.of(n[:3], -n[3] / float(n[:3] @ n[:3]) * n[:3])  # the plane's point nearest the origin
 
 
 def resting_plane(resting: str | None, scene_dir: str | Path, scenes: Sequence[Scene]) -> TablePlane | None:
