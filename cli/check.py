@@ -45,12 +45,15 @@ inputs:
                                numbers (row-major), "cam_t_m2c": 3 numbers (mm)}, the model-to-camera
                                pose x_cam = R_m2c x_model + t_m2c; entry k is instance k
   --models MODELS_DIR          obj_{obj_id:06d}.ply in mm, with vertex colours (a mesh without
-                               colours is rendered grey and will give too few matches)
+                               colours is rendered grey and will give too few matches);
+                               materials.json beside them may declare an object transparent or
+                               reflective: its feature distance is then not measured
 
 output:
   a table per instance: obj id, instance, views, median IoU, mean feature distance (px) with its
   95% confidence interval (bootstrap over views), kept matches, or "too few matches" (< 10 over all
-  views), and the mean edge distance (px) with its interval. With --out: check.json (every image
+  views), or "not measurable (transparent)" or "(reflective)" (materials.json: the photo's features
+  on such an object are its surroundings', refracted or mirrored), and the mean edge distance (px) with its interval. With --out: check.json (every image
   and instance: IoU, matches, mean distance and its interval, mean offset photo - rendering in px,
   edge distance, bounding box; the per-instance summaries; the parameters) and check.png (up to 4
   photos with the labels' outlines and the kept matches: dot = rendering keypoint, line to the
@@ -152,7 +155,8 @@ def format_table(report: Any) -> str:
     lines = [head, "-" * len(head)]
     for s in report.instances:
         iou = f"{s.median_iou:.2f}" if s.median_iou is not None else "-"
-        dist = "too few matches" if s.too_few_matches else f"{s.mean_px:.2f} {_ci(s.ci95)}"
+        dist = (f"not measurable ({s.material})" if not s.features_measurable else "too few matches"
+                if s.too_few_matches else f"{s.mean_px:.2f} {_ci(s.ci95)}")
         edge = f"{s.edge_px:.2f} {_ci(s.edge_ci95)}" if s.edge_px is not None else "-"
         lines.append(f"{s.obj_id:>4} {s.instance:>4} {s.views:>5} {iou:>10}  {dist:<30} {s.n_matches:>7}  {edge:<26}")
     ids = ", ".join(str(i) for i in report.image_ids)

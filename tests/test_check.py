@@ -202,6 +202,62 @@ def test_shifted_photo_gives_its_shift() -> None:
     assert e.n_matches == 0 and e.mean_px is None and e.visible_px == c.visible_px
 
 
+def test_transparent_and_reflective_objects_get_no_feature_distance() -> None:
+    """The photo's features on glass or metal are its surroundings', refracted or mirrored: an
+    object declared so (``featureless``) is not matched, its outline still judged, and its summary
+    says so instead of "too few matches"; the same object undeclared is matched as before."""
+    rng = np.random.default_rng(3)
+    W, H = 320, 240
+    K = np.array([[500.0, 0.0, 159.5], [0.0, 500.0, 119.5], [0.0, 0.0, 1.0]])
+    mesh = _textured_sphere(rng)
+    R, t = random_rotation(rng), np.array([10.0, -5.0, 300.0])
+    photo = cv2.cvtColor(render_labels([PlacedMesh(0, mesh, R, t)], K, W, H).rgb, cv2.COLOR_RGB2BGR)
+    labels = [Label(7, 0, 1, R, t)]
+    _, (matched,) = check_image(7, photo, K, labels, {1: mesh})
+    _, (glass,) = check_image(7, photo, K, labels, {1: mesh}, featureless={1})
+    assert matched.n_matches >= 50 and glass.n_matches == 0 and glass.mean_px is None
+    assert glass.edge_px == matched.edge_px is not None and glass.visible_px == matched.visible_px
+    for material in ("transparent", "reflective"):
+        (s,) = summarize([glass], materials={1: material})
+        assert (s.material, s.features_measurable, s.too_few_matches, s.mean_px) == (material, False, False, None)
+        assert s.record()["features_measurable"] is False and s.edge_px == pytest.approx(glass.edge_px)
+    (s,) = summarize([matched], materials={2: "transparent"})
+    assert s.features_measurable and s.mean_px == pytest.approx(matched.mean_px)
+
+
+@needs_real
+def test_cli_check_says_declared_glass_and_metal_are_not_measurable(tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """``materials.json`` beside the models: the declared objects' rows say "not measurable", the
+    others' feature distances are those of the check without it."""
+    import shutil
+
+    models = tmp_path / "models"
+    shutil.copytree(REAL / "models", models)
+    (models / "materials.json").write_text(json.dumps({"1": {"material": "transparent"},
+                                                       "9": {"material": "reflective"}}))
+    rows = {}
+    for folder in (REAL / "models", models):
+        args = _parse(["check", str(REAL), "--labels", str(REAL / "scene_gt.json"), "--models", str(folder),
+                       "--images", "1", "--out", str(tmp_path / folder.parent.name), "--quiet"])
+        assert args.func(args) == 0
+        rec = json.loads((tmp_path / folder.parent.name / "check.json").read_text())
+        rows[folder] = {i["obj_id"]: i for i in rec["instances"]}
+    plain, declared = rows[REAL / "models"], rows[models]
+    assert plain[1]["features_measurable"] and plain[1]["n_matches"] > 0 and plain[9]["too_few_matches"]
+    assert (declared[1]["material"], declared[9]["material"]) == ("transparent", "reflective")
+    for obj in (1, 9):
+        assert not declared[obj]["features_measurable"] and declared[obj]["n_matches"] == 0
+        assert declared[obj]["mean_px"] is None and not declared[obj]["too_few_matches"]
+        assert declared[obj]["edge_px"] == pytest.approx(plain[obj]["edge_px"])
+    for obj in set(plain) - {1, 9}:
+        assert declared[obj]["mean_px"] == plain[obj]["mean_px"] and declared[obj]["material"] == "opaque"
+    args = _parse(["check", str(REAL), "--labels", str(REAL / "scene_gt.json"), "--models", str(models),
+                   "--images", "1"])
+    assert args.func(args) == 0
+    assert "not measurable (transparent)" in capsys.readouterr().out
+
+
 def _grey_sphere() -> ColouredMesh:
     """A 40 mm sphere without colours (rendered flat grey): its outline is a circle."""
     sph = trimesh.creation.icosphere(subdivisions=5, radius=40.0)

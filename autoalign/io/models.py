@@ -7,9 +7,12 @@
 vertices with their colours, for rendering the labels against photos).
 
 ``materials.json`` (optional, beside it; BOP has no such field) declares what the sensors see of an
-object: ``{"<obj_id>": {"material": "transparent" | "opaque"}}``. The measured depth of a
+object: ``{"<obj_id>": {"material": "transparent" | "reflective" | "opaque"}}``. The measured depth of a
 transparent object is not evidence about its surface (:mod:`autoalign.engine.see_through`);
-an object not listed is recognised from the evidence.
+an object not listed is recognised from the evidence. The photo's features on a transparent or
+reflective (mirror-like, polished metal) object are those of its surroundings, refracted or
+mirrored, so ``check`` does not measure its feature distance (:data:`FEATURELESS`); a reflective
+object's depth is refined as an opaque one's (its holes and specular outliers are per pixel).
 """
 
 from __future__ import annotations
@@ -29,10 +32,12 @@ from autoalign.geometry.mesh import ColouredMesh, Mesh, load_mesh, trimesh_modul
 from autoalign.geometry.se3 import Symmetries
 from autoalign.rasterizers.pyramid import MeshPyramid
 
-MATERIALS = ("opaque", "transparent")
+MATERIALS = ("opaque", "transparent", "reflective")
 """The materials ``materials.json`` may declare."""
-MATERIALS_FIX = ('materials.json maps object ids to {"material": "transparent"} or {"material": "opaque"}, e.g. '
-                 '{"3": {"material": "transparent"}}')
+FEATURELESS = ("transparent", "reflective")
+"""The materials whose photo features are not the object's own (module doc)."""
+MATERIALS_FIX = ('materials.json maps object ids to {"material": "transparent"}, {"material": "reflective"} or '
+                 '{"material": "opaque"}, e.g. {"3": {"material": "transparent"}}')
 
 GREY = (0.5, 0.5, 0.5)
 """Colour (RGB, 0..1) of a mesh without vertex colours."""

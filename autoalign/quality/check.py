@@ -7,7 +7,9 @@ the matches whose keypoints lie within ``MAX_MATCH_PX`` (10 px) of each other ar
 image distance of the kept matches is the feature distance: a label that puts the object where
 the photo shows it gives a small one (ProgressLabeller reports 1.95 px for its labels against
 2.28 px for the dataset's own on HOPE). Objects without texture give few matches and are flagged
-``too_few_matches`` instead of getting a number. Every view also gets the outline-to-edge distance
+``too_few_matches`` instead of getting a number. Transparent and reflective objects (``materials.json``,
+:data:`~autoalign.io.models.FEATURELESS`) are not matched at all: the features the photo shows on
+them are their surroundings', refracted or mirrored, and would match by chance a few px away. Every view also gets the outline-to-edge distance
 (:mod:`autoalign.quality.edge_distance`), which needs no texture.
 
 Large photos: a photo of more than :data:`autoalign.io.bop.MAX_IMAGE_PIXELS` is read downscaled by the
@@ -41,13 +43,14 @@ Nothing here imports torch or jax.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.io.bop import Label
+from autoalign.io.models import FEATURELESS
 from autoalign.geometry.mesh import ColouredMesh
 from autoalign.quality.check_report import (
     BBOX_MARGIN_PX,
@@ -81,8 +84,8 @@ from autoalign.quality.stats import bootstrap_mean_ci, pooled_mean_ci
 
 def check_image(image_id: int, photo_bgr: NDArray[np.uint8], K: NDArray[np.float64], labels: Sequence[Label],
                 meshes: Mapping[int, ColouredMesh], masks: Mapping[int, NDArray[np.bool_]] | None = None,
-                seed: int = 0, photo_features: Features | None = None,
-                edges: PhotoEdges | None = None) -> tuple[Rendering, list[ViewInstanceCheck]]:
+                seed: int = 0, photo_features: Features | None = None, edges: PhotoEdges | None = None,
+                featureless: Collection[int] = ()) -> tuple[Rendering, list[ViewInstanceCheck]]:
     """Check every label of one image against its photo (BGR, OpenCV ``cam_K`` in px, poses in mm).
 
     ``masks``: instance -> visible mask (H, W) bool, for the IoU (instances without one get None).
@@ -90,8 +93,9 @@ def check_image(image_id: int, photo_bgr: NDArray[np.uint8], K: NDArray[np.float
     (several label sets checked against one photo); ``edges``: its
     :func:`autoalign.quality.edge_distance.photo_edges`, likewise (covering the labels' outlines). A photo
     of 640 x 480 or less is searched whole; a larger one only in the box of the labels' rendered
-    pixels dilated by ``CONTEXT_PX`` (:func:`sift_scale` sets SIFT's resolution there). Returns the
-    rendering of all labels together and one :class:`ViewInstanceCheck` per label.
+    pixels dilated by ``CONTEXT_PX`` (:func:`sift_scale` sets SIFT's resolution there). The objects
+    of ``featureless`` (obj_ids: transparent, reflective) get no matches. Returns the rendering of all
+    labels together and one :class:`ViewInstanceCheck` per label.
     """
     H, W = photo_bgr.shape[:2]
     K = np.asarray(K, dtype=np.float64).reshape(3, 3)
@@ -131,7 +135,7 @@ def check_image(image_id: int, photo_bgr: NDArray[np.uint8], K: NDArray[np.float
             check.outline_rc = rc + [v0, u0]
         if len(check.edge_distances) >= MIN_OUTLINE_PX:
             check.edge_px = float(check.edge_distances.mean())
-        if visible:
+        if visible and lab.obj_id not in featureless:
             rows, cols = np.flatnonzero(sil.any(axis=1)) + v0, np.flatnonzero(sil.any(axis=0)) + u0
             box = (max(int(cols[0]) - BBOX_MARGIN_PX, 0), max(int(rows[0]) - BBOX_MARGIN_PX, 0),
                    min(int(cols[-1]) + 1 + BBOX_MARGIN_PX, W), min(int(rows[-1]) + 1 + BBOX_MARGIN_PX, H))
@@ -167,8 +171,11 @@ def _search_region(instance_map: NDArray[np.int32]) -> tuple[int, int, int, int]
             min(int(cols[-1]) + 1 + CONTEXT_PX, W), min(int(rows[-1]) + 1 + CONTEXT_PX, H))
 
 
-def summarize(views: Sequence[ViewInstanceCheck], seed: int = 0) -> list[InstanceSummary]:
-    """Per-instance summaries (sorted by instance, then obj_id) of per-view checks."""
+def summarize(views: Sequence[ViewInstanceCheck], seed: int = 0,
+              materials: Mapping[int, str] | None = None) -> list[InstanceSummary]:
+    """Per-instance summaries (sorted by instance, then obj_id) of per-view checks; ``materials``:
+    the declared ones by obj_id (``materials.json``; an object not there is opaque)."""
+    materials = materials or {}
     keys = sorted({(v.instance, v.obj_id) for v in views})
     out = []
     for inst, obj in keys:
@@ -176,14 +183,15 @@ def summarize(views: Sequence[ViewInstanceCheck], seed: int = 0) -> list[Instanc
         groups = [v.distances_px for v in mine if v.n_matches]
         n = int(sum(v.n_matches for v in mine))
         ious = [v.iou for v in mine if v.iou is not None]
-        too_few = n < MIN_MATCHES
+        material = materials.get(obj, "opaque")
+        too_few = n < MIN_MATCHES and material not in FEATURELESS
         mean = ci = offset = None
-        if not too_few:
+        if n >= MIN_MATCHES:
             allm = np.concatenate([v.matches for v in mine if v.n_matches])
             mean, ci = pooled_mean_ci(groups, np.random.default_rng([seed, 1_000_003, inst, obj]))
             offset = (float((allm[:, 2] - allm[:, 0]).mean()), float((allm[:, 3] - allm[:, 1]).mean()))
         edges = [v.edge_distances for v in mine if v.edge_px is not None]
         edge, edge_ci = pooled_mean_ci(edges, np.random.default_rng([seed, 3_000_017, inst, obj]))
         out.append(InstanceSummary(inst, obj, mean, ci, n, len(mine), float(np.median(ious)) if ious else None,
-                                   too_few, len(groups), offset, edge, edge_ci, len(edges)))
+                                   too_few, len(groups), offset, edge, edge_ci, len(edges), material))
     return out

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.io.bop import MAX_IMAGE_PIXELS
+from autoalign.io.models import FEATURELESS
 from autoalign.quality.edge_distance import (
     BLUR_SIGMA_PX,
     CANNY_HIGH,
@@ -101,6 +102,8 @@ class InstanceSummary:
     ``offset_px``: mean (du, dv) photo minus rendering over the kept matches (px).
     ``edge_px``: mean outline-to-edge distance (px) pooled over the views' outline pixels, with its
     95% bootstrap interval over the views ``edge_ci95``; None when no view has an outline to judge.
+    ``material``: as ``materials.json`` declares it; a transparent or reflective object's feature
+    distance is not measured (:attr:`features_measurable`): its photo features are its surroundings'.
     """
 
     instance: int
@@ -116,13 +119,20 @@ class InstanceSummary:
     edge_px: float | None = None
     edge_ci95: tuple[float, float] | None = None
     views_with_outline: int = 0
+    material: str = "opaque"
+
+    @property
+    def features_measurable(self) -> bool:
+        """Whether the photo's features are the object's own (not refracted or mirrored surroundings)."""
+        return self.material not in FEATURELESS
 
     def record(self) -> dict[str, Any]:
         """A JSON-ready dict."""
         return {"instance": self.instance, "obj_id": self.obj_id, "mean_px": _num(self.mean_px),
                 "ci95": _pair(self.ci95), "n_matches": self.n_matches, "views": self.views,
                 "views_with_matches": self.views_with_matches, "median_iou": _num(self.median_iou),
-                "too_few_matches": self.too_few_matches, "offset_px": _pair(self.offset_px),
+                "too_few_matches": self.too_few_matches, "material": self.material,
+                "features_measurable": self.features_measurable, "offset_px": _pair(self.offset_px),
                 "edge_px": _num(self.edge_px), "edge_ci95": _pair(self.edge_ci95),
                 "views_with_outline": self.views_with_outline}
 

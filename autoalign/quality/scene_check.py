@@ -24,7 +24,7 @@ from autoalign.io.bop import (
     read_labels,
     read_masks,
 )
-from autoalign.io.models import ColouredMesh, ModelSet
+from autoalign.io.models import FEATURELESS, ColouredMesh, ModelSet
 from autoalign.io.photos import read_photo_scaled, scaled_K
 from autoalign.quality.check import check_image, summarize
 from autoalign.quality.check_report import CheckReport, ViewInstanceCheck
@@ -57,6 +57,7 @@ class CheckInputs:
     photos: dict[int, Path]
     meshes: dict[int, ColouredMesh]
     warnings: list[str] = field(default_factory=list)
+    materials: dict[int, str] = field(default_factory=dict)
 
 
 def prepare_check(scene_dir: str | Path, labels_path: str | Path, models_dir: str | Path,
@@ -92,8 +93,9 @@ def prepare_check(scene_dir: str | Path, labels_path: str | Path, models_dir: st
     models = ModelSet.read(models_dir, with_info=False)  # the check needs no models_info.json
     meshes = models.coloured_meshes([lab.obj_id for i in chosen for lab in labels[i]], labels_path)
     warnings = [f"{m.path}: no vertex colours; rendered grey, so few matches are expected"
-                for m in meshes.values() if not m.has_colours]
-    return CheckInputs(scene_dir, labels_path, models_dir, labels, cameras, chosen, photos, meshes, warnings)
+                for obj, m in meshes.items() if not m.has_colours and models.materials.get(obj) not in FEATURELESS]
+    return CheckInputs(scene_dir, labels_path, models_dir, labels, cameras, chosen, photos, meshes, warnings,
+                       models.materials)
 
 
 def check_prepared(inputs: CheckInputs, seed: int = 0, progress: Any = None,
@@ -120,14 +122,15 @@ def check_prepared(inputs: CheckInputs, seed: int = 0, progress: Any = None,
                                  f"{photo.size[0]}; masks must have the photo's size")
         masks = {inst: m for (_, inst), m in read.masks.items()}  # empty masks: none, as in autoalign.io.bop
         K = scaled_K(inputs.cameras[im][0], photo.factor)
-        _, checks = check_image(im, photo.bgr, K, inputs.labels[im], inputs.meshes, masks, seed)
+        _, checks = check_image(im, photo.bgr, K, inputs.labels[im], inputs.meshes, masks, seed,
+                                featureless={o for o, m in inputs.materials.items() if m in FEATURELESS})
         views.extend(checks)
         scales[im] = 1.0 / photo.factor
         del photo, read, masks  # before the next image's are read
         if progress is not None:
             progress(n_done, len(chosen))
-    instances = summarize(views, seed)
-    ok = {(s.instance, s.obj_id) for s in instances if not s.too_few_matches}
+    instances = summarize(views, seed, inputs.materials)
+    ok = {(s.instance, s.obj_id) for s in instances if s.mean_px is not None}
     groups = [v.distances_px for v in views if v.n_matches and (v.instance, v.obj_id) in ok]
     n = int(sum(len(g) for g in groups))
     mean, ci = pooled_mean_ci(groups, np.random.default_rng([seed, 2_000_003]))
