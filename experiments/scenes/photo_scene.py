@@ -19,6 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from autoalign.experiments.scenes.path_traced import (
     SEE_THROUGH,
@@ -70,11 +71,12 @@ class TintedTexture:
 
 
 def place_on_table(meshes: Sequence[Mesh], rng: np.random.Generator, radius_mm: float | None = None,
-                   upright: Sequence[bool] = ()) -> list[NDArray[np.float64]]:
+                   upright: Sequence[bool] = (), at_rest: bool = False) -> list[NDArray[np.float64]]:
     """World-from-model poses: each mesh turned at random, resting on its lowest point, on a ring
     (radius 90 mm for up to 4 objects, growing with their number beyond: neighbours ~140 mm apart).
     A mesh whose ``upright`` entry is true stands on its model's -z side (glassware), turned about
-    the vertical only."""
+    the vertical only. With ``at_rest`` every other mesh lies on one of its three likeliest stable
+    faces (:attr:`Mesh.resting_downs`), as objects put down on a table do, turned about the vertical."""
     radius_mm = radius_mm if radius_mm is not None else 90.0 * max(1.0, len(meshes) / 4.0)
     poses = []
     for j, m in enumerate(meshes):
@@ -82,6 +84,10 @@ def place_on_table(meshes: Sequence[Mesh], rng: np.random.Generator, radius_mm: 
         if j < len(upright) and upright[j]:
             c, s = np.cos(t := rng.uniform(0, 2 * np.pi)), np.sin(t)
             R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        elif at_rest and len(m.resting_downs):
+            down = m.resting_downs[rng.integers(min(3, len(m.resting_downs)))]
+            on_face = Rotation.align_vectors([[0.0, 0.0, -1.0]], [down])[0]
+            R = (Rotation.from_rotvec([0.0, 0.0, rng.uniform(0, 2 * np.pi)]) * on_face).as_matrix()
         else:
             R = random_rotation(rng)
         low = float((m.vertices @ R.T)[:, 2].min())
@@ -209,7 +215,7 @@ def write_photo_scene(folder: str | Path, meshes: Sequence[Mesh], n_views: int, 
                       dist_range: tuple[float, float] = (350.0, 600.0),
                       cameras: Sequence[Camera] | None = None, see_through: Sequence[int] = (),
                       clear: bool = False, materials: Sequence[str] = (), tracing: PathTracing | None = None,
-                      upright: Sequence[bool] = ()) -> PhotoScene:
+                      upright: Sequence[bool] = (), at_rest: bool = False) -> PhotoScene:
     """A BOP scene folder (``scene_camera.json``, ``scene_gt.json``, ``mask_visib/``, ``rgb/``,
     optionally ``depth/`` with ``depth_scale``, measured as :func:`sensor_depth`) of ``meshes``
     (obj_id = position + 1) on a table, seen by ``cameras``, or by ``n_views`` cameras on a ring
@@ -219,12 +225,13 @@ def write_photo_scene(folder: str | Path, meshes: Sequence[Mesh], n_views: int, 
     With ``materials`` (one of :data:`~.path_traced.MATERIALS` per mesh) the depth passes through
     the glass, has blobs of holes on glass and metal, and with ``tracing`` the photos are
     path-traced (:func:`~.path_traced.path_traced_photos`; with a backdrop, the ring's cameras in
-    front of it, ``n_views`` of them). ``upright``: which meshes stand (:func:`place_on_table`)."""
+    front of it, ``n_views`` of them). ``upright``: which meshes stand, ``at_rest``: the others lie on
+    stable faces (:func:`place_on_table`)."""
     import json
 
     folder = Path(folder)
     rng = np.random.default_rng(seed)
-    poses = place_on_table(meshes, rng, upright=upright)
+    poses = place_on_table(meshes, rng, upright=upright, at_rest=at_rest)
     if cameras is not None:
         cams = list(cameras)
     else:

@@ -14,9 +14,18 @@ Conditions:
 * ``rgbd``: 8 views from nearly one viewpoint with sensor-like depth (noise growing with z squared,
   holes, one pixel of misregistration), masks eroded by 4 px, start 20 mm along the first view's
   ray and 10 deg off; with the depth (and the photos, as by default), without the depth
-  (``rgbd-no-depth``: masks and photos), and with the masks alone (``rgbd-masks-only``).
+  (``rgbd-no-depth``: masks and photos), with the masks alone (``rgbd-masks-only``), and with the masks
+  withheld (``rgbd-no-masks``: photos and depth).
+* ``rest``: as ``rgbd``, but every object lies on one of its stable faces (as objects put down on a
+  table do) and the depth is withheld (``--depth off``: masks and photos from one side, where the
+  distance along the rays is weakest); with the resting contact on the table's known plane
+  (``rest-resting``: ``--resting 0,0,1,0``, the plane ``recon`` gives) and without (``rest``).
 
-``python -m autoalign.experiments.studies.photo_evidence [--scenes 3] [--conditions photos,cut,...]``
+The objects are procedural (:mod:`~autoalign.experiments.scenes.procedural_models`), or with ``--models DIR``
+drawn from a BOP models folder (its ``models_info.json`` gives the symmetries): scanned meshes such as
+YCB-Video's, whose near-symmetric shapes the procedural ones only imitate.
+
+``python -m autoalign.experiments.studies.photo_evidence [--scenes 3] [--conditions photos,cut,...] [--models DIR]``
 """
 
 from __future__ import annotations
@@ -26,10 +35,12 @@ import json
 import shutil
 import sys
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
+import trimesh
 
 from autoalign.experiments import RESULTS
 from autoalign.experiments.commands import run_autoalign
@@ -45,13 +56,21 @@ from autoalign.experiments.scenes.procedural_models import (
 )
 from autoalign.experiments.scenes.synthetic import axis_angle_matrix, perturb_pose
 from autoalign.experiments.studies.metrics import Symmetries, pose_errors
-from autoalign.geometry.mesh import mesh_from_trimesh
+from autoalign.geometry.mesh import load_mesh, mesh_from_trimesh
 from autoalign.geometry.se3 import invert, make_pose, transform_points
 from autoalign.io.atomic_files import write_json_atomic
 from autoalign.io.bop import scene_gt_of
 
 CONDITIONS = ("photos", "cut", "cut-masks-only", "cut-no-seed", "cut-no-seed-masks-only", "rgbd", "rgbd-no-depth",
-              "rgbd-masks-only")
+              "rgbd-masks-only", "rgbd-no-masks", "rest", "rest-resting")
+KINDS = ("around", "rgbd", "rest")
+"""The scenes the conditions are run on: cameras all around, or nearly one viewpoint with depth
+(``rgbd``) and with the objects at rest (``rest``)."""
+
+
+def kind_of(condition: str) -> str:
+    """The kind of scene (:data:`KINDS`) ``condition`` is run on."""
+    return next((k for k in KINDS[1:] if condition.startswith(k)), KINDS[0])
 OBJECTS_PER_SCENE = 4
 
 
@@ -68,23 +87,48 @@ def cut_mask(mask: np.ndarray, share: float, rng: np.random.Generator) -> np.nda
     return out
 
 
-def make_scene(folder: Path, seed: int, rgbd: bool) -> tuple[PhotoScene, list[Symmetries]]:
-    """A scene of :data:`OBJECTS_PER_SCENE` procedural objects chosen by ``seed``, and their symmetries."""
+@dataclass(frozen=True)
+class StudyObject:
+    """One object a scene may hold: its mesh (mm), its ``models_info`` entry (symmetries) and the
+    file it is written from."""
+
+    mesh: trimesh.Trimesh
+    name: str
+    info: dict
+
+
+def object_pool(models: Path | None) -> list[StudyObject]:
+    """The procedural models, or every model of the BOP folder ``models`` (mm)."""
+    if models is None:
+        return [StudyObject(p.mesh, p.name, models_info_entry(p)) for p in procedural_models()]
+    info = json.loads((models / "models_info.json").read_text())
+    return [StudyObject(load_mesh(models / f"obj_{int(k):06d}.ply").trimesh, f"obj_{int(k)}", v)
+            for k, v in sorted(info.items(), key=lambda kv: int(kv[0]))]
+
+
+def make_scene(folder: Path, seed: int, kind: str, pool: list[StudyObject],
+               from_folder: bool = False) -> tuple[PhotoScene, list[Symmetries]]:
+    """A scene of ``kind`` (:data:`KINDS`) of :data:`OBJECTS_PER_SCENE` objects of ``pool`` chosen by
+    ``seed``, and their symmetries (``from_folder``: the pool's ``models_info`` is written beside the meshes)."""
     rng = np.random.default_rng(seed)
-    pool = procedural_models()
     chosen = [pool[int(i)] for i in rng.choice(len(pool), OBJECTS_PER_SCENE, replace=False)]
     meshes = [mesh_from_trimesh(p.mesh, p.name) for p in chosen]
-    cams = near_one_viewpoint(8, rng) if rgbd else None
-    ps = write_photo_scene(folder / "scene", meshes, 40, seed=seed, depth=rgbd, cameras=cams)
+    one_side = kind != "around"
+    cams = near_one_viewpoint(8, rng) if one_side else None
+    ps = write_photo_scene(folder / "scene", meshes, 40, seed=seed, depth=one_side, cameras=cams,
+                           at_rest=kind == "rest")
     (folder / "models").mkdir(exist_ok=True)
     for j, p in enumerate(chosen):
         p.mesh.export(folder / "models" / f"obj_{j + 1:06d}.ply")
-    return ps, [Symmetries.from_info(models_info_entry(p)) for p in chosen]
+    if from_folder:  # its own models_info, as a user has it; the procedural ones are refined without
+        info = {str(j + 1): p.info for j, p in enumerate(chosen)}
+        (folder / "models" / "models_info.json").write_text(json.dumps(info))
+    return ps, [Symmetries.from_info(p.info) for p in chosen]
 
 
 def starts_for(ps: PhotoScene, condition: str, seed: int) -> list[np.ndarray]:
     rng = np.random.default_rng([seed, 1])
-    if not condition.startswith("rgbd"):
+    if kind_of(condition) == "around":
         return [perturb_pose(T, 10.0, 15.0, rng, m.centre) for T, m in zip(ps.poses, ps.meshes)]
     out = []
     cam = ps.cameras[0]
@@ -101,7 +145,7 @@ def starts_for(ps: PhotoScene, condition: str, seed: int) -> list[np.ndarray]:
 def run(ps: PhotoScene, symmetries: list[Symmetries], condition: str, seed: int, tmp: Path) -> list[dict]:
     """Label the scene under ``condition``; one row per object, errors symmetry-aware."""
     scene = ps.folder
-    if condition.startswith("cut") or condition.startswith("rgbd"):
+    if condition.startswith("cut") or kind_of(condition) != "around":
         scene = tmp / f"{condition}_{seed}"
         shutil.copytree(ps.folder, scene)
         rng = np.random.default_rng([seed, 2])
@@ -121,7 +165,8 @@ def run(ps: PhotoScene, symmetries: list[Symmetries], condition: str, seed: int,
     args += {"photos": ["--masks", "none"], "cut": ["--photos", "on"], "cut-masks-only": ["--photos", "off"],
              "cut-no-seed": ["--photos", "on"], "cut-no-seed-masks-only": ["--photos", "off"],
              "rgbd": [], "rgbd-no-depth": ["--depth", "off"],
-             "rgbd-masks-only": ["--depth", "off", "--photos", "off"]}[condition]
+             "rgbd-masks-only": ["--depth", "off", "--photos", "off"], "rgbd-no-masks": ["--masks", "none"],
+             "rest": ["--depth", "off"], "rest-resting": ["--depth", "off", "--resting", "0,0,1,0"]}[condition]
     wall = run_autoalign(*args).check().wall_s
     labels = json.loads((out / "scene_gt.json").read_text())["0"]
     rec = json.loads((out / "refine.json").read_text())["instances"]
@@ -134,7 +179,8 @@ def run(ps: PhotoScene, symmetries: list[Symmetries], condition: str, seed: int,
         e = pose_errors(T, T_true, mesh.centre, None, sym)
         rows.append({"condition": condition, "seed": seed, "object": mesh.name, "symmetric": sym.symmetric,
                      "err_mm": e.pos_err_mm, "err_deg": e.rot_err_deg, "along_ray_mm": float((c - c_true) @ ray),
-                     "verdict": r["verdict"], "reasons": r["reasons"], "wall_s": wall})
+                     "verdict": r["verdict"], "reasons": r["reasons"], "wall_s": wall,
+                     "contact_kept": (r.get("contact") or {}).get("kept"), "turn_rise": r.get("turn_rise")})
     return rows
 
 
@@ -143,24 +189,31 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scenes", type=int, default=3)
     p.add_argument("--conditions", default=",".join(CONDITIONS))
     p.add_argument("--out", type=Path, default=RESULTS)
+    p.add_argument("--models", type=Path, default=None, help="a BOP models folder to draw the objects from "
+                   "(default: the procedural models)")
+    p.add_argument("--name", default="photo_evidence", help="the results' file name in --out, without suffix")
     a = p.parse_args(argv)
     conditions = a.conditions.split(",")
+    pool = object_pool(a.models)
     rows: list[dict] = []
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         for seed in range(a.scenes):
-            for rgbd in (False, True):
-                todo = [c for c in conditions if c.startswith("rgbd") == rgbd]
+            for kind in KINDS:
+                todo = [c for c in conditions if kind_of(c) == kind]
                 if not todo:
                     continue
-                ps, symmetries = make_scene(tmp / f"scene{seed}{'_rgbd' if rgbd else ''}", 100 + seed, rgbd)
+                ps, symmetries = make_scene(tmp / f"scene{seed}_{kind}", 100 + seed, kind, pool, a.models is not None)
                 for c in todo:
                     for r in run(ps, symmetries, c, seed, tmp):
                         rows.append(r)
                         print(json.dumps(r), flush=True)
+    objects = "procedural objects" if a.models is None else f"models of {a.models}"
     lines = ["# Photo and depth evidence on synthetic scenes", "",
-             f"`python -m autoalign.experiments.studies.photo_evidence --scenes {a.scenes} --conditions {a.conditions}`: "
-             f"{OBJECTS_PER_SCENE} textured procedural objects per scene on a textured table, mitsuba photos, open3d "
+             f"`python -m autoalign.experiments.studies.photo_evidence --scenes {a.scenes} --conditions {a.conditions}"
+             f"{'' if a.models is None else ' --models ' + str(a.models)}`: "
+             f"{OBJECTS_PER_SCENE} textured {objects}"
+             " per scene on a textured table, mitsuba photos, open3d "
              "masks, `autoalign refine --models` from `--init` (see the module doc for each condition).", "",
              "| condition | instances | within 1 mm / 1 deg | within 2 mm / 2 deg | outside 2 mm / 2 deg and not flagged | "
              "max error along the first view's ray mm | median err mm / deg | ok/check/failed | median wall s |",
@@ -180,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
               "|---|---|---|---|---|---|---|---|"]
     lines += [f"| {r['condition']} | {r['seed']} | {r['object']} | {r['err_mm']:.2f} | {r['err_deg']:.2f} | "
               f"{r['along_ray_mm']:+.2f} | {r['verdict']} | {'; '.join(r['reasons'])} |" for r in rows]
-    write_results("photo_evidence", rows, lines, a.out, shown=len(conditions) + 6)
+    write_results(a.name, rows, lines, a.out, shown=len(conditions) + 6)
     return 0
 
 

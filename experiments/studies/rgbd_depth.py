@@ -5,10 +5,12 @@ starts each) and is refined by ``autoalign.refine`` from its own masks, degraded
 (the frames' masks are renderings of the labels): eroded by 4 px, and eroded with 1 view in 3 cut to
 the object's left half, both also with the photos as evidence (the region term), and no masks at
 all, the photos alone (``read_evidence(..., modalities=("photos",))``). Each run with the depth term (``RefineOptions()``) and without
-(``RefineOptions(depth=None)``); errors against the dataset's labels (which agree with the sensor
-depth to about 2 mm), symmetry-aware, and the verdict.
+(``RefineOptions(depth=None)``), and without it but resting on the table (``RefineOptions(depth=None,
+resting=plane)``, :mod:`autoalign.losses.contact`; the plane fitted to the sensor's depth, which the
+pose does not see); errors against the dataset's labels (which agree with the sensor depth to about
+2 mm), symmetry-aware, and the verdict.
 
-    python -m autoalign.experiments.studies.rgbd_depth
+    python -m autoalign.experiments.studies.rgbd_depth [--masks eroded,...] [--depth yes,no,resting]
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ from autoalign.geometry.se3 import apply_twist, make_pose, pose_change, transfor
 from autoalign.io.bop import Scene, read_scene, with_depth
 from autoalign.io.evidence import read_evidence
 from autoalign.io.models import ModelSet
+from autoalign.jobs.table_plane import plane_from_depth
+from autoalign.losses.contact import Contact, TablePlane
 from autoalign.quality.verdict import PoseEvidence, judge
 
 ERODE_PX = 4
@@ -39,6 +43,8 @@ STARTS = 3
 MASKS = ("eroded", "eroded + 1 in 3 cut", "eroded + 1 in 3 cut, photos", "none, photos", "eroded, photos")
 """The evidence of each run: the masks degraded (eroded, eroded with 1 in 3 cut) with or without the
 photos as evidence (the region term), or no masks at all and the photos."""
+DEPTHS = ("yes", "no", "resting")
+"""The depth of each run: the sensor's depth as evidence, none, or none and the contact with the table."""
 
 
 def eroded(mask: np.ndarray) -> np.ndarray:
@@ -98,7 +104,13 @@ def degraded(scene: Scene, cut: bool) -> Scene:
     return replace(scene, masks=masks)
 
 
-def run(data: Path, masks_kinds: tuple[str, ...] = MASKS, depths: tuple[bool, ...] = (True, False)) -> list[dict]:
+def options_for(depth: str, plane: TablePlane) -> RefineOptions:
+    """The refinement of the depth setting ``depth`` (:data:`DEPTHS`) on the table ``plane``."""
+    return {"yes": RefineOptions(), "no": RefineOptions(depth=None),
+            "resting": RefineOptions(depth=None, resting=plane)}[depth]
+
+
+def run(data: Path, masks_kinds: tuple[str, ...] = MASKS, depths: tuple[str, ...] = DEPTHS) -> list[dict]:
     """One row per object, mask condition (of ``masks_kinds``), start and depth setting (of ``depths``)."""
     gt = json.loads((data / "scene_gt.json").read_text())["1"]  # world = camera of image 1
     models = ModelSet.read(data / "models")
@@ -111,6 +123,7 @@ def run(data: Path, masks_kinds: tuple[str, ...] = MASKS, depths: tuple[bool, ..
         T = make_pose(np.reshape(entry["cam_R_m2c"], (3, 3)), np.asarray(entry["cam_t_m2c"], dtype=np.float64))
         c = transform_points(T, mesh.centre[None])[0]
         scene = with_depth(read_scene(data, k))
+        plane = plane_from_depth(scene)
         photos = read_evidence(data, k, ("masks", "photos")).photos
         no_masks = read_evidence(data, modalities=("photos", "depth"))
         for start in range(STARTS):
@@ -122,13 +135,14 @@ def run(data: Path, masks_kinds: tuple[str, ...] = MASKS, depths: tuple[bool, ..
                     sc = replace(sc, photos=photos)
                 for depth in depths:
                     t0 = time.perf_counter()
-                    res = refine(sc, mesh, T0, RefineOptions() if depth else RefineOptions(depth=None))
+                    res = refine(sc, mesh, T0, options_for(depth, plane))
                     wall = time.perf_counter() - t0
                     e = pose_errors(res.T_wm, T, mesh.centre, None, sym)
                     along = float((transform_points(res.T_wm, mesh.centre[None])[0] - c) @ c / np.linalg.norm(c))
                     verdict = judge(PoseEvidence.of(res, sc.empty, bool(sym.discrete or sym.continuous),
                                                     seed_move=pose_change(res.T_wm, T0, mesh.centre)))
                     rows.append({"obj_id": obj, "start": start, "masks": masks, "depth": depth,
+                                 "contact": None if (ct := res.measurement(Contact)) is None else ct.kept,
                                  "err_mm": float(e.pos_err_mm), "err_deg": float(e.rot_err_deg), "along_ray_mm": along,
                                  "sigma_ray_mm": res.uncertainty.sigma_ray_mm, "weak": res.uncertainty.weak,
                                  "verdict": verdict.status, "reasons": verdict.reasons, "wall_s": wall})
@@ -144,12 +158,15 @@ def table(rows: list[dict]) -> list[str]:
              "median along ray mm | verdicts ok/check/failed |", "|---|---|---|---|---|---|---|---|---|"]
     for obj in sorted({r["obj_id"] for r in rows}):
         for masks in MASKS:
-            for depth in (True, False):
+            for depth in DEPTHS:
                 rs = [r for r in rows if r["obj_id"] == obj and r["masks"] == masks and r["depth"] == depth]
+                if not rs:
+                    continue
                 mm, deg = np.array([r["err_mm"] for r in rs]), np.array([r["err_deg"] for r in rs])
                 ok = int(np.sum((mm < 3.0) & (deg < 2.0)))
                 counts = "/".join(str(sum(r["verdict"] == v for r in rs)) for v in ("ok", "check", "failed"))
-                lines.append(f"| {obj} | {masks} | {'yes' if depth else 'no'} | {ok} of {len(rs)} | "
+                kept = "" if depth != "resting" else f", kept {sum(bool(r['contact']) for r in rs)}"
+                lines.append(f"| {obj} | {masks} | {depth}{kept} | {ok} of {len(rs)} | "
                              f"{np.median(mm):.2f} | {mm.max():.2f} | {np.median(deg):.2f} | "
                              f"{np.median([r['along_ray_mm'] for r in rs]):+.1f} | {counts} |")
     return lines
@@ -159,9 +176,12 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, default=YCBV_RGBD)
     p.add_argument("--out", type=Path, default=RESULTS)
+    p.add_argument("--masks", default=",".join(MASKS), help=f"some of {';'.join(MASKS)}, separated by ;")
+    p.add_argument("--depth", default=",".join(DEPTHS), help=f"some of {','.join(DEPTHS)}")
+    p.add_argument("--name", default="rgbd_depth", help="the results' file name in --out, without suffix")
     a = p.parse_args(argv)
-    rows = run(a.data)
-    write_results("rgbd_depth", rows, table(rows), a.out)
+    rows = run(a.data, tuple(a.masks.split(";")), tuple(a.depth.split(",")))
+    write_results(a.name, rows, table(rows), a.out)
     return 0
 
 
