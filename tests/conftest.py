@@ -93,6 +93,12 @@ def open3d_depth(mesh: Any, T_wm: np.ndarray, cam: Any) -> np.ndarray:
     return np.where(np.isfinite(t), t, 0.0).astype(np.float32)
 
 
+@pytest.fixture
+def depth_caster() -> Any:
+    """:func:`open3d_depth`, for the tests that cast the depth of their own scenes."""
+    return open3d_depth
+
+
 @pytest.fixture(scope="module")
 def box_with_depth() -> tuple[Any, np.ndarray, list, list[np.ndarray]]:
     """A box (mesh, world-from-model pose) in 4 views of 320x240 at about 400 mm, and its depth in

@@ -265,6 +265,28 @@ def test_nearly_symmetric_is_a_reason_unless_turning_clearly_worsens_the_fit():
                               turn_gap=2 * NEAR_SYMMETRY_GAP)).status == "check"
 
 
+def test_a_turn_the_depth_and_masks_barely_see_is_a_reason_whatever_its_sigma():
+    """With depth, a pose whose turns of 10-20 deg about a principal axis change the whole fit by
+    less than NEAR_TURN_RISE is nearly symmetric, and the reason names that axis, even where the
+    sigma is small and the masks' turn gap clear (the tuna can, 8.8 deg off with sigma 0.33 deg);
+    a rise above it changes nothing, and declared symmetries explain it."""
+    from autoalign.engine.uncertainty import Uncertainty
+    from autoalign.quality.verdict import NEAR_TURN_RISE
+
+    ids = list(range(10))
+    cov = np.diag([0.01, 0.01, 0.01, 1e-6, 1e-6, np.radians(0.3) ** 2])
+    u = Uncertainty(cov, np.full(3, 0.1), np.array([0.06, 0.06, 0.3]), [], [np.array([1.0, 0.0, 0.0])])
+    fit = (np.full(10, 0.95), np.ones(10), ids)
+    z = np.array([0.0, 0.0, 1.0])
+    clear = dict(uncertainty=u, turn_gap=2 * NEAR_SYMMETRY_GAP, turn_rise_axis_m=z)
+    assert judge(PoseEvidence(*fit, **clear)).status == "ok"  # no depth: no rise
+    assert judge(PoseEvidence(*fit, turn_rise=2 * NEAR_TURN_RISE, **clear)).status == "ok"
+    v = judge(PoseEvidence(*fit, turn_rise=-0.004, **clear))
+    assert v.status == "check" and "nearly symmetric: the turn about model z (0.3 deg)" in v.reasons[-1]
+    assert "changes by -0.4%" in v.reasons[-1] and "model x" not in v.reasons[-1]
+    assert judge(PoseEvidence(*fit, symmetric=True, turn_rise=-0.004, **clear)).status == "ok"
+
+
 def test_partial_masks_with_views_that_agree_are_check_not_failed():
     """Most masks cover part of the object or another one (IoU 0.3, set aside), but 4 of 10 views
     fit the pose well: `check`, with the agreeing views named; with only 2 agreeing, `failed`."""

@@ -21,6 +21,7 @@ from autoalign.engine.hypotheses import (
     orbit,
     poses_at,
     turn_scores,
+    turns,
 )
 from autoalign.engine.objective import Evaluation, Level, SilhouetteObjective
 from autoalign.engine.options import (  # noqa: F401 - the engine's settings, importable from here too
@@ -101,6 +102,19 @@ class Hypothesis:
         return self.estimated, self.loss
 
 
+@dataclass(frozen=True)
+class TurnTests:
+    """How the disambiguated pose fits against its turns: ``gap``, the mean hard IoU at 1/4
+    resolution by which it beats its turns of 30-180 degrees about its weakly observed axes
+    (``None``: none tried); ``rise``, with measured depth, the smallest relative rise of the whole
+    objective from it to its turns of 10-20 degrees about one exact moment axis, ``rise_axis_m`` (unit,
+    model frame; ``None``: no depth)."""
+
+    gap: float | None = None
+    rise: float | None = None
+    rise_axis_m: NDArray[np.float64] | None = None
+
+
 @dataclass
 class Finalist:
     """A hypothesis polished through the last level, with its final view weights."""
@@ -143,6 +157,11 @@ class RefineResult:
             1/4 resolution) the result fits than the best of its turns about those axes (30-180
             degrees; negative: a turn fit better and was refined); ``None`` when none were tried.
             Near 0 the object is nearly symmetric about such an axis.
+        turn_rise: with measured depth, the smallest relative rise of the whole objective from the
+            disambiguated pose to its turns of 10-20 degrees about one of the mesh's exact moment axes
+            (:attr:`~autoalign.geometry.mesh.Mesh.moment_axes`; negative: a turn fits better); near 0
+            the evidence does not fix that turn (a nearly symmetric can seen from one side), about
+            ``turn_rise_axis_m`` (unit, model frame). ``None``: no depth, or the pose held near its seed.
         terms: each evidence term's loss per view at the result, with the view weights
             (:class:`~autoalign.losses.term.ViewTermsRecord`).
         measured: what each kind of evidence beside the masks measured at the result, in the order it
@@ -170,6 +189,8 @@ class RefineResult:
     image_ids: list[int] = field(default_factory=list)
     uncertainty: Uncertainty | None = None
     turn_gap: float | None = None
+    turn_rise: float | None = None
+    turn_rise_axis_m: NDArray[np.float64] | None = None
     terms: ViewTermsRecord | None = None
     measured: tuple[Measured, ...] = ()
     seed_hold: SeedHold | None = None
@@ -429,6 +450,20 @@ def _with_best_turn(obj: SilhouetteObjective, scene: Scene, final: list[Finalist
     return final, own - float(scores[k])
 
 
+def _turn_rise(obj: SilhouetteObjective, T_wm: NDArray[np.float64], axes_m: NDArray[np.float64],
+               angles_deg: tuple[float, ...], level: Level) -> tuple[float, NDArray[np.float64]]:
+    """How much the whole objective (depth included) rises at ``level`` when the pose ``T_wm`` is
+    turned by ``angles_deg`` about each of ``axes_m`` (rows, unit, model frame): over the axes, the
+    smallest relative rise to the best of that axis's turns (negative: a turn fits better), and that
+    axis. The masks' hard IoU, which the near turns use, is blind to a turn about a near-symmetry
+    axis; this says whether any evidence sees it."""
+    own = obj.evaluate(T_wm, level, with_derivatives=False).value
+    values = np.array([[obj.evaluate(T, level, with_derivatives=False).value
+                        for T in turns(T_wm, a, obj.centre_m, angles_deg)] for a in axes_m])
+    a = int(np.argmin(values.min(axis=1)))
+    return float(values[a].min() / own - 1.0), np.asarray(axes_m[a], dtype=np.float64)
+
+
 def _with_orbit(obj: SilhouetteObjective, scene: Scene, final: list[Finalist], standing: Standing,
                 centre_m: NDArray[np.float64], others: list[Hypothesis], opts: RefineOptions,
                 progress: Progress | None) -> tuple[list[Finalist], Standing]:
@@ -454,7 +489,8 @@ def _with_orbit(obj: SilhouetteObjective, scene: Scene, final: list[Finalist], s
 
 def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: list[Finalist],
                   others: list[Hypothesis], given_pose: bool, opts: RefineOptions, progress: Progress | None,
-                  pose_only: bool = False) -> tuple[list[Finalist], Standing, Evaluation, Uncertainty | None, float | None]:
+                  pose_only: bool = False
+                  ) -> tuple[list[Finalist], Standing, Evaluation, Uncertainty | None, TurnTests]:
     """Stage 4: poses the polish cannot tell apart from the best by descent.
 
     * **Orbits.** When the runner-up is competitive and a 1/n turn away, the rest of that turn's
@@ -468,9 +504,13 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
     * **Weak turns.** From a given pose, the best's turns about its weakly observed axes are
       scored at 1/4 resolution and a clearly better one is polished; how much worse the best
       turn fits is returned (``turn_gap``; ``None`` when none were tried).
+    * **Turn rise.** With measured depth, how much the whole objective rises when the result is
+      turned 10-20 degrees about its exact moment axes (:func:`_turn_rise`; ``turn_rise``): a
+      measurement for the verdict only, nothing is refined from it (refined, it took a scene whose
+      cameras were 10% off in scale, so its depth disagreed, to a turn the masks did not support).
 
     Returns the finalists, their standing, the full-resolution evaluation and the uncertainty of
-    the best (``None`` for ``pose_only`` without a given pose: then nothing reads it), and the turn gap.
+    the best (``None`` for ``pose_only`` without a given pose: then nothing reads it), and its turn tests.
     """
     levels = opts.schedule
     final, standing = _with_orbit(obj, scene, final, _rank(final, others, mesh.centre, opts), mesh.centre, others,
@@ -495,7 +535,10 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
             standing = _rank(final, others, mesh.centre, opts)
             if final[0] is not best:
                 ev, uncertainty = _final_state(obj, final[0].hypothesis, final[0].weights, levels, opts.optimizer)
-    return final, standing, ev, uncertainty, turn_gap
+    if obj.depth is None or not opts.disambiguation.near_turns:
+        return final, standing, ev, uncertainty, TurnTests(turn_gap)
+    rise = _turn_rise(obj, final[0].hypothesis.T_final, mesh.moment_axes, opts.disambiguation.near_turns, levels[-1])
+    return final, standing, ev, uncertainty, TurnTests(turn_gap, *rise)
 
 
 def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best: Finalist, ev: Evaluation,
@@ -679,8 +722,8 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
 
     t0 = time.perf_counter()
     final, dropped = _polish(obj, finalists, rest, opts, progress)
-    final, standing, final_ev, uncertainty, turn_gap = _disambiguate(obj, scene, mesh, final, others + dropped,
-                                                                     given_pose, opts, progress, pose_only)
+    final, standing, final_ev, uncertainty, turn = _disambiguate(obj, scene, mesh, final, others + dropped,
+                                                                 given_pose, opts, progress, pose_only)
     timings["refine"] = time.perf_counter() - t0
     hold = None
     if given_pose or anchor is not None:
@@ -688,7 +731,7 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
         kept, final_ev, held_unc, hold = _held_near_seed(obj, np.asarray(seed if anchor is None else anchor),
                                                          final[0], final_ev, opts, progress)
         if held_unc is not None:  # the pose within the radius: the far pose's turn gap says nothing of it
-            final, uncertainty, turn_gap = [kept] + final, held_unc, None
+            final, uncertainty, turn = [kept] + final, held_unc, TurnTests()
         timings["seed"] += time.perf_counter() - t0
     contact = None
     if opts.resting is not None:
@@ -714,5 +757,6 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
         iterations=sum(tr.iterations for _, tr in best.path), renders=obj.renders, timings=timings,
         hypotheses=standing.ranked, ambiguous=standing.ambiguous, runner_up=standing.runner_up,
         weights=final[0].weights, history=history, image_ids=list(scene.image_ids), uncertainty=uncertainty,
-        turn_gap=turn_gap, terms=final_ev.record(), measured=final_ev.measured + ((contact,) if contact else ()),
+        turn_gap=turn.gap, turn_rise=turn.rise, turn_rise_axis_m=turn.rise_axis_m, terms=final_ev.record(),
+        measured=final_ev.measured + ((contact,) if contact else ()),
         seed_hold=hold)

@@ -126,6 +126,19 @@ class Mesh:
         d = self.sample_points(2000) - self.centre
         return np.linalg.eigh(d.T @ d)[1][:, ::-1].T.copy()
 
+    @functools.cached_property
+    def moment_axes(self) -> NDArray[np.float64]:
+        """(3, 3) rows: unit principal axes of the surface's second moments about ``centre``, exact
+        over the triangles (a triangle's is area / 12 (sum of v v^T over its corners plus s s^T, s
+        their sum)), major first; model frame. An axis of symmetry is exactly one of them, where
+        :attr:`principal_axes` (2,000 samples, what the search turns about) put a can's 1.8 deg off:
+        a turn about that tilts the can, which depth sees."""
+        V = self.vertices[self.faces] - self.centre  # (F, 3 corners, 3)
+        area = 0.5 * np.linalg.norm(np.cross(V[:, 1] - V[:, 0], V[:, 2] - V[:, 0]), axis=1)
+        s = V.sum(axis=1)
+        moments = np.einsum("f,fki,fkj->ij", area, V, V) + np.einsum("f,fi,fj->ij", area, s, s)
+        return np.linalg.eigh(moments / 12.0)[1][:, ::-1].T.copy()
+
     @property
     def trimesh(self) -> "trimesh.Trimesh":
         """A trimesh view of the same geometry (no processing)."""

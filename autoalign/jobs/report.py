@@ -83,6 +83,12 @@ def pose_record(T: Any) -> dict[str, Any]:
     return {"T_wm": floats(T), "R": floats(T[:3, :3].ravel()), "t": floats(T[:3, 3])}
 
 
+def turn_rise_record(r: RefineResult) -> dict[str, Any]:
+    """``turn_rise`` and its axis (:class:`~autoalign.engine.refine.RefineResult`), for refine.json."""
+    axis = None if r.turn_rise_axis_m is None else [float(v) for v in r.turn_rise_axis_m]
+    return {"turn_rise": r.turn_rise, "turn_rise_axis": axis}
+
+
 def uncertainty_record(u: Uncertainty | None) -> dict[str, Any] | None:
     """The ``uncertainty`` entry of ``refine.json`` (see :mod:`autoalign.engine.uncertainty`)."""
     if u is None:
@@ -252,7 +258,7 @@ class RefineReport:
             "hypotheses": [{"rank": k, "stage": h.stage_name, "loss": h.loss, "mean_iou": h.mean_iou,
                             "pose_init": pose_record(h.T_init), "pose": pose_record(h.T_final)}
                            for k, h in enumerate(r.hypotheses)],
-            "ambiguous": bool(r.ambiguous), "turn_gap": r.turn_gap,
+            "ambiguous": bool(r.ambiguous), "turn_gap": r.turn_gap, **turn_rise_record(r),
             **{m.name: m.record() for m in r.measured}, "terms": terms_record(r.terms),
             "evidence": [e.record() for e in r.evidence()],
             "runner_up": None if self.runner_up is None else self.runner_up.to_json(),
@@ -307,6 +313,7 @@ class InstanceReport:
             "weights": res.weights, "median_iou_after": float(np.median(res.iou_after)),
             "empty_masks": self.empty,
             "ambiguous": bool(res.ambiguous), "symmetric": self.symmetric, "turn_gap": res.turn_gap,
+            **turn_rise_record(res),
             **{m.name: m.record() for m in res.measured}, "terms": terms_record(res.terms),
             "evidence": [e.record() for e in res.evidence()],
             "iterations": res.iterations, "renders": res.renders,

@@ -184,6 +184,8 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
             centre_w = transform_points(joint.poses[k], pyramids[k].mesh.centre[None])[0]
             distance = float(np.median([np.linalg.norm(centre_w - c.centre) for c in found.scenes[k].cameras]))
             unc = with_scale_sigma(unc, joint.scale_sigma, distance)
+        # the alone turn rise weighed its depth against cameras of the unsolved scale: then it says nothing
+        rise = (r.result.turn_rise, r.result.turn_rise_axis_m) if joint.scale_sigma == 0.0 else (None, None)
         evidence = had_photo if photo[k] is None or had_photo is None else replace(photo[k], rounds=had_photo.rounds)
         contact = r.result.measurement(Contact)
         if contact is not None and contact.kept:  # held to the plane in the joint stage too: its gap there
@@ -192,7 +194,8 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
             contact = replace(contact, gap_after_mm=on.gap_mm(joint.poses[k]), tilt_after_deg=on.tilt_deg(joint.poses[k]))
         measured = tuple(m for m in (depth, evidence, contact) if m is not None)
         after.append(replace(r.result, T_wm=joint.poses[k], iou_after=iou, weights=joint.evaluation.weights[k],
-                             uncertainty=unc, turn_gap=gap, terms=joint.evaluation.record(k), measured=measured))
+                             uncertainty=unc, turn_gap=gap, turn_rise=rise[0], turn_rise_axis_m=rise[1],
+                             terms=joint.evaluation.record(k), measured=measured))
     return after
 
 
