@@ -149,9 +149,9 @@ def run(data: Path, masks_kinds: tuple[str, ...] = MASKS, depths: tuple[str, ...
     return rows
 
 
-def table(rows: list[dict]) -> list[str]:
+def table(rows: list[dict], options: str = "") -> list[str]:
     lines = ["# Real sensor depth as evidence (YCB-Video frames)", "",
-             "`python -m autoalign.experiments.studies.rgbd_depth`: each object from "
+             f"`python -m autoalign.experiments.studies.rgbd_depth{options}`: each object from "
              f"{STARTS} starts 20 mm along its viewing ray and 10 deg off; masks eroded by {ERODE_PX} px (and 1 in 3 "
              "cut to half the object); errors symmetry-aware against the dataset's labels.", "",
              "| object | masks | depth | within 3 mm / 2 deg | median err mm | max err mm | median err deg | "
@@ -181,7 +181,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--name", default="rgbd_depth", help="the results' file name in --out, without suffix")
     a = p.parse_args(argv)
     rows = run(a.data, tuple(a.masks.split(";")), tuple(a.depth.split(",")))
-    write_results(a.name, rows, table(rows), a.out)
+    options = "".join(f" --{k} '{v}'" for k, v in (("masks", a.masks), ("depth", a.depth), ("name", a.name))
+                      if v != p.get_default(k))
+    write_results(a.name, rows, table(rows, options), a.out)
     return 0
 
 
