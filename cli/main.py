@@ -83,7 +83,9 @@ outputs (written into OUT_DIR, replacing files of the same name; if the run fail
                  iterations, renders, timings (s), every hypothesis tried (stage, loss, mean IoU,
                  poses), "ambiguous" and "runner_up" (pose, loss, rotation_deg and translation_mm
                  from the winner), "turn_gap" (how much better the pose fits than its turns about
-                 weakly observed axes; near 0: nearly symmetric), the verdict (ok, check or failed) and its reasons, the
+                 weakly observed axes; near 0: nearly symmetric), with depth "turn_rise" and
+                 "turn_rise_axis" (how much the whole fit rises turned 10-20 deg about that model
+                 axis; under 0.1: nearly symmetric), the verdict (ok, check or failed) and its reasons, the
                  uncertainty (sigma along/about the model axes, weakly observed directions,
                  covariance), the options, the version, skipped image ids, empty masks,
                  the pixel convention of cam_K and warnings
