@@ -217,8 +217,8 @@ def test_the_verdict_weighs_the_depth_against_the_masks() -> None:
 def test_a_turn_neither_the_masks_nor_the_depth_fix_is_not_called_ok(depth_caster) -> None:
     """Issue 43, item 11: seen from nearly one viewpoint with depth, a can (its symmetry not
     declared) turned 10-20 deg about its axis fits within NEAR_TURN_RISE as well, so it is
-    ``check``, the reason naming that axis, whatever its sigma; an L-bracket's turns fit far worse,
-    and it is ``ok`` (both within 1 mm / 1 deg, symmetry aside)."""
+    ``check``, the reason naming that axis, whatever its sigma; an L-bracket, round about no axis,
+    is not measured, and it is ``ok`` (both within 1 mm / 1 deg, symmetry aside)."""
     from autoalign.experiments.scenes.photo_scene import near_one_viewpoint
     from autoalign.experiments.scenes.procedural_models import procedural_models
     from autoalign.experiments.scenes.synthetic import perturb_pose, random_rotation
@@ -242,5 +242,5 @@ def test_a_turn_neither_the_masks_nor_the_depth_fix_is_not_called_ok(depth_caste
             assert res.turn_rise < NEAR_TURN_RISE and abs(axis[2]) > 0.99, (res.turn_rise, axis)
             assert verdict.status == "check" and any("the turn about model z" in r for r in verdict.reasons)
         else:
-            assert rotation_angle_deg(res.T_wm[:3, :3], R) < 1.0
-            assert res.turn_rise > 3 * NEAR_TURN_RISE and verdict.status == "ok", (res.turn_rise, verdict)
+            assert rotation_angle_deg(res.T_wm[:3, :3], R) < 1.0  # round about no axis: nothing to measure
+            assert res.turn_rise is None and verdict.status == "ok", (res.turn_rise, verdict)

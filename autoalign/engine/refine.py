@@ -107,8 +107,8 @@ class TurnTests:
     """How the disambiguated pose fits against its turns: ``gap``, the mean hard IoU at 1/4
     resolution by which it beats its turns of 30-180 degrees about its weakly observed axes
     (``None``: none tried); ``rise``, with measured depth, the smallest relative rise of the whole
-    objective from it to its turns of 10-20 degrees about one exact moment axis, ``rise_axis_m`` (unit,
-    model frame; ``None``: no depth)."""
+    objective from it to its turns of 10-20 degrees about an axis the mesh is nearly round about,
+    ``rise_axis_m`` (unit, model frame; ``None``: no depth, or no such axis)."""
 
     gap: float | None = None
     rise: float | None = None
@@ -158,10 +158,11 @@ class RefineResult:
             degrees; negative: a turn fit better and was refined); ``None`` when none were tried.
             Near 0 the object is nearly symmetric about such an axis.
         turn_rise: with measured depth, the smallest relative rise of the whole objective from the
-            disambiguated pose to its turns of 10-20 degrees about one of the mesh's exact moment axes
-            (:attr:`~autoalign.geometry.mesh.Mesh.moment_axes`; negative: a turn fits better); near 0
-            the evidence does not fix that turn (a nearly symmetric can seen from one side), about
-            ``turn_rise_axis_m`` (unit, model frame). ``None``: no depth, or the pose held near its seed.
+            disambiguated pose to its turns of 10-20 degrees about an axis the mesh is nearly round
+            about (:attr:`~autoalign.geometry.mesh.Mesh.round_axes`; negative: a turn fits better); near
+            0 the evidence does not fix that turn (a nearly symmetric can seen from one side), about
+            ``turn_rise_axis_m`` (unit, model frame). ``None``: no depth, no such axis (any turn
+            changes the shape), or the pose held near its seed.
         terms: each evidence term's loss per view at the result, with the view weights
             (:class:`~autoalign.losses.term.ViewTermsRecord`).
         measured: what each kind of evidence beside the masks measured at the result, in the order it
@@ -505,7 +506,8 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
       scored at 1/4 resolution and a clearly better one is polished; how much worse the best
       turn fits is returned (``turn_gap``; ``None`` when none were tried).
     * **Turn rise.** With measured depth, how much the whole objective rises when the result is
-      turned 10-20 degrees about its exact moment axes (:func:`_turn_rise`; ``turn_rise``): a
+      turned 10-20 degrees about the axes it is nearly round about (:attr:`Mesh.round_axes
+      <autoalign.geometry.mesh.Mesh.round_axes>`; :func:`_turn_rise`; ``turn_rise``): a
       measurement for the verdict only, nothing is refined from it (refined, it took a scene whose
       cameras were 10% off in scale, so its depth disagreed, to a turn the masks did not support).
 
@@ -535,9 +537,9 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
             standing = _rank(final, others, mesh.centre, opts)
             if final[0] is not best:
                 ev, uncertainty = _final_state(obj, final[0].hypothesis, final[0].weights, levels, opts.optimizer)
-    if obj.depth is None or not opts.disambiguation.near_turns:
+    if obj.depth is None or not opts.disambiguation.near_turns or not len(mesh.round_axes):
         return final, standing, ev, uncertainty, TurnTests(turn_gap)
-    rise = _turn_rise(obj, final[0].hypothesis.T_final, mesh.moment_axes, opts.disambiguation.near_turns, levels[-1])
+    rise = _turn_rise(obj, final[0].hypothesis.T_final, mesh.round_axes, opts.disambiguation.near_turns, levels[-1])
     return final, standing, ev, uncertainty, TurnTests(turn_gap, *rise)
 
 

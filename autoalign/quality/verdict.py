@@ -61,12 +61,13 @@ scenes with systematic mask errors (``experiments/results/uncertainty_calibratio
 the instances given there, false alarms and misses counted."""
 NEAR_TURN_RISE = 0.1
 """With measured depth, the object is also named nearly symmetric when turning the pose by 10-20
-degrees about one of its exact moment axes raises the whole objective by less than this share
+degrees about an axis it is nearly round about raises the whole objective by less than this share
 (``turn_rise``): neither the masks, the photo nor the depth then fix that turn, whatever its sigma
 says (a YCB-Video tuna can seen from one side ended 8.8 deg off about its axis, sigma 0.33 deg,
 ``ok``). Measured on the one-viewpoint RGB-D scenes of ``photo_evidence`` (72 instances of
 procedural and YCB-Video models): undeclared near-symmetric objects -0.031 to 0.055 (the tuna can,
-a tomato soup can, a flashlight), every other undeclared one 0.147 or more."""
+a tomato soup can, a flashlight), every other undeclared one nearly round about an axis (an oil can,
+a mug, brackets) 0.15 or more; the rest are round about no axis, and not measured."""
 SAME_FIT = 1.05
 """A pose kept within the seed's radius whose loss is within this factor of the far one's fits as
 well (a symmetric object's equivalent turn, say): the masks do not pull it away, no reason is given."""
@@ -288,7 +289,8 @@ class PoseEvidence:
         turn_gap: how much better the pose fits than its turns about weakly observed axes (see
             :func:`nearly_symmetric`).
         turn_rise, turn_rise_axis_m: with depth, how much the whole fit rises when the pose is turned
-            10-20 degrees about that principal axis (:data:`NEAR_TURN_RISE`).
+            10-20 degrees about that axis, one the mesh is nearly round about (unit, model frame;
+            :data:`NEAR_TURN_RISE`).
         terms: what each other kind of evidence says of the pose, in the order they were measured
             (:class:`~autoalign.losses.term.TermEvidence`: the depth, the photo).
         seed_move: how far the pose ended from a given seed pose (mm at the model's centre, degrees;
