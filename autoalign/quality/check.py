@@ -7,9 +7,10 @@ the matches whose keypoints lie within ``MAX_MATCH_PX`` (10 px) of each other ar
 image distance of the kept matches is the feature distance: a label that puts the object where
 the photo shows it gives a small one (ProgressLabeller reports 1.95 px for its labels against
 2.28 px for the dataset's own on HOPE). Objects without texture give few matches and are flagged
-``too_few_matches`` instead of getting a number. Transparent and reflective objects (``materials.json``,
-:data:`~autoalign.io.models.FEATURELESS`) are not matched at all: the features the photo shows on
-them are their surroundings', refracted or mirrored, and would match by chance a few px away. Every view also gets the outline-to-edge distance
+``too_few_matches`` instead of getting a number. Transparent and reflective objects
+(``materials.json``, :data:`~autoalign.io.models.FEATURELESS`) are not matched at all: the features
+the photo shows on them are their surroundings', refracted or mirrored, and would match by chance a
+few px away. Every view also gets the outline-to-edge distance
 (:mod:`autoalign.quality.edge_distance`), which needs no texture.
 
 Large photos: a photo of more than :data:`autoalign.io.bop.MAX_IMAGE_PIXELS` is read downscaled by the
