@@ -175,18 +175,23 @@ def _textured_sphere(rng: np.random.Generator, blob_mm: float = 6.0) -> Coloured
     return ColouredMesh(V, np.asarray(sph.faces, dtype=np.int64), C.astype(np.float32), True)
 
 
+def _sphere_view() -> tuple[NDArray[np.float64], ColouredMesh, list[Label], NDArray[np.uint8]]:
+    """A textured sphere labelled in image 7 (instance 0, obj 1) 300 mm in front of a 320 x 240
+    camera: its ``cam_K``, mesh, labels and its rendering as a BGR photo."""
+    rng = np.random.default_rng(3)
+    K = np.array([[500.0, 0.0, 159.5], [0.0, 500.0, 119.5], [0.0, 0.0, 1.0]])
+    mesh = _textured_sphere(rng)
+    R, t = random_rotation(rng), np.array([10.0, -5.0, 300.0])
+    bgr = cv2.cvtColor(render_labels([PlacedMesh(0, mesh, R, t)], K, 320, 240).rgb, cv2.COLOR_RGB2BGR)
+    return K, mesh, [Label(7, 0, 1, R, t)], bgr
+
+
 def test_shifted_photo_gives_its_shift() -> None:
     """Photo = the rendering moved 3 px right and 2 px up: the kept matches are sqrt(13) = 3.61 px
     apart with mean offset photo - rendering (3, -2) (keypoints mapped back from the enlarged images
     to OpenCV pixels exactly)."""
-    rng = np.random.default_rng(3)
-    W, H = 320, 240
-    K = np.array([[500.0, 0.0, 159.5], [0.0, 500.0, 119.5], [0.0, 0.0, 1.0]])
-    mesh = _textured_sphere(rng)
-    R, t = random_rotation(rng), np.array([10.0, -5.0, 300.0])
-    bgr = cv2.cvtColor(render_labels([PlacedMesh(0, mesh, R, t)], K, W, H).rgb, cv2.COLOR_RGB2BGR)
-    photo = cv2.warpAffine(bgr, np.float32([[1, 0, 3], [0, 1, -2]]), (W, H))
-    labels = [Label(7, 0, 1, R, t)]
+    K, mesh, labels, bgr = _sphere_view()
+    photo = cv2.warpAffine(bgr, np.float32([[1, 0, 3], [0, 1, -2]]), (bgr.shape[1], bgr.shape[0]))
     _, (c,) = check_image(7, photo, K, labels, {1: mesh})
     assert isinstance(c, ViewInstanceCheck) and (c.image_id, c.instance, c.obj_id) == (7, 0, 1)
     assert c.n_matches >= 50  # measured 96
@@ -206,13 +211,7 @@ def test_transparent_and_reflective_objects_get_no_feature_distance() -> None:
     """The photo's features on glass or metal are its surroundings', refracted or mirrored: an
     object declared so (``featureless``) is not matched, its outline still judged, and its summary
     says so instead of "too few matches"; the same object undeclared is matched as before."""
-    rng = np.random.default_rng(3)
-    W, H = 320, 240
-    K = np.array([[500.0, 0.0, 159.5], [0.0, 500.0, 119.5], [0.0, 0.0, 1.0]])
-    mesh = _textured_sphere(rng)
-    R, t = random_rotation(rng), np.array([10.0, -5.0, 300.0])
-    photo = cv2.cvtColor(render_labels([PlacedMesh(0, mesh, R, t)], K, W, H).rgb, cv2.COLOR_RGB2BGR)
-    labels = [Label(7, 0, 1, R, t)]
+    K, mesh, labels, photo = _sphere_view()
     _, (matched,) = check_image(7, photo, K, labels, {1: mesh})
     _, (glass,) = check_image(7, photo, K, labels, {1: mesh}, featureless={1})
     assert matched.n_matches >= 50 and glass.n_matches == 0 and glass.mean_px is None
