@@ -110,6 +110,7 @@ def check_prepared(inputs: CheckInputs, seed: int = 0, progress: Any = None,
     views: list[ViewInstanceCheck] = []
     scales: dict[int, float] = {}
     chosen = inputs.image_ids
+    featureless = {o for o, m in inputs.materials.items() if m in FEATURELESS}
     if progress is not None:
         progress(0, len(chosen))
     for n_done, im in enumerate(chosen, 1):
@@ -123,7 +124,7 @@ def check_prepared(inputs: CheckInputs, seed: int = 0, progress: Any = None,
         masks = {inst: m for (_, inst), m in read.masks.items()}  # empty masks: none, as in autoalign.io.bop
         K = scaled_K(inputs.cameras[im][0], photo.factor)
         _, checks = check_image(im, photo.bgr, K, inputs.labels[im], inputs.meshes, masks, seed,
-                                featureless={o for o, m in inputs.materials.items() if m in FEATURELESS})
+                                featureless=featureless)
         views.extend(checks)
         scales[im] = 1.0 / photo.factor
         del photo, read, masks  # before the next image's are read

@@ -115,6 +115,12 @@ def largest_sigmas(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.float
     return s_mm, float(np.degrees(s_rad))
 
 
+def flat_turn(turn_rise: float | None, symmetric: bool) -> bool:
+    """Whether, with depth, a turn of 10-20 degrees barely changes the whole fit (``turn_rise`` below
+    :data:`NEAR_TURN_RISE`) of a model whose symmetries are not declared (declared ones explain it)."""
+    return not symmetric and turn_rise is not None and turn_rise < NEAR_TURN_RISE
+
+
 def nearly_symmetric(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.float64], ...] = (),
                      turn_gap: float | None = None, symmetric: bool = False, turn_rise: float | None = None) -> bool:
     """Whether a turn that is not about an axis of continuous symmetry is weakly observed, and
@@ -127,7 +133,7 @@ def nearly_symmetric(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.flo
     counts in the verdict's large-sigma rule, but it says nothing of a dip in the loss along the
     turn that the descent may stop in. With measured depth, a flat ``turn_rise`` (below
     :data:`NEAR_TURN_RISE`) names it nearly symmetric too, unless its symmetries are declared."""
-    if not symmetric and turn_rise is not None and turn_rise < NEAR_TURN_RISE:
+    if flat_turn(turn_rise, symmetric):
         return True
     free = [np.asarray(a, dtype=np.float64) / np.linalg.norm(a) for a in free_axes_m]
     weak = [a for a in uncertainty.weak_turn_axes if all(abs(float(a @ f)) < SAME_AXIS for f in free)]
@@ -260,7 +266,7 @@ def _sigma_reasons(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.float
     if nearly_symmetric(uncertainty, free_axes_m, turn_gap, symmetric, rise):
         # the turn the views barely see is where a nearly symmetric object goes wrong: by several
         # degrees in 1 of 50 SAM-like synthetic instances, with a sigma far smaller
-        flat = rise is not None and rise < NEAR_TURN_RISE and rise_axis is not None and not symmetric
+        flat = flat_turn(rise, symmetric) and rise_axis is not None
         axes = [rise_axis] if flat else list(uncertainty.weak_turn_axes)
         turns = "; ".join(f"the turn about {direction_name(a)} ({turn_sigma_deg(uncertainty.covariance, a):.2g} deg)"
                           for a in axes)
