@@ -47,8 +47,14 @@ class Interrupts:
     @classmethod
     def handler(cls, signum: int, frame: Any) -> None:
         """Handler while the command runs: remember it and raise ``KeyboardInterrupt`` (SIGTERM too,
-        so that everything that cleans up after Ctrl-C, stopping worker processes included, runs)."""
+        so that everything that cleans up after Ctrl-C, stopping worker processes included, runs).
+
+        Interrupted inside the import machinery's own code, it only remembers: importlib releases
+        its module locks in weakref callbacks, where Python prints an exception with its traceback
+        and drops it. :meth:`check` raises it at the run's next safe point."""
         cls.seen, cls.signum = True, signum
+        if frame is not None and frame.f_code.co_filename.startswith("<frozen importlib"):
+            return
         raise KeyboardInterrupt
 
     @classmethod
