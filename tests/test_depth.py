@@ -200,13 +200,16 @@ def _depth_evidence(share: float, views: int = 6, used: int = 800) -> tuple[Term
 
 
 def test_the_verdict_weighs_the_depth_against_the_masks() -> None:
-    """Depth that agrees keeps a pose with partial masks from failing (and says so); depth that
-    disagrees fails a pose the masks fit; a view with too few samples says nothing."""
+    """Depth that agrees keeps a pose with loose masks from being flagged and one with partial masks
+    from failing (a look, not a failure: depth agrees with a pose pushed into the table too), and
+    says so; depth that disagrees fails a pose the masks fit; a view with too few samples says nothing."""
     ids = list(range(6))
-    partial, fitting, w = np.full(6, 0.43), np.full(6, 0.95), np.ones(6)
+    loose, partial, fitting, w = np.full(6, 0.6), np.full(6, 0.43), np.full(6, 0.95), np.ones(6)
     assert judge(PoseEvidence(partial, w, ids)).status == "failed"
-    supported = judge(PoseEvidence(partial, w, ids, terms=_depth_evidence(0.97)))
+    supported = judge(PoseEvidence(loose, w, ids, terms=_depth_evidence(0.97)))
     assert supported.status == "ok" and "the measured depth agrees" in supported.reasons[0]
+    partly = judge(PoseEvidence(partial, w, ids, terms=_depth_evidence(0.97)))
+    assert partly.status == "check" and "though the measured depth agrees" in partly.reasons[0]
     contradicted = judge(PoseEvidence(fitting, w, ids, terms=_depth_evidence(0.1)))
     assert contradicted.status == "failed" and "the measured depth disagrees" in contradicted.reasons[0]
     # too few samples to judge; then a share that neither supports nor contradicts

@@ -197,7 +197,8 @@ def test_photo_of_another_size_is_refused(photo_scene, tmp_path):
 
 
 @pytest.mark.parametrize("iou, contrast, status, words", [
-    (0.4, 0.5, "ok", "the photo's colours change across the outline"),  # a partial mask, the photo supports
+    (0.6, 0.5, "ok", "the photo's colours change across the outline"),  # a loose mask, the photo supports
+    (0.4, 0.5, "check", "though the photo's colours change across the outline"),  # a mask missing most of it
     (0.9, 0.05, "check", "the photo disagrees"),
     (0.3, 0.2, "check", "neither confirms nor contradicts"),
     (0.3, 0.05, "failed", "silhouettes do not match the masks"),  # masks and photo both against it

@@ -47,3 +47,20 @@ def test_refine_models_prints_a_sigma_only_for_ok_poses(capsys) -> None:
     lines = capsys.readouterr().out.splitlines()
     assert "sigma up to 0.25 mm / 0.5 deg" in lines[1]
     assert all("sigma" not in line and "why" in line for line in lines[2:4]), lines
+
+
+def test_support_excuses_loose_masks_but_not_masks_that_miss_most_of_the_silhouette() -> None:
+    """Depth or colours agreeing keep loose masks (median IoU 0.5-0.75) from flagging a pose; masks
+    that miss most of its silhouette still ask for a look. A travel mug declared opaque whose depth
+    saw through it ended in the table at median IoU 0.00 with its depth agreeing, and only a far
+    seed move kept it from `ok`; a rod 3.6 mm / 3.2 deg off at IoU 0.30 with its photo agreeing was `ok`."""
+    from autoalign.losses.term import Stance, TermEvidence
+
+    depth = TermEvidence("depth", Stance.SUPPORTS, 0.81, "the measured depth agrees", fails=True)
+    loose = judge(PoseEvidence(np.full(10, 0.6), np.ones(10), list(range(10)), terms=(depth,)))
+    assert loose.status == "ok" and loose.reasons[0].startswith("the masks cover the silhouette loosely")
+    for med in (0.0, 0.3, 0.49):
+        missed = judge(PoseEvidence(np.full(10, med), np.ones(10), list(range(10)), terms=(depth,)))
+        assert missed.status == "check", (med, missed.reasons)
+        assert missed.reasons[0].startswith(f"silhouettes do not match the masks (median IoU {med:.2f} < 0.5), "
+                                            "though the measured depth agrees")

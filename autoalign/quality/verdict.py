@@ -7,7 +7,8 @@ robust weights set aside, whether another pose fits as well, how many views had 
 large the pose's sigmas are, and what each other kind of evidence says of the pose on its own
 (:class:`~autoalign.losses.term.TermEvidence`, which each kind states in its own module: the
 measured depth in :mod:`autoalign.losses.depth`, the photo in :mod:`autoalign.engine.photo_evidence`).
-Evidence that supports the pose keeps masks that cover it loosely from flagging it. Evidence that
+Evidence that supports the pose keeps masks that cover it loosely (median IoU 0.5-0.75) from flagging
+it, not masks that miss most of it (those ask for a look). Evidence that
 contradicts it fails it when it is a measurement (the depth: whatever the masks say), and asks for
 a look when it is an appearance (the photo's colours not changing across the outline). Evidence
 that sees the outline itself and neither confirms nor contradicts the pose turns masks that
@@ -194,7 +195,13 @@ def _fit_against_the_evidence(med: float, terms: tuple[TermEvidence, ...],
     support = next((t for t in terms if t.stance is Stance.SUPPORTS), None)
     undecided = next((t for t in terms if t.stance is Stance.NEUTRAL and t.sees_outline), None)
     supported = support is not None
-    if support is not None and med < CHECK_IOU:
+    if support is not None and med < FAILED_IOU:
+        # support explains loose masks, not masks that miss most of the silhouette: depth agreeing
+        # with a pose pushed into the table, colours changing across a wrong outline
+        reasons.append(f"silhouettes do not match the masks (median IoU {med:.2f} < {FAILED_IOU}), though "
+                       f"{support.reason}: look at the outline against the photo in overlay.png")
+        look = True
+    elif support is not None and med < CHECK_IOU:
         reasons.append(f"the masks cover the silhouette loosely (median IoU {med:.2f}), but {support.reason}")
     elif med < FAILED_IOU and undecided is not None:
         # the masks are the weakest evidence: against an outline seen otherwise that does not contradict it, a look
