@@ -48,14 +48,20 @@ class MeshPyramid:
     first use and kept: one per model (:meth:`~autoalign.io.models.ModelSet.pyramid`), shared by
     every stage that renders it. Not thread-safe (drjit renders one thread at a time).
     ``symmetries``: the model's (:class:`~autoalign.geometry.se3.Symmetries`), for what measures
-    how far a pose moved (a turn about an axis of continuous symmetry is no move); ``transparent``:
-    the model is declared transparent to depth sensors (``materials.json``, :mod:`autoalign.io.models`)."""
+    how far a pose moved (a turn about an axis of continuous symmetry is no move); ``material``:
+    what the model is declared to be to the sensors (``"opaque"``, ``"transparent"``, ``"reflective"``;
+    ``materials.json``, :mod:`autoalign.io.models`), ``None`` where nothing is declared."""
 
-    def __init__(self, mesh: Mesh, symmetries: Symmetries = Symmetries(), transparent: bool = False) -> None:
+    def __init__(self, mesh: Mesh, symmetries: Symmetries = Symmetries(), material: str | None = None) -> None:
         self.mesh = mesh
         self.symmetries = symmetries
-        self.transparent = transparent
+        self.material = material
         self._rasterizers: dict[int | None, SoftSilhouetteRasterizer] = {}
+
+    @property
+    def transparent(self) -> bool:
+        """Whether the model is declared transparent to depth sensors."""
+        return self.material == "transparent"
 
     def with_faces(self, max_faces: int | None) -> SoftSilhouetteRasterizer:
         """The rasterizer of the mesh simplified to at most ``max_faces`` triangles (``None``: as given)."""

@@ -99,6 +99,26 @@ def test_a_model_declared_transparent_is_refined_without_its_depth(table: dict, 
     assert any("declared transparent in materials.json" in r for r in glass["reasons"])
 
 
+@pytest.mark.slow
+def test_a_model_declared_opaque_keeps_its_depth_as_evidence_whatever_it_looks_like(table: dict, tmp_path: Path) -> None:
+    """The declaration overrides the recognition: the glass declared opaque is refined with its depth
+    once and never read as seen through. The table seen through it then pulls it into the table,
+    where that depth agrees but its silhouettes miss the masks: flagged, with both said (a person who
+    declared it so is told, not silently corrected)."""
+    models = tmp_path / "models"
+    models.mkdir()
+    for f in table["models"].iterdir():
+        (models / f.name).write_bytes(f.read_bytes())
+    (models / "materials.json").write_text(json.dumps({"1": {"material": "opaque"}}))
+    p, report = _refine(table, models, tmp_path / "out")
+    assert p.returncode in (0, 3), p.stderr
+    glass = report["instances"][0]
+    assert "sees_through" not in glass["depth"] and glass["verdict"] == "check"
+    assert [(e["term"], e["stance"]) for e in glass["evidence"]] == [("depth", "supports")]
+    assert glass["reasons"][0].startswith("silhouettes do not match the masks (median IoU 0.0")
+    assert not any("sees through this object" in r for r in glass["reasons"])
+
+
 EXAMPLE = Path(__file__).resolve().parents[1] / "autoalign" / "data" / "example"
 
 

@@ -1,7 +1,9 @@
 """Objects the measured depth sees through (glass): their depth neither pulls the pose nor fails it.
 
 A model declared transparent (``materials.json``, :meth:`~autoalign.io.models.ModelSet.material`)
-is refined without the depth from the start. Any other is refined with it; when the result is in
+is refined without the depth from the start; one declared opaque is refined with it, once, whatever
+the depth looks like (the declaration overrides the recognition: depth that disagrees then flags the
+result). Any other is refined with it; when the result is in
 doubt (the depth contradicts it, or its silhouettes miss the masks), it
 is refined again without the depth, and where the depth at that pose sees through the object
 (:func:`~autoalign.losses.see_through.see_through_shares`: measured behind its surface or missing
@@ -66,7 +68,7 @@ def refine_minding_see_through(scene: Scene, pyramid: MeshPyramid, seed: NDArray
         seen = measured_see_through(scene, pyramid, result.T_wm, opts, declared=True)
         return replace(result, measured=(seen,) + result.measured)
     result = run(scene, pyramid, seed, opts, progress, anchor)
-    if not in_doubt(result):
+    if pyramid.material == "opaque" or not in_doubt(result):
         return result
 
     def told(stage: str, done: int, total: int) -> None:

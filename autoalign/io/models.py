@@ -9,7 +9,8 @@ vertices with their colours, for rendering the labels against photos).
 ``materials.json`` (optional, beside it; BOP has no such field) declares what the sensors see of an
 object: ``{"<obj_id>": {"material": "transparent" | "reflective" | "opaque"}}``. The measured depth of a
 transparent object is not evidence about its surface (:mod:`autoalign.engine.see_through`);
-an object not listed is recognised from the evidence. The photo's features on a transparent or
+an object not listed is recognised from the evidence, and one declared opaque never is (its depth is
+always evidence, and disagreeing depth flags it). The photo's features on a transparent or
 reflective (mirror-like, polished metal) object are those of its surroundings, refracted or
 mirrored, so ``check`` does not measure its feature distance (:data:`FEATURELESS`); a reflective
 object's depth is refined as an opaque one's (its holes and specular outliers are per pixel).
@@ -229,7 +230,7 @@ class ModelSet:
         if obj_id not in self._pyramids:
             discrete, continuous = self.symmetries(obj_id)
             self._pyramids[obj_id] = MeshPyramid(self.mesh(obj_id), Symmetries(tuple(discrete), tuple(continuous)),
-                                                 transparent=self.materials.get(obj_id) == "transparent")
+                                                 self.materials.get(obj_id))
         return self._pyramids[obj_id]
 
     def coloured(self, obj_id: int, named_in: Path | None = None) -> ColouredMesh:
