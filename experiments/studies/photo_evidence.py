@@ -11,6 +11,8 @@ Conditions:
   deg off; with the photos (``--photos on``) and, for comparison, masks alone (``cut-masks-only``);
   and the same without a seed (``cut-no-seed``, ``cut-no-seed-masks-only``: no ``--init``, the
   objects' ids from the scene's ``scene_gt.json``), where the orientation search must find each pose.
+* ``third-no-seed``: as ``cut-no-seed``, but each mask keeps only 25-40% of the object (a real SAM mask
+  on one part of a driller); with the photos, and with masks alone (``third-no-seed-masks-only``).
 * ``rgbd``: 8 views from nearly one viewpoint with sensor-like depth (noise growing with z squared,
   holes, one pixel of misregistration), masks eroded by 4 px, start 20 mm along the first view's
   ray and 10 deg off; with the depth (and the photos, as by default), without the depth
@@ -61,7 +63,8 @@ from autoalign.geometry.se3 import invert, make_pose, transform_points
 from autoalign.io.atomic_files import write_json_atomic
 from autoalign.io.bop import scene_gt_of
 
-CONDITIONS = ("photos", "cut", "cut-masks-only", "cut-no-seed", "cut-no-seed-masks-only", "rgbd", "rgbd-no-depth",
+CONDITIONS = ("photos", "cut", "cut-masks-only", "cut-no-seed", "cut-no-seed-masks-only", "third-no-seed",
+              "third-no-seed-masks-only", "rgbd", "rgbd-no-depth",
               "rgbd-masks-only", "rgbd-no-masks", "rest", "rest-resting")
 KINDS = ("around", "rgbd", "rest")
 """The scenes the conditions are run on: cameras all around, or nearly one viewpoint with depth
@@ -145,14 +148,15 @@ def starts_for(ps: PhotoScene, condition: str, seed: int) -> list[np.ndarray]:
 def run(ps: PhotoScene, symmetries: list[Symmetries], condition: str, seed: int, tmp: Path) -> list[dict]:
     """Label the scene under ``condition``; one row per object, errors symmetry-aware."""
     scene = ps.folder
-    if condition.startswith("cut") or kind_of(condition) != "around":
+    cut = {"cut": (0.3, 0.6), "third": (0.6, 0.75)}.get(condition.split("-")[0])
+    if cut is not None or kind_of(condition) != "around":
         scene = tmp / f"{condition}_{seed}"
         shutil.copytree(ps.folder, scene)
         rng = np.random.default_rng([seed, 2])
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (9, 9))
         for path in sorted((scene / "mask_visib").glob("*.png")):
             m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 0
-            m = cut_mask(m, rng.uniform(0.3, 0.6), rng) if condition.startswith("cut") else cv2.erode(
+            m = cut_mask(m, rng.uniform(*cut), rng) if cut is not None else cv2.erode(
                 m.astype(np.uint8), kernel) > 0
             cv2.imwrite(str(path), m.astype(np.uint8) * 255)
     starts = starts_for(ps, condition, seed)
@@ -164,6 +168,7 @@ def run(ps: PhotoScene, symmetries: list[Symmetries], condition: str, seed: int,
     args = ["refine", str(scene), "--models", str(ps.folder.parent / "models"), *seeded, "--out", str(out), "--quiet"]
     args += {"photos": ["--masks", "none"], "cut": ["--photos", "on"], "cut-masks-only": ["--photos", "off"],
              "cut-no-seed": ["--photos", "on"], "cut-no-seed-masks-only": ["--photos", "off"],
+             "third-no-seed": ["--photos", "on"], "third-no-seed-masks-only": ["--photos", "off"],
              "rgbd": [], "rgbd-no-depth": ["--depth", "off"],
              "rgbd-masks-only": ["--depth", "off", "--photos", "off"], "rgbd-no-masks": ["--masks", "none"],
              "rest": ["--depth", "off"], "rest-resting": ["--depth", "off", "--resting", "0,0,1,0"]}[condition]
