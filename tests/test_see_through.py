@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -177,3 +178,36 @@ def test_an_opaque_object_pushed_under_the_table_pays_for_it(table: dict) -> Non
 
     right = loss(0.0)
     assert loss(-30.0) > 3 * right and loss(-100.0) > 3 * right
+
+
+def test_depth_seen_through_at_the_given_pose_costs_one_run(box_with_depth) -> None:
+    """Issue 45, must-show 9: from a given pose whose depth is seen through already there, the engine
+    runs once, without the depth (before: once with it, in doubt, then again without it), and the
+    result is recognised as seen through; an opaque object's depth is used in its one run."""
+    from autoalign.engine.refine import RefineOptions, _refine_evidence
+    from autoalign.engine.see_through import refine_minding_see_through
+    from autoalign.experiments.scenes.synthetic import make_scene
+    from autoalign.geometry.se3 import pose_change
+    from autoalign.losses.see_through import SeeThrough
+    from autoalign.rasterizers.pyramid import MeshPyramid
+
+    mesh, T, cams, depths = box_with_depth
+    seed = perturb_pose(T, 5.0, 5.0, np.random.default_rng(1), mesh.centre)
+    behind = [np.where(d > 0, d + 150.0, 0.0).astype(np.float32) for d in depths]  # the table through glass
+    opts = RefineOptions(region=None)
+    for depth, glass in ((behind, True), (depths, False)):
+        runs: list[bool] = []
+
+        def run(scene, *args, **kwargs):
+            runs.append(scene.depths is not None)
+            return _refine_evidence(scene, *args, **kwargs)
+
+        scene = make_scene(mesh, T, cams)
+        result = refine_minding_see_through(replace(scene, depths=depth), MeshPyramid(mesh), seed, opts, None, None, run)
+        mm, deg = pose_change(T, result.T_wm, mesh.centre)
+        assert mm < 1.0 and deg < 1.0, (glass, mm, deg)
+        seen = result.measurement(SeeThrough)
+        if glass:
+            assert runs == [False] and seen is not None and seen.sees_through() and not seen.declared
+        else:
+            assert runs == [True] and seen is None

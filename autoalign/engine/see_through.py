@@ -3,7 +3,10 @@
 A model declared transparent (``materials.json``, :meth:`~autoalign.io.models.ModelSet.material`)
 is refined without the depth from the start; one declared opaque is refined with it, once, whatever
 the depth looks like (the declaration overrides the recognition: depth that disagrees then flags the
-result). Any other is refined with it; when the result is in
+result). Any other, from a given pose whose depth is seen through already there (behind its surface
+by the seed's stated position uncertainty more than the rule's margin), is refined without the depth
+first, and again with it only if that result is not seen through. Any other is refined
+with it; when the result is in
 doubt (the depth contradicts it, or its silhouettes miss the masks), it
 is refined again without the depth, and where the depth at that pose sees through the object
 (:func:`~autoalign.losses.see_through.see_through_shares`: measured behind its surface or missing
@@ -37,14 +40,16 @@ R = TypeVar("R")
 
 
 def measured_see_through(scene: Scene, pyramid: MeshPyramid, T_wm: NDArray[np.float64], opts: RefineOptions,
-                         declared: bool = False) -> SeeThrough:
+                         declared: bool = False, slack_mm: float = 0.0) -> SeeThrough:
     """The share of the object's depth samples inside its masks (without masks: its silhouettes at
-    ``T_wm``) that lie behind its surface or are missing, per view of ``scene`` (with depth)."""
+    ``T_wm``) that lie behind its surface (by more than the occluder margin and ``slack_mm``) or are
+    missing, per view of ``scene`` (with depth)."""
     assert scene.depths is not None and opts.depth is not None
     rast = pyramid.fine(opts.detail)
     masks = scene.masks if scene.has_masks else rast.hard_masks(T_wm, scene.cameras)
+    noise = replace(opts.depth, occluder_mm=opts.depth.occluder_mm + slack_mm)
     return SeeThrough(see_through_shares(rast.caster, pyramid.mesh, T_wm, scene.cameras, scene.depths, masks,
-                                         opts.depth), declared)
+                                         noise), declared)
 
 
 def in_doubt(result: Any) -> bool:
@@ -67,6 +72,16 @@ def refine_minding_see_through(scene: Scene, pyramid: MeshPyramid, seed: NDArray
         result = run(without, pyramid, seed, opts, progress, anchor)
         seen = measured_see_through(scene, pyramid, result.T_wm, opts, declared=True)
         return replace(result, measured=(seen,) + result.measured)
+    if pyramid.material != "opaque" and isinstance(seed, np.ndarray) and opts.seed_radius is not None and \
+            measured_see_through(scene, pyramid, seed, opts, slack_mm=opts.seed_radius[0]).sees_through():
+        # seen through already at the given pose, beyond how far the seed may be off: refined without
+        # the depth first, with it only if the result is not seen through (one run instead of two
+        # for glass; an opaque object's seed nearer the camera than its surface is not mistaken)
+        alt = run(without, pyramid, seed, opts, progress, anchor)
+        seen = measured_see_through(scene, pyramid, alt.T_wm, opts)
+        if seen.sees_through():
+            return replace(alt, measured=(seen,) + alt.measured)
+        return _with_cost_of(run(scene, pyramid, seed, opts, progress, anchor), alt)
     result = run(scene, pyramid, seed, opts, progress, anchor)
     if pyramid.material == "opaque" or not in_doubt(result):
         return result
@@ -79,5 +94,10 @@ def refine_minding_see_through(scene: Scene, pyramid: MeshPyramid, seed: NDArray
     seen = measured_see_through(scene, pyramid, alt.T_wm, opts)
     if not seen.sees_through():
         return result
-    return replace(alt, measured=(seen,) + alt.measured, renders=result.renders + alt.renders,
-                   timings={k: result.timings.get(k, 0.0) + v for k, v in alt.timings.items()})
+    return _with_cost_of(replace(alt, measured=(seen,) + alt.measured), result)
+
+
+def _with_cost_of(kept: R, other: Any) -> R:
+    """The result ``kept`` with the renders and timings of the ``other`` run added."""
+    return replace(kept, renders=kept.renders + other.renders,  # type: ignore[type-var]
+                   timings={k: other.timings.get(k, 0.0) + v for k, v in kept.timings.items()})
