@@ -3,12 +3,11 @@
 A model declared transparent (``materials.json``, :meth:`~autoalign.io.models.ModelSet.material`)
 is refined without the depth from the start; one declared opaque is refined with it, once, whatever
 the depth looks like (the declaration overrides the recognition: depth that disagrees then flags the
-result). Any other, from a given pose whose depth is seen through already there (behind its surface
-by the seed's stated position uncertainty more than the rule's margin), is refined without the depth
-first, and again with it only if that result is not seen through. Any other is refined
-with it; when the result is in
-doubt (the depth contradicts it, or its silhouettes miss the masks), it
-is refined again without the depth, and where the depth at that pose sees through the object
+result). Any other is refined with it, except from a given pose whose depth is seen through already
+there (behind its surface by the seed's stated position uncertainty more than the rule's margin):
+then it is refined without the depth first, and with it only if that result is not seen through.
+When a result with the depth is in doubt (the depth contradicts it, or its silhouettes miss the
+masks), it is refined again without the depth, and where the depth at that pose sees through the object
 (:func:`~autoalign.losses.see_through.see_through_shares`: measured behind its surface or missing
 inside its masks) that result is kept, the depth recorded as :class:`~autoalign.losses.see_through.SeeThrough`.
 An opaque object whose depth agrees runs once, exactly as before.
