@@ -53,7 +53,9 @@ output:
   a table per instance: obj id, instance, views, median IoU, mean feature distance (px) with its
   95% confidence interval (bootstrap over views), kept matches, or "too few matches" (< 10 over all
   views), or "not measurable (transparent)" or "(reflective)" (materials.json: the photo's features
-  on such an object are its surroundings', refracted or mirrored), and the mean edge distance (px) with its interval. With --out: check.json (every image
+  on such an object are its surroundings', refracted or mirrored; with the scene's depth/, glass
+  whose depth is seen through at its labels is recognised: "(transparent, from the depth)"), and
+  the mean edge distance (px) with its interval. With --out: check.json (every image
   and instance: IoU, matches, mean distance and its interval, mean offset photo - rendering in px,
   edge distance, bounding box; the per-instance summaries; the parameters) and check.png (up to 4
   photos with the labels' outlines and the kept matches: dot = rendering keypoint, line to the
@@ -155,7 +157,8 @@ def format_table(report: Any) -> str:
     lines = [head, "-" * len(head)]
     for s in report.instances:
         iou = f"{s.median_iou:.2f}" if s.median_iou is not None else "-"
-        dist = (f"not measurable ({s.material})" if not s.features_measurable else "too few matches"
+        why = f"{s.material}, from the depth" if s.recognised else s.material
+        dist = (f"not measurable ({why})" if not s.features_measurable else "too few matches"
                 if s.too_few_matches else f"{s.mean_px:.2f} {_ci(s.ci95)}")
         edge = f"{s.edge_px:.2f} {_ci(s.edge_ci95)}" if s.edge_px is not None else "-"
         lines.append(f"{s.obj_id:>4} {s.instance:>4} {s.views:>5} {iou:>10}  {dist:<30} {s.n_matches:>7}  {edge:<26}")

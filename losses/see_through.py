@@ -89,7 +89,24 @@ def see_through_shares(caster: RayCaster, mesh: Mesh, T_wm: NDArray[np.float64],
         hit = np.isfinite(z_r)
         if hit.sum() < MIN_SAMPLES_TO_JUDGE:
             continue
-        z_m, z_r = measured[rows[hit], cols[hit]].astype(np.float64), z_r[hit]
-        behind = z_m > z_r + np.maximum(noise.occluder_mm, 5.0 * noise.sigma(z_r))
-        out[k] = float(np.mean((z_m <= 0) | behind))
+        out[k] = float(np.mean(seen_through(measured[rows[hit], cols[hit]], z_r[hit], noise)))
     return out
+
+
+def seen_through(z_measured: NDArray[np.floating], z_surface: NDArray[np.floating],
+                 noise: DepthNoise = DepthNoise()) -> NDArray[np.bool_]:
+    """Per sample, whether the measured depth (mm along the optical axis, 0 = none) is missing or lies
+    behind the object's surface there (``z_surface``, mm) by more than the occluder margin (the
+    larger of ``noise.occluder_mm`` and 5 sigma)."""
+    z_m, z_r = np.asarray(z_measured, dtype=np.float64), np.asarray(z_surface, dtype=np.float64)
+    return (z_m <= 0) | (z_m > z_r + np.maximum(noise.occluder_mm, 5.0 * noise.sigma(z_r)))
+
+
+def through_share(z_measured: NDArray[np.floating], z_surface: NDArray[np.floating],
+                  noise: DepthNoise = DepthNoise()) -> float:
+    """The share of the samples whose depth is :func:`seen_through` (NaN below
+    :data:`~autoalign.losses.depth.MIN_SAMPLES_TO_JUDGE` samples): one view's measure, as
+    :func:`see_through_shares` makes it from rays and ``check`` from its rendering of a label."""
+    if np.size(z_surface) < MIN_SAMPLES_TO_JUDGE:
+        return float("nan")
+    return float(np.mean(seen_through(z_measured, z_surface, noise)))

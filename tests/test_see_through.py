@@ -211,3 +211,32 @@ def test_depth_seen_through_at_the_given_pose_costs_one_run(box_with_depth) -> N
             assert runs == [False] and seen is not None and seen.sees_through() and not seen.declared
         else:
             assert runs == [True] and seen is None
+
+
+@pytest.mark.slow
+def test_check_recognises_glass_from_the_depth_unless_declared(table: dict, tmp_path: Path) -> None:
+    """Issue 45, must-show 7: ``check`` on the true labels, with the scene's depth, recognises the glass
+    (its depth seen through at its labels) and does not report a feature distance for it, which would
+    be chance matches on what lies behind it; the opaque object beside it is measured as before. A
+    model declared opaque in ``materials.json`` is never recognised."""
+    from autoalign.cli.check import format_table
+    from autoalign.quality.scene_check import check_scene
+
+    scene = table["root"] / "scene"
+    report = check_scene(scene, scene / "scene_gt.json", table["models"], images=4)
+    glass, opaque = sorted(report.instances, key=lambda s: s.obj_id)
+    assert glass.recognised and glass.material == "transparent" and not glass.features_measurable
+    assert glass.through_share >= max(SEES_THROUGH, 0.9) and glass.mean_px is None and glass.edge_px is not None
+    assert not opaque.recognised and opaque.material == "opaque" and opaque.features_measurable
+    assert opaque.through_share < 0.2
+    assert "not measurable (transparent, from the depth)" in format_table(report)
+    assert glass.record()["material_recognised"] is True
+
+    models = tmp_path / "models"
+    models.mkdir()
+    for f in table["models"].iterdir():
+        (models / f.name).write_bytes(f.read_bytes())
+    (models / "materials.json").write_text(json.dumps({"1": {"material": "opaque"}}))
+    declared = check_scene(scene, scene / "scene_gt.json", models, images=4)
+    glass = min(declared.instances, key=lambda s: s.obj_id)
+    assert not glass.recognised and glass.material == "opaque" and glass.features_measurable

@@ -10,7 +10,10 @@ the photo shows it gives a small one (ProgressLabeller reports 1.95 px for its l
 ``too_few_matches`` instead of getting a number. Transparent and reflective objects
 (``materials.json``, :data:`~autoalign.io.models.FEATURELESS`) are not matched at all: the features
 the photo shows on them are their surroundings', refracted or mirrored, and would match by chance a
-few px away. Every view also gets the outline-to-edge distance
+few px away. With the scene's depth, an object whose depth is seen through at its labels (glass:
+most of its samples missing or behind its rendered surface, :mod:`autoalign.losses.see_through`'s
+rule) is recognised as transparent and its feature distance is not reported either, unless
+``materials.json`` declares it. Every view also gets the outline-to-edge distance
 (:mod:`autoalign.quality.edge_distance`), which needs no texture.
 
 Large photos: a photo of more than :data:`autoalign.io.bop.MAX_IMAGE_PIXELS` is read downscaled by the
@@ -52,6 +55,7 @@ from numpy.typing import NDArray
 
 from autoalign.io.bop import Label
 from autoalign.io.models import FEATURELESS
+from autoalign.losses.see_through import SEES_THROUGH, through_share
 from autoalign.geometry.mesh import ColouredMesh
 from autoalign.quality.check_report import (
     BBOX_MARGIN_PX,
@@ -86,7 +90,8 @@ from autoalign.quality.stats import bootstrap_mean_ci, pooled_mean_ci
 def check_image(image_id: int, photo_bgr: NDArray[np.uint8], K: NDArray[np.float64], labels: Sequence[Label],
                 meshes: Mapping[int, ColouredMesh], masks: Mapping[int, NDArray[np.bool_]] | None = None,
                 seed: int = 0, photo_features: Features | None = None, edges: PhotoEdges | None = None,
-                featureless: Collection[int] = ()) -> tuple[Rendering, list[ViewInstanceCheck]]:
+                featureless: Collection[int] = (), depth_mm: NDArray[np.floating] | None = None
+                ) -> tuple[Rendering, list[ViewInstanceCheck]]:
     """Check every label of one image against its photo (BGR, OpenCV ``cam_K`` in px, poses in mm).
 
     ``masks``: instance -> visible mask (H, W) bool, for the IoU (instances without one get None).
@@ -95,7 +100,9 @@ def check_image(image_id: int, photo_bgr: NDArray[np.uint8], K: NDArray[np.float
     :func:`autoalign.quality.edge_distance.photo_edges`, likewise (covering the labels' outlines). A photo
     of 640 x 480 or less is searched whole; a larger one only in the box of the labels' rendered
     pixels dilated by ``CONTEXT_PX`` (:func:`sift_scale` sets SIFT's resolution there). The objects
-    of ``featureless`` (obj_ids: transparent, reflective) get no matches. Returns the rendering of all
+    of ``featureless`` (obj_ids: transparent, reflective) get no matches. ``depth_mm``: the image's
+    measured depth (mm, 0 = none; the photo's size), for the share of each label's visible pixels
+    (inside its mask, where it has one) whose depth is seen through. Returns the rendering of all
     labels together and one :class:`ViewInstanceCheck` per label.
     """
     H, W = photo_bgr.shape[:2]
@@ -130,6 +137,10 @@ def check_image(image_id: int, photo_bgr: NDArray[np.uint8], K: NDArray[np.float
             if area or visible:
                 iou = float(iou_from_counts(np.count_nonzero(m[v0:v1, u0:u1] & sil), area, visible))
         check = ViewInstanceCheck(lab.image_id, lab.instance, lab.obj_id, iou, 0, None, visible_px=visible)
+        if depth_mm is not None and visible:
+            seen = sil if masks is None or lab.instance not in masks else \
+                sil & np.asarray(masks[lab.instance], dtype=bool)[v0:v1, u0:u1]
+            check.through_share = through_share(depth_mm[v0:v1, u0:u1][seen], rendering.depth[v0:v1, u0:u1][seen])
         if visible:
             rc = outline_pixels(inst_map, lab.instance)  # the region's border is the photo's or off the labels
             check.edge_distances = outline_edge_distances(edges, inst_map, lab.instance, rc, (v0, u0))
@@ -175,7 +186,10 @@ def _search_region(instance_map: NDArray[np.int32]) -> tuple[int, int, int, int]
 def summarize(views: Sequence[ViewInstanceCheck], seed: int = 0,
               materials: Mapping[int, str] | None = None) -> list[InstanceSummary]:
     """Per-instance summaries (sorted by instance, then obj_id) of per-view checks; ``materials``:
-    the declared ones by obj_id (``materials.json``; an object not there is opaque)."""
+    the declared ones by obj_id (``materials.json``). An object not declared whose depth is seen
+    through in most views that measured it (median share at least
+    :data:`~autoalign.losses.see_through.SEES_THROUGH`) is recognised as transparent: its feature
+    distance is not reported; any other is opaque."""
     materials = materials or {}
     keys = sorted({(v.instance, v.obj_id) for v in views})
     out = []
@@ -184,15 +198,18 @@ def summarize(views: Sequence[ViewInstanceCheck], seed: int = 0,
         groups = [v.distances_px for v in mine if v.n_matches]
         n = int(sum(v.n_matches for v in mine))
         ious = [v.iou for v in mine if v.iou is not None]
-        material = materials.get(obj, "opaque")
+        shares = [v.through_share for v in mine if v.through_share is not None and np.isfinite(v.through_share)]
+        recognised = obj not in materials and bool(shares) and float(np.median(shares)) >= SEES_THROUGH
+        material = "transparent" if recognised else materials.get(obj, "opaque")
         too_few = n < MIN_MATCHES and material not in FEATURELESS
         mean = ci = offset = None
-        if n >= MIN_MATCHES:
+        if n >= MIN_MATCHES and material not in FEATURELESS:
             allm = np.concatenate([v.matches for v in mine if v.n_matches])
             mean, ci = pooled_mean_ci(groups, np.random.default_rng([seed, 1_000_003, inst, obj]))
             offset = (float((allm[:, 2] - allm[:, 0]).mean()), float((allm[:, 3] - allm[:, 1]).mean()))
         edges = [v.edge_distances for v in mine if v.edge_px is not None]
         edge, edge_ci = pooled_mean_ci(edges, np.random.default_rng([seed, 3_000_017, inst, obj]))
         out.append(InstanceSummary(inst, obj, mean, ci, n, len(mine), float(np.median(ious)) if ious else None,
-                                   too_few, len(groups), offset, edge, edge_ci, len(edges), material))
+                                   too_few, len(groups), offset, edge, edge_ci, len(edges), material,
+                                   float(np.median(shares)) if shares else None, recognised))
     return out

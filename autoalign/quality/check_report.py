@@ -54,7 +54,8 @@ class ViewInstanceCheck:
     ``matches``: (n, 4) float (u_render, v_render, u_photo, v_photo) of the kept matches (OpenCV px).
     ``edge_px``: mean outline-to-edge distance (px, :mod:`autoalign.quality.edge_distance`; None below
     ``MIN_OUTLINE_PX`` outline pixels); ``edge_distances``: per outline pixel; ``outline_rc``: the
-    outline pixels (row, col).
+    outline pixels (row, col). ``through_share``: with the scene's depth, the share of the label's
+    visible pixels (inside its mask) whose depth is seen through (NaN: too few; None: no depth).
     """
 
     image_id: int
@@ -71,6 +72,7 @@ class ViewInstanceCheck:
     n_photo_keypoints: int = 0
     matches: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 4)), repr=False, compare=False)
     edge_px: float | None = None
+    through_share: float | None = None
     edge_distances: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0), repr=False, compare=False)
     outline_rc: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), np.int64), repr=False,
                                           compare=False)
@@ -102,8 +104,10 @@ class InstanceSummary:
     ``offset_px``: mean (du, dv) photo minus rendering over the kept matches (px).
     ``edge_px``: mean outline-to-edge distance (px) pooled over the views' outline pixels, with its
     95% bootstrap interval over the views ``edge_ci95``; None when no view has an outline to judge.
-    ``material``: as ``materials.json`` declares it; a transparent or reflective object's feature
-    distance is not measured (:attr:`features_measurable`): its photo features are its surroundings'.
+    ``material``: as ``materials.json`` declares it, or ``transparent`` where ``recognised`` from the
+    depth (``through_share``: the median over the views of the share of its depth seen through; None
+    without depth); a transparent or reflective object's feature distance is not measured
+    (:attr:`features_measurable`): its photo features are its surroundings'.
     """
 
     instance: int
@@ -120,6 +124,8 @@ class InstanceSummary:
     edge_ci95: tuple[float, float] | None = None
     views_with_outline: int = 0
     material: str = "opaque"
+    through_share: float | None = None
+    recognised: bool = False
 
     @property
     def features_measurable(self) -> bool:
@@ -132,6 +138,7 @@ class InstanceSummary:
                 "ci95": _pair(self.ci95), "n_matches": self.n_matches, "views": self.views,
                 "views_with_matches": self.views_with_matches, "median_iou": _num(self.median_iou),
                 "too_few_matches": self.too_few_matches, "material": self.material,
+                "material_recognised": self.recognised, "through_share": _num(self.through_share),
                 "features_measurable": self.features_measurable, "offset_px": _pair(self.offset_px),
                 "edge_px": _num(self.edge_px), "edge_ci95": _pair(self.edge_ci95),
                 "views_with_outline": self.views_with_outline}

@@ -18,14 +18,16 @@ from autoalign.errors import AutoalignError
 from autoalign.io.bop import (
     MAX_IMAGE_PIXELS,
     Label,
+    depth_scales,
     mask_path,
     photo_path,
     read_cameras,
+    read_depth,
     read_labels,
     read_masks,
 )
 from autoalign.io.models import FEATURELESS, ColouredMesh, ModelSet
-from autoalign.io.photos import read_photo_scaled, scaled_K
+from autoalign.io.photos import ScaledPhoto, read_photo_scaled, scaled_K
 from autoalign.quality.check import check_image, summarize
 from autoalign.quality.check_report import CheckReport, ViewInstanceCheck
 from autoalign.quality.stats import pooled_mean_ci
@@ -111,6 +113,7 @@ def check_prepared(inputs: CheckInputs, seed: int = 0, progress: Any = None,
     scales: dict[int, float] = {}
     chosen = inputs.image_ids
     featureless = {o for o, m in inputs.materials.items() if m in FEATURELESS}
+    depth_scale = depth_scales(inputs.scene_dir) if (inputs.scene_dir / "depth").is_dir() else None
     if progress is not None:
         progress(0, len(chosen))
     for n_done, im in enumerate(chosen, 1):
@@ -123,8 +126,10 @@ def check_prepared(inputs: CheckInputs, seed: int = 0, progress: Any = None,
                                  f"{photo.size[0]}; masks must have the photo's size")
         masks = {inst: m for (_, inst), m in read.masks.items()}  # empty masks: none, as in autoalign.io.bop
         K = scaled_K(inputs.cameras[im][0], photo.factor)
+        depth = None if depth_scale is None else _depth_as_checked(inputs.scene_dir, im, depth_scale.get(im, 1.0),
+                                                                   photo)
         _, checks = check_image(im, photo.bgr, K, inputs.labels[im], inputs.meshes, masks, seed,
-                                featureless=featureless)
+                                featureless=featureless, depth_mm=depth)
         views.extend(checks)
         scales[im] = 1.0 / photo.factor
         del photo, read, masks  # before the next image's are read
@@ -139,6 +144,18 @@ def check_prepared(inputs: CheckInputs, seed: int = 0, progress: Any = None,
                                    np.random.default_rng([seed, 4_000_037]))
     return CheckReport(inputs.scene_dir, inputs.labels_path, inputs.models_dir, chosen, views, instances, mean, ci, n,
                        seed, list(inputs.warnings), edge, edge_ci, scales, max_pixels)
+
+
+def _depth_as_checked(scene_dir: Path, image_id: int, scale: float, photo: ScaledPhoto) -> NDArray[np.float64] | None:
+    """The depth of ``image_id`` (mm, 0 = none) at the photo's size as checked (every ``factor``-th
+    pixel of a downscaled one: depth is not averaged across an object's edge), or ``None``."""
+    H, W = photo.size
+    depth = read_depth(scene_dir, image_id, scale, (W, H))
+    if depth is None or photo.factor == 1:
+        return depth
+    h, w = photo.bgr.shape[:2]
+    f = photo.factor
+    return np.ascontiguousarray(depth[f // 2::f, f // 2::f][:h, :w])
 
 
 def check_scene(scene_dir: str | Path, labels_path: str | Path, models_dir: str | Path,
