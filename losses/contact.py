@@ -46,6 +46,13 @@ CONTACT_MAX_LEAN_DEG = 10.0
 than this from every one of its stable faces: no object at rest does, so it leans on something
 (measured in ``glass_photos``: 40 standing glass instances 0.1-7.9 deg; 16 objects lying in no
 stable pose 14-79 deg, four of them losing less than 0.1 of IoU when forced onto a face)."""
+OFFERED_GAP_MM = 5.0
+"""An object not declared resting but offered the table (its depth is seen through: glass) is taken
+as resting on it only when, at the pose the other evidence gives, its lowest point lies within this
+of the plane (mm, either side) and it stands within :data:`CONTACT_MAX_LEAN_DEG` of a stable face:
+the evidence agrees that it stands there, and the contact fixes what the masks fix worst. Sunk
+deeper than this below that plane, which its own depth measures through it, it contradicts the
+depth: no object stands inside the table (an upside-down or slid glass whose masks fit it)."""
 TILT_SIGMA_DEG = 2.0
 """How far a resting object may lean from its stable face (degrees, one sigma): a scanned base
 that is not quite flat, a table not quite level."""
@@ -156,6 +163,7 @@ class Contact:
     tilt_after_deg: float
     iou_before: float
     iou_after: float
+    declared: bool = True
     name = "contact"
 
     @property
@@ -169,14 +177,21 @@ class Contact:
         return bool(self.tilt_before_deg > CONTACT_MAX_LEAN_DEG)
 
     @property
+    def in_table(self) -> bool:
+        """Offered, and at the masks' pose sunk below the plane by more than :data:`OFFERED_GAP_MM`."""
+        return not self.declared and self.gap_before_mm < -OFFERED_GAP_MM
+
+    @property
     def kept(self) -> bool:
-        return not (self.fits_worse or self.leans)
+        return not (self.fits_worse or self.leans or self.in_table)
 
     def record(self) -> dict[str, Any]:
         return {"plane": self.plane.record(), "gap_before_mm": self.gap_before_mm, "gap_after_mm": self.gap_after_mm,
                 "tilt_before_deg": self.tilt_before_deg, "tilt_after_deg": self.tilt_after_deg,
                 "median_iou_before": self.iou_before, "median_iou_on_plane": self.iou_after, "kept": self.kept,
-                "rule": f"kept unless the masks fit the pose on the plane worse by more than {CONTACT_IOU_DROP:g} "
+                "declared": self.declared,
+                "rule": ("" if self.declared else f"offered (the depth sees through it) and its lowest point within "
+                         f"{OFFERED_GAP_MM:g} mm of the plane the depth shows; ") + f"kept unless the masks fit the pose on the plane worse by more than {CONTACT_IOU_DROP:g} "
                         f"in median IoU, or it leans more than {CONTACT_MAX_LEAN_DEG:g} deg from every stable face "
                         "at the masks' pose"}
 
@@ -184,12 +199,18 @@ class Contact:
         """A kept contact supports the pose along the plane's normal; one set aside is said, never
         held against the pose (the object may stand on another)."""
         if self.kept:
+            why = "" if self.declared else " (its depth sees through it, and it stands on the plane the depth shows)"
             return TermEvidence(self.name, Stance.NEUTRAL, 1.0,
-                                f"rests on the table: its lowest point {self.gap_before_mm:+.1f} mm from the plane "
+                                f"rests on the table{why}: its lowest point {self.gap_before_mm:+.1f} mm from the plane "
                                 f"and {self.tilt_before_deg:.1f} deg from standing at the masks' pose, "
                                 f"{self.gap_after_mm:+.1f} mm and {self.tilt_after_deg:.1f} deg at the result")
+        if self.in_table:
+            return TermEvidence(self.name, Stance.CONTRADICTS, 0.0,
+                                f"its lowest point lies {-self.gap_before_mm:.1f} mm below the table its depth shows "
+                                "through it: nothing stands inside the table, so the pose is wrong (upside down, or "
+                                "slid along the rays) unless the table has a hollow there; look at it in overlay.png")
         why = (f"it leans {self.tilt_before_deg:.0f} deg from every face it could rest on" if self.leans else
                f"on the plane the masks fit worse (median IoU {self.iou_after:.2f} against {self.iou_before:.2f})")
         return TermEvidence(self.name, Stance.NO_EVIDENCE, 0.0,
-                            f"declared resting, but not resting on the table: {why}; its lowest point is "
-                            f"{self.gap_before_mm:+.1f} mm from the plane")
+                            f"{'declared resting' if self.declared else 'offered the table'}, but not resting on the "
+                            f"table: {why}; its lowest point is {self.gap_before_mm:+.1f} mm from the plane")

@@ -137,7 +137,12 @@ class RefineOptions:
             best pose within it (:mod:`autoalign.engine.seed_region`); ``None``: the seed is only a start.
         resting: the table plane the object is declared to rest on (:mod:`autoalign.losses.contact`):
             the result is polished again with its lowest point held to the plane, unless the masks
-            then fit clearly worse (it stands on something else); ``None``: no contact.
+            then fit clearly worse (it stands on something else); ``None``: no contact declared.
+        offer_table: without ``resting``, an object whose measured depth is seen through (glass:
+            :mod:`autoalign.engine.see_through`) is offered the table plane that depth shows: it rests
+            on it when the other evidence puts it there (:data:`~autoalign.losses.contact.OFFERED_GAP_MM`).
+        table_offered: the plane offered (set by :mod:`autoalign.engine.see_through` for the runs
+            without the depth; ``None``: none).
     """
 
     loss: str = "l2"
@@ -152,3 +157,5 @@ class RefineOptions:
     region: RegionOptions | None = RegionOptions()
     seed_radius: tuple[float, float] | None = SEED_RADIUS
     resting: TablePlane | None = None
+    offer_table: bool = True
+    table_offered: TablePlane | None = None

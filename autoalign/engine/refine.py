@@ -46,7 +46,8 @@ from autoalign.geometry.se3 import pose_change, symmetric_pose_change, transform
 from autoalign.io.bop import Scene
 from autoalign.losses import targets_in_crops
 from autoalign.losses.silhouette import boundary_bias_grads
-from autoalign.losses.contact import CONTACT_STIFFNESS, Contact, RestingContact
+from autoalign.losses.contact import (CONTACT_MAX_LEAN_DEG, CONTACT_STIFFNESS, OFFERED_GAP_MM, Contact, RestingContact,
+                                      TablePlane)
 from autoalign.losses.term import Measured, TermEvidence, ViewTermsRecord
 from autoalign.losses.overlap import iou_from_counts, view_ious
 from autoalign.rasterizers.pyramid import MeshPyramid
@@ -578,20 +579,29 @@ def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best:
     return Finalist(near, ev_near.weights), ev_near, uncertainty, hold
 
 
-def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, opts: RefineOptions,
-             progress: Progress | None) -> tuple[Finalist, Evaluation, Contact]:
-    """Stage 4c, a declared resting contact (:mod:`autoalign.losses.contact`): ``best`` polished
-    again through the schedule with its lowest point held to ``opts.resting``'s plane, from its own
+def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, plane: TablePlane, declared: bool,
+             opts: RefineOptions, progress: Progress | None) -> tuple[Finalist, Evaluation, Contact] | None:
+    """Stage 4c, a resting contact (:mod:`autoalign.losses.contact`), ``declared`` or offered (then only
+    when ``best``'s lowest point lies within :data:`~autoalign.losses.contact.OFFERED_GAP_MM` of the
+    plane and it leans within :data:`~autoalign.losses.contact.CONTACT_MAX_LEAN_DEG` of a stable face;
+    sunk deeper, the contact is recorded, not kept (:attr:`~autoalign.losses.contact.Contact.in_table`);
+    ``None`` otherwise, nothing run): ``best`` polished
+    again through the schedule with its lowest point held to ``plane``, from its own
     pose and from its start (the start's orientation may be the nearer one: masks seen from one side
     turn a pose they also slide along the rays), the better held fit, and what the contact did. It
     is kept unless the masks fit that pose clearly worse (median IoU at full resolution lower by
     more than :data:`~autoalign.losses.contact.CONTACT_IOU_DROP` than ``ev``'s) or ``best`` leans
     beyond any stable face (:attr:`~autoalign.losses.contact.Contact.kept`): then the object stands
     on something else, and ``best`` stays."""
-    assert opts.resting is not None
     h = best.hypothesis
     mesh = obj.pyramid.mesh
-    term = RestingContact(opts.resting, mesh.hull, obj.centre_m, CONTACT_STIFFNESS * len(obj.scene), mesh.resting_downs)
+    term = RestingContact(plane, mesh.hull, obj.centre_m, CONTACT_STIFFNESS * len(obj.scene), mesh.resting_downs)
+    gap, tilt = term.gap_mm(h.T_final), term.tilt_deg(h.T_final)
+    if not declared and gap < -OFFERED_GAP_MM:  # sunk in the table its depth shows: said, nothing run
+        iou = float(np.median(ev.terms.iou))
+        return best, ev, Contact(plane, gap, gap, tilt, tilt, iou, iou, declared)
+    if not declared and not (gap <= OFFERED_GAP_MM and tilt <= CONTACT_MAX_LEAN_DEG):
+        return None  # the evidence does not put it on the table
     held = obj.with_pose_term(term)
     full = Level(1.0, opts.schedule[-1].sigma, 0)
     runs = [run_schedule(held, T, opts.schedule, opts.optimizer, progress, "resting on the table")
@@ -600,8 +610,7 @@ def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, opts: Ref
     k = int(np.argmin([e.value + term.term(T).value for e, (T, _) in zip(evs, runs)]))
     (T_on, traces), ev_on = runs[k], evs[k]
     iou, iou_on = float(np.median(ev.terms.iou)), float(np.median(ev_on.terms.iou))
-    contact = Contact(opts.resting, term.gap_mm(h.T_final), term.gap_mm(T_on), term.tilt_deg(h.T_final),
-                      term.tilt_deg(T_on), iou, iou_on)
+    contact = Contact(plane, gap, term.gap_mm(T_on), tilt, term.tilt_deg(T_on), iou, iou_on, declared)
     on = Hypothesis(h.T_init, T_on, ev_on.value / len(ev_on.weights), float(np.mean(ev_on.terms.iou)), Stage.FINAL,
                     tuple(zip(opts.schedule, traces)))
     return Finalist(on, ev_on.weights), ev_on, contact
@@ -736,14 +745,17 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
             final, uncertainty, turn = [kept] + final, held_unc, TurnTests()
         timings["seed"] += time.perf_counter() - t0
     contact = None
-    if opts.resting is not None:
+    plane = opts.resting if opts.resting is not None else opts.table_offered
+    if plane is not None:
         t0 = time.perf_counter()
-        rested, rested_ev, contact = _resting(obj, final[0], final_ev, opts, progress)
-        if contact.kept:
-            final, final_ev = [rested] + final, rested_ev
-            if uncertainty is not None:
-                uncertainty = final_uncertainty(obj, final_ev, rested.hypothesis.T_final, opts.schedule[-1],
-                                                opts.optimizer)
+        rested_as = _resting(obj, final[0], final_ev, plane, opts.resting is not None, opts, progress)
+        if rested_as is not None:
+            rested, rested_ev, contact = rested_as
+            if contact.kept:
+                final, final_ev = [rested] + final, rested_ev
+                if uncertainty is not None:
+                    uncertainty = final_uncertainty(obj, final_ev, rested.hypothesis.T_final, opts.schedule[-1],
+                                                    opts.optimizer)
         timings["contact"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

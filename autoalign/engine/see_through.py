@@ -6,6 +6,10 @@ the depth looks like (the declaration overrides the recognition: depth that disa
 result). Any other is refined with it, except from a given pose whose depth is seen through already
 there (behind its surface by the seed's stated position uncertainty more than the rule's margin):
 then it is refined without the depth first, and with it only if that result is not seen through.
+Refined without its depth, such an object is offered the table plane the depth shows
+(:func:`~autoalign.engine.table_in_depth.table_in_depth`): it is held there when the other evidence
+puts its lowest point on it (:data:`~autoalign.losses.contact.OFFERED_GAP_MM`), since nothing else
+fixes it along the viewing rays.
 When a result with the depth is in doubt (the depth contradicts it, or its silhouettes miss the
 masks), it is refined again without the depth, and where the depth at that pose sees through the object
 (:func:`~autoalign.losses.see_through.see_through_shares`: measured behind its surface or missing
@@ -24,6 +28,8 @@ from numpy.typing import NDArray
 from autoalign.engine.options import RefineOptions
 from autoalign.engine.schedule import Progress
 from autoalign.engine.seeding import Click
+from autoalign.engine.table_in_depth import table_in_depth
+from autoalign.errors import AutoalignError
 from autoalign.io.bop import Scene
 from autoalign.losses.depth import DepthTerms
 from autoalign.losses.see_through import SeeThrough, see_through_shares
@@ -51,6 +57,18 @@ def measured_see_through(scene: Scene, pyramid: MeshPyramid, T_wm: NDArray[np.fl
                                          noise), declared)
 
 
+def offering_table(scene: Scene, opts: RefineOptions) -> RefineOptions:
+    """``opts`` for a run without the depth of ``scene``, which sees through the object: the table
+    plane that depth shows offered (module doc), unless a resting plane is declared, the offer is
+    off, or the depth shows too little of a plane to fit."""
+    if opts.resting is not None or not opts.offer_table:
+        return opts
+    try:
+        return replace(opts, table_offered=table_in_depth(scene))
+    except AutoalignError:  # too few depth samples for a plane: nothing to offer
+        return opts
+
+
 def in_doubt(result: Any) -> bool:
     """Whether a result (:class:`~autoalign.engine.refine.RefineResult`) refined with the depth is
     worth trying without it: the depth contradicts it, or its silhouettes miss the masks (a seed's
@@ -66,21 +84,22 @@ def refine_minding_see_through(scene: Scene, pyramid: MeshPyramid, seed: NDArray
                                run: Callable[..., R]) -> R:
     """``run`` (the engine on ``scene``, which has measured depth) minding depth that sees through
     the object (module doc)."""
-    without = replace(scene, depths=None)
+
+    def without_depth(told: Progress | None = progress) -> tuple[R, SeeThrough]:
+        """The run without the depth, the table it shows offered, and what the depth says at its pose."""
+        alt = run(replace(scene, depths=None), pyramid, seed, offering_table(scene, opts), told, anchor)
+        seen = measured_see_through(scene, pyramid, alt.T_wm, opts, declared=pyramid.transparent)
+        return replace(alt, measured=(seen,) + alt.measured), seen
+
     if pyramid.transparent:
-        result = run(without, pyramid, seed, opts, progress, anchor)
-        seen = measured_see_through(scene, pyramid, result.T_wm, opts, declared=True)
-        return replace(result, measured=(seen,) + result.measured)
+        return without_depth()[0]
     if pyramid.material != "opaque" and isinstance(seed, np.ndarray) and opts.seed_radius is not None and \
             measured_see_through(scene, pyramid, seed, opts, slack_mm=opts.seed_radius[0]).sees_through():
         # seen through already at the given pose, beyond how far the seed may be off: refined without
         # the depth first, with it only if the result is not seen through (one run instead of two
         # for glass; an opaque object's seed nearer the camera than its surface is not mistaken)
-        alt = run(without, pyramid, seed, opts, progress, anchor)
-        seen = measured_see_through(scene, pyramid, alt.T_wm, opts)
-        if seen.sees_through():
-            return replace(alt, measured=(seen,) + alt.measured)
-        return _with_cost_of(run(scene, pyramid, seed, opts, progress, anchor), alt)
+        alt, seen = without_depth()
+        return alt if seen.sees_through() else _with_cost_of(run(scene, pyramid, seed, opts, progress, anchor), alt)
     result = run(scene, pyramid, seed, opts, progress, anchor)
     if pyramid.material == "opaque" or not in_doubt(result):
         return result
@@ -89,11 +108,8 @@ def refine_minding_see_through(scene: Scene, pyramid: MeshPyramid, seed: NDArray
         if progress is not None:
             progress(f"without the depth: {stage}", done, total)
 
-    alt = run(without, pyramid, seed, opts, told, anchor)
-    seen = measured_see_through(scene, pyramid, alt.T_wm, opts)
-    if not seen.sees_through():
-        return result
-    return _with_cost_of(replace(alt, measured=(seen,) + alt.measured), result)
+    alt, seen = without_depth(told)
+    return _with_cost_of(alt, result) if seen.sees_through() else result
 
 
 def _with_cost_of(kept: R, other: Any) -> R:

@@ -102,7 +102,8 @@ class FolderJob:
     (:func:`~autoalign.jobs.refine_folder.refine_folder` goes on with the masks alone, and one
     warning, when a view lacks its photo), ``on`` always (a photo missing is an error), ``off`` never
     (:meth:`uses_photos`); ``resting``: the objects rest on a table plane, found in the scene
-    (``table``) or given as ``NX,NY,NZ,D`` (:mod:`autoalign.jobs.table_plane`), ``None``: no contact."""
+    (``table``) or given as ``NX,NY,NZ,D`` (:mod:`autoalign.jobs.table_plane`), ``None``: none declared
+    (objects whose depth is seen through are offered the table their depth shows), ``off``: none at all."""
 
     scene: str
     out: str
@@ -147,8 +148,10 @@ class FolderJob:
         from autoalign.engine.options import RefineOptions
         from autoalign.engine.solver import STEP_RULES
 
+        from autoalign.jobs.table_plane import OFF
+
         return RefineOptions(loss=self.loss, optimizer=STEP_RULES[self.optimizer], robust=self.robust,
-                             seed_radius=self.seed_radius_mm_deg)
+                             seed_radius=self.seed_radius_mm_deg, offer_table=self.resting != OFF)
 
     @property
     def uses_photos(self) -> bool:
@@ -176,9 +179,9 @@ class FolderJob:
                 raise AutoalignError(f"{name} {value}: choose one of {', '.join(a for a in allowed if a)}")
         self.seed_radius_mm_deg  # a malformed --seed-radius fails here, before anything is read
         if self.resting is not None:
-            from autoalign.jobs.table_plane import FOUND, parse_plane
+            from autoalign.jobs.table_plane import FOUND, OFF, parse_plane
 
-            if self.resting != FOUND:
+            if self.resting not in (FOUND, OFF):
                 parse_plane(self.resting)  # so does a malformed --resting plane
         if self.masks == "none" and self.photos == "off":
             raise AutoalignError("--masks none leaves the photos as the only evidence: drop --photos off")

@@ -121,7 +121,9 @@ def _add_algorithm_arguments(p: argparse.ArgumentParser) -> None:
                           "to the table plane (what masks fix worst, along the viewing rays; glass most of all), "
                           "unless its masks then fit clearly worse (it stands on something else). The plane: "
                           "recon.json's table (z = 0), else fitted to the measured depth, or given as "
-                          "NX x + NY y + NZ z + D = 0 (world frame, mm, normal towards the objects)")
+                          "NX x + NY y + NZ z + D = 0 (world frame, mm, normal towards the objects). Without it, "
+                          "an object whose depth is seen through (glass) is held to the plane its depth shows when "
+                          "its other evidence puts it there; 'off': not even then")
     alg.add_argument("--masks", choices=MASK_MODES, default="auto",
                      help="auto (default): the instance masks of mask_visib/; none: withhold every mask, the photos "
                           "(rgb/) place the objects from --init")

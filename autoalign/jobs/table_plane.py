@@ -2,9 +2,9 @@
 
 ``--resting`` alone finds it in the scene: a scene that ``autoalign recon`` wrote is in the table's
 frame (``recon.json``'s ``table``: z up, the table at z = 0); otherwise the plane is fitted to the
-measured depth of the scene's views (RANSAC, :func:`~autoalign.recon.plane.fit_table_plane`, its
-normal towards the cameras). ``--resting NX,NY,NZ,D`` gives it: the points ``x`` (world frame, mm)
-with ``NX x + NY y + NZ z + D = 0``, the normal pointing to the side the objects stand on.
+measured depth of the scene's views (:func:`~autoalign.engine.table_in_depth.table_in_depth`).
+``--resting NX,NY,NZ,D`` gives it: the points ``x`` (world frame, mm) with ``NX x + NY y + NZ z + D = 0``,
+the normal pointing to the side the objects stand on.
 """
 
 from __future__ import annotations
@@ -15,14 +15,16 @@ from pathlib import Path
 
 import numpy as np
 
+from autoalign.engine.table_in_depth import table_in_depth
 from autoalign.errors import AutoalignError
 from autoalign.io.bop import Scene
 from autoalign.losses.contact import TablePlane
 
 FOUND = "table"
 """``--resting`` without a plane: find it in the scene."""
-DEPTH_STEP = 4
-"""Every this many pixels, along rows and columns, a depth sample joins the plane's fit."""
+OFF = "off"
+"""``--resting off``: no contact, and none offered to objects whose depth is seen through
+(:attr:`~autoalign.engine.options.RefineOptions.offer_table`)."""
 
 
 def parse_plane(text: str) -> TablePlane:
@@ -41,7 +43,7 @@ def parse_plane(text: str) -> TablePlane:
 def resting_plane(resting: str | None, scene_dir: str | Path, scenes: Sequence[Scene]) -> TablePlane | None:
     """The plane ``--resting`` asks for (module doc; ``None``: not asked), found in ``scene_dir`` or
     in the measured depth of ``scenes``; a one-line error when the scene has neither."""
-    if resting is None:
+    if resting is None or resting == OFF:
         return None
     if resting != FOUND:
         return parse_plane(resting)
@@ -53,20 +55,4 @@ def resting_plane(resting: str | None, scene_dir: str | Path, scenes: Sequence[S
         raise AutoalignError(f"--resting: {scene_dir} has neither a recon.json (autoalign recon's table frame) nor "
                              "measured depth to find the table plane in; give it as --resting NX,NY,NZ,D (world "
                              "frame, mm)")
-    return plane_from_depth(max(with_depth, key=len))
-
-
-def plane_from_depth(scene: Scene) -> TablePlane:
-    """The dominant plane of the points the views of ``scene`` measured (every :data:`DEPTH_STEP`-th
-    pixel), its normal towards the cameras."""
-    from autoalign.recon.plane import fit_table_plane
-
-    assert scene.depths is not None
-    points = []
-    for cam, z in zip(scene.cameras, scene.depths):
-        rows, cols = np.nonzero(z[::DEPTH_STEP, ::DEPTH_STEP] > 0)
-        rows, cols = rows * DEPTH_STEP, cols * DEPTH_STEP
-        points.append(cam.centre + z[rows, cols, None] * cam.depth_rays(cols, rows))
-    centres = np.array([c.centre for c in scene.cameras])
-    plane = fit_table_plane(np.concatenate(points), centres)
-    return TablePlane.of(plane.normal, plane.point)
+    return table_in_depth(max(with_depth, key=len))

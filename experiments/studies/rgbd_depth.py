@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 
 from autoalign.engine.refine import RefineOptions, refine
+from autoalign.engine.table_in_depth import plane_from_depth
 from autoalign.experiments import RESULTS
 from autoalign.experiments.result_files import write_results
 from autoalign.experiments.studies.metrics import Symmetries, pose_errors
@@ -34,7 +35,6 @@ from autoalign.geometry.se3 import apply_twist, make_pose, pose_change, transfor
 from autoalign.io.bop import Scene, read_scene, with_depth
 from autoalign.io.evidence import read_evidence
 from autoalign.io.models import ModelSet
-from autoalign.jobs.table_plane import plane_from_depth
 from autoalign.losses.contact import Contact, TablePlane
 from autoalign.quality.verdict import PoseEvidence, judge
 
