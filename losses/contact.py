@@ -154,7 +154,9 @@ class Contact:
     and at the result, the masks' median IoU at both, and whether the contact was kept: it is not
     when the masks fit the pose on the plane clearly worse (median IoU lower by more than
     :data:`CONTACT_IOU_DROP`), which says that the object stands on something else, or when at the
-    masks' pose it leans more than :data:`CONTACT_MAX_LEAN_DEG` from every stable face."""
+    masks' pose it leans more than :data:`CONTACT_MAX_LEAN_DEG` from every stable face. ``declared``:
+    by ``--resting``; else offered to glass (:data:`OFFERED_GAP_MM`), and not kept when sunk in the
+    table (:attr:`in_table`)."""
 
     plane: TablePlane
     gap_before_mm: float
@@ -190,8 +192,10 @@ class Contact:
                 "tilt_before_deg": self.tilt_before_deg, "tilt_after_deg": self.tilt_after_deg,
                 "median_iou_before": self.iou_before, "median_iou_on_plane": self.iou_after, "kept": self.kept,
                 "declared": self.declared,
-                "rule": ("" if self.declared else f"offered (the depth sees through it) and its lowest point within "
-                         f"{OFFERED_GAP_MM:g} mm of the plane the depth shows; ") + f"kept unless the masks fit the pose on the plane worse by more than {CONTACT_IOU_DROP:g} "
+                "rule": ("" if self.declared else
+                         f"offered (the depth sees through it) when its lowest point lies within {OFFERED_GAP_MM:g} mm "
+                         "of the plane the depth shows; sunk deeper below it, the depth contradicts the pose; ")
+                        + f"kept unless the masks fit the pose on the plane worse by more than {CONTACT_IOU_DROP:g} "
                         f"in median IoU, or it leans more than {CONTACT_MAX_LEAN_DEG:g} deg from every stable face "
                         "at the masks' pose"}
 

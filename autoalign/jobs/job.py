@@ -147,7 +147,6 @@ class FolderJob:
         """The engine's settings this job asks for: loss, optimiser, robust weights, the seed's radius."""
         from autoalign.engine.options import RefineOptions
         from autoalign.engine.solver import STEP_RULES
-
         from autoalign.jobs.table_plane import OFF
 
         return RefineOptions(loss=self.loss, optimizer=STEP_RULES[self.optimizer], robust=self.robust,
