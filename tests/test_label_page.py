@@ -115,9 +115,12 @@ def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
         page.select_option("#object", "1")
         col, row = mask_pixel(mask_of(labelled.scene, 0, 0))
         click_view(page, 0, col, row, W, H)
-        rev = wait_drawn(page, 0)
+        wait_drawn(page, 0)  # the searched pose's outlines, or already the refined pose's
         state = wait_job_done(page)
         assert state["job"]["error"] is None
+        # the revision of the refined pose (the searched one before it had its own): counted from here
+        rev = next(i for i in state["instances"] if i["index"] == 0)["pose_revision"]
+        wait_drawn(page, 0, rev - 1)
         n_outlined = page.evaluate("document.querySelectorAll('.view polyline[data-instance=\"0\"]').length")
         assert n_outlined >= N_VIEWS  # at least one outline per view (the object is in all of them)
         page.wait_for_function("document.body.dataset.clickToContoursMs !== undefined && "
@@ -141,6 +144,7 @@ def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
             page.keyboard.press("ArrowRight")
         wait_state(page, f"s.instances.find(i => i.index === 0).pose_revision >= {rev + 3}")
         rev = wait_drawn(page, 0, rev + 2)
+        assert rev == next(i for i in wait_state(page, "true")["instances"] if i["index"] == 0)["pose_revision"]
         nudged = session_instance(out, 0)
         T0, T1 = np.array(placed["T_wm"]), np.array(nudged["T_wm"])
         from autoalign.io.bop import read_cameras
@@ -155,6 +159,7 @@ def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
 
         # Ctrl+Z undoes the last nudge
         page.keyboard.press("Control+z")
+        wait_state(page, f"s.instances.find(i => i.index === 0).pose_revision >= {rev + 1}")
         rev = wait_drawn(page, 0, rev)
         undone = session_instance(out, 0)
         np.testing.assert_allclose(np.array(undone["T_wm"])[:3, 3] - T0[:3, 3], R_w2c.T @ [2.0, 0.0, 0.0], atol=1e-6)
