@@ -156,7 +156,9 @@ class Contact:
     :data:`CONTACT_IOU_DROP`), which says that the object stands on something else, or when at the
     masks' pose it leans more than :data:`CONTACT_MAX_LEAN_DEG` from every stable face. ``declared``:
     by ``--resting``; else offered to glass (:data:`OFFERED_GAP_MM`), and not kept when sunk in the
-    table (:attr:`in_table`)."""
+    table (:attr:`in_table`). ``stood_up_deg``: sunk, and stood on a stable face instead
+    (:mod:`autoalign.engine.stand_up`), the turn that took (degrees, modulo the symmetries); ``None``
+    otherwise."""
 
     plane: TablePlane
     gap_before_mm: float
@@ -166,6 +168,7 @@ class Contact:
     iou_before: float
     iou_after: float
     declared: bool = True
+    stood_up_deg: float | None = None
     name = "contact"
 
     @property
@@ -176,12 +179,14 @@ class Contact:
     @property
     def leans(self) -> bool:
         """At the masks' pose it leans beyond any stable face (False without stable faces)."""
-        return bool(self.tilt_before_deg > CONTACT_MAX_LEAN_DEG)
+        return bool(self.tilt_before_deg > CONTACT_MAX_LEAN_DEG) and self.stood_up_deg is None
 
     @property
     def in_table(self) -> bool:
-        """Offered, and at the masks' pose sunk below the plane by more than :data:`OFFERED_GAP_MM`."""
-        return not self.declared and self.gap_before_mm < -OFFERED_GAP_MM
+        """Offered, at the masks' pose sunk below the plane by more than :data:`OFFERED_GAP_MM`, and
+        not stood up on a face where the masks fit as well."""
+        return (not self.declared and self.gap_before_mm < -OFFERED_GAP_MM
+                and (self.stood_up_deg is None or self.fits_worse))
 
     @property
     def kept(self) -> bool:
@@ -191,10 +196,11 @@ class Contact:
         return {"plane": self.plane.record(), "gap_before_mm": self.gap_before_mm, "gap_after_mm": self.gap_after_mm,
                 "tilt_before_deg": self.tilt_before_deg, "tilt_after_deg": self.tilt_after_deg,
                 "median_iou_before": self.iou_before, "median_iou_on_plane": self.iou_after, "kept": self.kept,
-                "declared": self.declared,
+                "declared": self.declared, "stood_up_deg": self.stood_up_deg,
                 "rule": ("" if self.declared else
                          f"offered (the depth sees through it) when its lowest point lies within {OFFERED_GAP_MM:g} mm "
-                         "of the plane the depth shows; sunk deeper below it, the depth contradicts the pose; ")
+                         "of the plane the depth shows; sunk deeper below it, the depth contradicts the pose, "
+                         "and where the orientation was searched it is stood on its stable faces instead; ")
                         + f"kept unless the masks fit the pose on the plane worse by more than {CONTACT_IOU_DROP:g} "
                         f"in median IoU, or it leans more than {CONTACT_MAX_LEAN_DEG:g} deg from every stable face "
                         "at the masks' pose"}
@@ -202,6 +208,12 @@ class Contact:
     def evidence(self) -> TermEvidence:
         """A kept contact supports the pose along the plane's normal; one set aside is said, never
         held against the pose (the object may stand on another)."""
+        if self.kept and self.stood_up_deg is not None:
+            return TermEvidence(self.name, Stance.NEUTRAL, 1.0,
+                                f"stood up on the table its depth shows: where the masks put it, its lowest point lay "
+                                f"{-self.gap_before_mm:.1f} mm inside that table (upside down or on its side), so it "
+                                f"was turned {self.stood_up_deg:.0f} deg onto the stable face the masks fit best "
+                                f"(median IoU {self.iou_after:.2f} against {self.iou_before:.2f})")
         if self.kept:
             why = "" if self.declared else " (its depth sees through it, and it stands on the plane the depth shows)"
             return TermEvidence(self.name, Stance.NEUTRAL, 1.0,
@@ -209,10 +221,14 @@ class Contact:
                                 f"and {self.tilt_before_deg:.1f} deg from standing at the masks' pose, "
                                 f"{self.gap_after_mm:+.1f} mm and {self.tilt_after_deg:.1f} deg at the result")
         if self.in_table:
+            tried = ("" if self.stood_up_deg is None else
+                     f" (stood on its best stable face the masks fit worse: median IoU {self.iou_after:.2f} "
+                     f"against {self.iou_before:.2f})")
             return TermEvidence(self.name, Stance.CONTRADICTS, 0.0,
                                 f"its lowest point lies {-self.gap_before_mm:.1f} mm below the table its depth shows "
                                 "through it: nothing stands inside the table, so the pose is wrong (upside down, or "
-                                "slid along the rays) unless the table has a hollow there; look at it in overlay.png")
+                                f"slid along the rays) unless the table has a hollow there{tried}; look at it in "
+                                "overlay.png")
         why = (f"it leans {self.tilt_before_deg:.0f} deg from every face it could rest on" if self.leans else
                f"on the plane the masks fit worse (median IoU {self.iou_after:.2f} against {self.iou_before:.2f})")
         return TermEvidence(self.name, Stance.NO_EVIDENCE, 0.0,

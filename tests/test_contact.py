@@ -255,3 +255,51 @@ def test_resting_off_offers_no_table(tmp_path: Path) -> None:
         job.check()
         assert job.refine_options().offer_table is offered
         assert resting_plane(job.resting, job.scene, []) is None
+
+
+@pytest.mark.slow
+def test_glass_sunk_in_its_table_is_stood_up_where_the_orientation_was_searched() -> None:
+    """Issue 45, must-show 2: with no seed, a glass whose masks cannot tell its base from its rim can
+    come out upside down, sunk in the table its depth shows. Where the orientation was searched it
+    is stood on the stable face whose pose the masks fit best (here its base: back on the truth);
+    from a given pose it is not moved, and the contradiction is said. A glass leaning 30 deg on
+    something, sunk the same, fits no stable face (median IoU lower by more than 0.1): it is not
+    moved either, and the contradiction says that standing it up was tried."""
+    from autoalign.engine.objective import Level, SilhouetteObjective
+    from autoalign.engine.refine import Finalist, Hypothesis, Stage, _resting
+    from autoalign.losses.term import Stance
+    from autoalign.rasterizers.pyramid import MeshPyramid
+
+    bottle = mesh_from_trimesh(_bottle(), "bottle")
+    pyramid = MeshPyramid(bottle)
+    cams = ring_cameras(8, np.random.default_rng(2), (25.0, 45.0), (450.0, 650.0), target=(0.0, 0.0, 60.0))
+    opts = RefineOptions(region=None)
+    full = Level(1.0, opts.schedule[-1].sigma, 0)
+    flip = Rotation.from_euler("x", 180.0, degrees=True).as_matrix()
+    for R, case in ((np.eye(3), "standing"), (Rotation.from_euler("x", 30.0, degrees=True).as_matrix(), "leaning")):
+        T_true = make_pose(R, np.array([0.0, 0.0, -(bottle.hull @ R.T)[:, 2].min()]))
+        obj = SilhouetteObjective(pyramid, _eroded_masks(bottle, T_true, cams), opts.loss, opts.robust, opts.detail,
+                                  opts.depth)
+        # upside down about its centre, then its lowest point 12 mm into the table
+        centre = T_true[:3, :3] @ bottle.centre + T_true[:3, 3]
+        T_sunk = make_pose(R @ flip, centre - R @ flip @ bottle.centre)
+        T_sunk[2, 3] -= RestingContact(TABLE, bottle.hull, bottle.centre, 1.0).gap_mm(T_sunk) + 12.0
+        ev = obj.evaluate(T_sunk, full)
+        best = Finalist(Hypothesis(T_sunk, T_sunk, ev.value / len(ev.weights), float(np.mean(ev.terms.iou)),
+                                   Stage.FINAL), ev.weights)
+        for may_turn in (False, True):
+            kept, _, contact = _resting(obj, best, ev, TABLE, False, may_turn, opts, None)
+            assert contact.gap_before_mm < -11.0
+            said = contact.evidence()
+            if may_turn and case == "standing":
+                T = kept.hypothesis.T_final
+                mm = np.linalg.norm(T[:3, :3] @ bottle.centre + T[:3, 3] - centre)
+                axis_deg = np.degrees(np.arccos(np.clip(T[:3, 2] @ T_true[:3, 2], -1.0, 1.0)))  # it is round
+                assert contact.kept and contact.stood_up_deg > 170.0 and mm < 1.0 and axis_deg < 1.0, (mm, axis_deg)
+                assert said.stance is Stance.NEUTRAL and "stood up" in said.reason
+                continue
+            assert contact.in_table and not contact.kept  # the caller keeps best
+            assert (kept is best) != may_turn and (contact.iou_after < contact.iou_before - 0.1) == may_turn
+            assert said.stance is Stance.CONTRADICTS and "below the table" in said.reason
+            assert (contact.stood_up_deg is not None) == may_turn
+            assert ("stood on its best stable face the masks fit worse" in said.reason) == may_turn

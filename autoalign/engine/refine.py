@@ -38,6 +38,7 @@ from autoalign.engine.see_through import refine_minding_see_through
 from autoalign.engine.seed_region import CLEARLY_BETTER, STIFFNESS, SeedHold, SeedRegion
 from autoalign.engine.seeding import Click, click_centre, hull_centre, rotation_grid
 from autoalign.engine.solver import StepRule, Trace
+from autoalign.engine.stand_up import best_standings
 from autoalign.engine.turn_profile import with_turn_profiles
 from autoalign.engine.uncertainty import Uncertainty, pose_uncertainty, viewpoint_groups
 from autoalign.errors import AutoalignError
@@ -579,12 +580,25 @@ def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best:
     return Finalist(near, ev_near.weights), ev_near, uncertainty, hold
 
 
+def _held_on(obj: SilhouetteObjective, term: RestingContact, starts: list[NDArray[np.float64]], opts: RefineOptions,
+             progress: Progress | None) -> tuple[NDArray[np.float64], list[Trace], Evaluation]:
+    """The best of ``starts`` polished through the schedule with the contact ``term`` held (by the
+    held value: the other evidence's at full resolution plus the contact's): its pose, its traces
+    and its full-resolution evaluation without the contact (one render)."""
+    held = obj.with_pose_term(term)
+    full = Level(1.0, opts.schedule[-1].sigma, 0)
+    runs = [run_schedule(held, T, opts.schedule, opts.optimizer, progress, "resting on the table") for T in starts]
+    evs = [obj.evaluate(T, full) for T, _ in runs]
+    k = int(np.argmin([e.value + term.term(T).value for e, (T, _) in zip(evs, runs)]))
+    return runs[k][0], runs[k][1], evs[k]
+
+
 def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, plane: TablePlane, declared: bool,
-             opts: RefineOptions, progress: Progress | None) -> tuple[Finalist, Evaluation, Contact] | None:
+             may_turn: bool, opts: RefineOptions, progress: Progress | None
+             ) -> tuple[Finalist, Evaluation, Contact] | None:
     """Stage 4c, a resting contact (:mod:`autoalign.losses.contact`), ``declared`` or offered (then only
     when ``best``'s lowest point lies within :data:`~autoalign.losses.contact.OFFERED_GAP_MM` of the
     plane and it leans within :data:`~autoalign.losses.contact.CONTACT_MAX_LEAN_DEG` of a stable face;
-    sunk deeper, the contact is recorded, not kept (:attr:`~autoalign.losses.contact.Contact.in_table`);
     ``None`` otherwise, nothing run): ``best`` polished
     again through the schedule with its lowest point held to ``plane``, from its own
     pose and from its start (the start's orientation may be the nearer one: masks seen from one side
@@ -592,25 +606,34 @@ def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, plane: Ta
     is kept unless the masks fit that pose clearly worse (median IoU at full resolution lower by
     more than :data:`~autoalign.losses.contact.CONTACT_IOU_DROP` than ``ev``'s) or ``best`` leans
     beyond any stable face (:attr:`~autoalign.losses.contact.Contact.kept`): then the object stands
-    on something else, and ``best`` stays."""
+    on something else, and ``best`` stays.
+
+    Offered, and sunk deeper than that below the plane, ``best`` contradicts the depth. Where the
+    orientation was searched (``may_turn``: no pose given), the poses standing it on its stable
+    faces are tried instead (:mod:`autoalign.engine.stand_up`: an upside-down glass), the best two
+    polished on the plane, and the better kept unless the masks fit it clearly worse; otherwise, or
+    from a given pose, the contradiction is recorded and nothing run
+    (:attr:`~autoalign.losses.contact.Contact.in_table`)."""
     h = best.hypothesis
     mesh = obj.pyramid.mesh
     term = RestingContact(plane, mesh.hull, obj.centre_m, CONTACT_STIFFNESS * len(obj.scene), mesh.resting_downs)
     gap, tilt = term.gap_mm(h.T_final), term.tilt_deg(h.T_final)
-    if not declared and gap < -OFFERED_GAP_MM:  # sunk in the table its depth shows: said, nothing run
-        iou = float(np.median(ev.terms.iou))
-        return best, ev, Contact(plane, gap, gap, tilt, tilt, iou, iou, declared)
-    if not declared and not (gap <= OFFERED_GAP_MM and tilt <= CONTACT_MAX_LEAN_DEG):
+    iou = float(np.median(ev.terms.iou))
+    sunk = not declared and gap < -OFFERED_GAP_MM
+    if sunk:  # in the table its depth shows: stood on its faces where the orientation is the search's
+        starts = list(best_standings(obj.pyramid.with_faces(opts.detail.coarse), obj.scene, h.T_final, term)
+                      if may_turn else [])
+        if not starts:
+            return best, ev, Contact(plane, gap, gap, tilt, tilt, iou, iou, declared)
+    elif not declared and not (gap <= OFFERED_GAP_MM and tilt <= CONTACT_MAX_LEAN_DEG):
         return None  # the evidence does not put it on the table
-    held = obj.with_pose_term(term)
-    full = Level(1.0, opts.schedule[-1].sigma, 0)
-    runs = [run_schedule(held, T, opts.schedule, opts.optimizer, progress, "resting on the table")
-            for T in (h.T_final, h.T_init)]
-    evs = [obj.evaluate(T, full) for T, _ in runs]  # the held value: the masks' plus the contact's, one render
-    k = int(np.argmin([e.value + term.term(T).value for e, (T, _) in zip(evs, runs)]))
-    (T_on, traces), ev_on = runs[k], evs[k]
-    iou, iou_on = float(np.median(ev.terms.iou)), float(np.median(ev_on.terms.iou))
-    contact = Contact(plane, gap, term.gap_mm(T_on), tilt, term.tilt_deg(T_on), iou, iou_on, declared)
+    else:
+        starts = [h.T_final, h.T_init]
+    T_on, traces, ev_on = _held_on(obj, term, starts, opts, progress)
+    syms = obj.pyramid.symmetries
+    turned = symmetric_pose_change(h.T_final, T_on, obj.centre_m, syms.discrete, syms.continuous)[1] if sunk else None
+    contact = Contact(plane, gap, term.gap_mm(T_on), tilt, term.tilt_deg(T_on), iou, float(np.median(ev_on.terms.iou)),
+                      declared, turned)
     on = Hypothesis(h.T_init, T_on, ev_on.value / len(ev_on.weights), float(np.mean(ev_on.terms.iou)), Stage.FINAL,
                     tuple(zip(opts.schedule, traces)))
     return Finalist(on, ev_on.weights), ev_on, contact
@@ -748,7 +771,8 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
     plane = opts.resting if opts.resting is not None else opts.table_offered
     if plane is not None:
         t0 = time.perf_counter()
-        rested_as = _resting(obj, final[0], final_ev, plane, opts.resting is not None, opts, progress)
+        rested_as = _resting(obj, final[0], final_ev, plane, opts.resting is not None,
+                             not given_pose and anchor is None, opts, progress)
         if rested_as is not None:
             rested, rested_ev, contact = rested_as
             if contact.kept:

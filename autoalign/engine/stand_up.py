@@ -1,0 +1,59 @@
+"""Standing a pose sunk in the table back up: with no seed, glass whose silhouettes do not tell
+its base from its rim can come out upside down, its lowest point inside the table that its own
+depth shows through it (:data:`~autoalign.losses.contact.OFFERED_GAP_MM`). Nothing stands inside a
+table, so the poses that stand it on each of its stable faces (trimesh's stable poses,
+:attr:`~autoalign.geometry.mesh.Mesh.resting_downs`), its centre kept above where it was, are
+scored against the masks; the best few are polished with the contact held
+(:func:`autoalign.engine.refine._resting`), and the masks decide between them."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from autoalign.engine.hypotheses import score_poses
+from autoalign.geometry.se3 import make_pose, so3_exp
+from autoalign.io.bop import Scene
+from autoalign.losses.contact import RestingContact
+from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
+
+STAND_UP_YAWS_DEG = tuple(range(0, 360, 45))
+"""The turns about the table's normal tried on each stable face (degrees): standing a pose up turns
+it by up to half a turn, and which way round it then stands (a mug's handle) the masks say."""
+STAND_UP_POLISHED = 2
+"""How many of the best-scoring standings are polished with the contact held."""
+
+
+def standings(T_wm: NDArray[np.float64], term: RestingContact) -> NDArray[np.float64]:
+    """``T_wm`` (world from model, mm) stood on each of ``term``'s stable faces, turned about the
+    plane's normal by each of :data:`STAND_UP_YAWS_DEG`: the face's downward direction turned onto
+    the plane's downward normal the shortest way, the object centre (``term.centre_m``) kept on the
+    same line along the normal and the lowest point put on the plane; (K, 4, 4)."""
+    n = term.plane.normal
+    R = T_wm[:3, :3]
+    centre_w = R @ term.centre_m + T_wm[:3, 3]
+    out = []
+    for down_m in term.downs_m:
+        onto, _ = Rotation.align_vectors(-n[None], (R @ down_m)[None])
+        for yaw in STAND_UP_YAWS_DEG:
+            R_new = so3_exp(n * np.radians(yaw)) @ onto.as_matrix() @ R
+            T = make_pose(R_new, centre_w - R_new @ term.centre_m)
+            T[:3, 3] -= term.gap_mm(T) * n  # the plane's heights are linear: this puts the lowest point on it
+            out.append(T)
+    return np.array(out).reshape(-1, 4, 4)
+
+
+def best_standings(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.float64],
+                   term: RestingContact) -> NDArray[np.float64]:
+    """The :data:`STAND_UP_POLISHED` standings of ``T_wm`` (:func:`standings`) whose silhouettes fit
+    ``scene``'s masks best (robust hard IoU at 1/4 resolution, each moved across the views to
+    the masks' centroids and put back on the plane), best first; (k, 4, 4)."""
+    cands = standings(T_wm, term)
+    if not len(cands):
+        return cands
+    scores, moved = score_poses(rast, scene, cands, scale=0.25, recentre=True)
+    best = moved[np.argsort(-scores)[:STAND_UP_POLISHED]]
+    for T in best:
+        T[:3, 3] -= term.gap_mm(T) * term.plane.normal
+    return best
