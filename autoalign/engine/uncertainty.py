@@ -259,21 +259,41 @@ def direction_name(u: NDArray[np.float64]) -> str:
     return "model (" + ", ".join(f"{x:+.2f}" for x in u * np.sign(u[k])) + ")"
 
 
+def _complement(free_axes_m: tuple[NDArray[np.float64], ...]) -> NDArray[np.float64]:
+    """(3, k) orthonormal columns spanning the directions at right angles to every one of ``free_axes_m``."""
+    P = np.eye(3)
+    for a in free_axes_m:
+        a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
+        P = P @ (np.eye(3) - np.outer(a, a))
+    vals, vecs = np.linalg.eigh(P @ P.T)
+    return vecs[:, vals > 0.5]
+
+
 def _weak(cov_m: NDArray[np.float64], weak_mm: float = WEAK_MM, weak_deg: float = WEAK_DEG,
-          ratio: float = WEAK_RATIO) -> list[tuple[str, NDArray[np.float64]]]:
+          ratio: float = WEAK_RATIO, free_axes_m: tuple[NDArray[np.float64], ...] = ()
+          ) -> list[tuple[str, NDArray[np.float64]]]:
     """The principal directions of the position and orientation blocks whose sigma is large, in
     absolute terms or against the best observed direction of the block, largest first (turns
-    first), each named and with its unit model-frame vector."""
+    first), each named and with its unit model-frame vector; turns about ``free_axes_m`` (axes of
+    continuous symmetry: no view sees them, no label depends on them) left out."""
     out = []
     for block, unit, limit, what in ((slice(3, 6), np.degrees(1.0), weak_deg, "turn about"),
                                      (slice(0, 3), 1.0, weak_mm, "shift along")):
-        vals, vecs = np.linalg.eigh(cov_m[block, block])
+        B = _complement(free_axes_m) if what == "turn about" else np.eye(3)
+        vals, vecs = np.linalg.eigh(B.T @ cov_m[block, block] @ B)
+        vecs = B @ vecs
         best = float(np.sqrt(max(vals[0], 0.0))) * unit
         for lam, u in sorted(zip(vals, vecs.T), key=lambda x: -x[0]):
             s = float(np.sqrt(max(lam, 0.0))) * unit
             if s > limit or s > ratio * best:
                 out.append((f"{what} {direction_name(u)}: {s:.2g} {'deg' if what == 'turn about' else 'mm'}", u))
     return out
+
+
+def weak_directions(cov_m: NDArray[np.float64], free_axes_m: tuple[NDArray[np.float64], ...] = ()) -> list[str]:
+    """:attr:`Uncertainty.weak` of the covariance ``cov_m`` (model frame), the turns about the
+    model's axes of continuous symmetry ``free_axes_m`` left out (a can's free spin is no weakness)."""
+    return [t for t, _ in _weak(cov_m, free_axes_m=free_axes_m)]
 
 
 def _weak_turn_axes(spread_m: NDArray[np.float64]) -> list[NDArray[np.float64]]:

@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from autoalign.engine.refine import RefineResult
 from autoalign.engine.seed_region import SEED_RADIUS, SeedHold
 from autoalign.engine.uncertainty import (MIN_VIEWPOINTS, SAME_AXIS, SAME_VIEWPOINT_DEG, Uncertainty, direction_name,
-                                         turn_sigma_deg)
+                                         turn_sigma_deg, weak_directions)
 from autoalign.losses.term import Stance, TermEvidence
 
 FAILED_IOU = 0.5
@@ -267,7 +267,7 @@ def _sigma_reasons(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.float
     s_mm, s_deg = largest_sigmas(uncertainty, free_axes_m)
     if s_mm > LARGE_SIGMA_MM or s_deg > LARGE_SIGMA_DEG:
         return [f"weakly observed: sigma up to {s_mm:.2g} mm / {s_deg:.2g} deg"
-                + (f" ({_largest_weak(uncertainty.weak)})" if uncertainty.weak else "")
+                + (f" ({_largest_weak(weak)})" if (weak := weak_directions(uncertainty.covariance, free_axes_m)) else "")
                 + ": views from other directions or measured depth would fix it"]
     rise, rise_axis = turn_rise
     if nearly_symmetric(uncertainty, free_axes_m, turn_gap, symmetric, rise):
