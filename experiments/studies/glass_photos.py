@@ -14,8 +14,8 @@ declared in ``materials.json``: ``all`` (the degraded masks, photos and depth: t
 ``resting`` (as ``all``, with ``--resting``: held to the table plane fitted to the depth),
 ``masks`` (the degraded masks alone: ``--photos off --depth off``), ``exact-masks`` and
 ``exact-all`` (the same with the exact masks: does a term pull a pose away from where exact masks
-put it?), and ``none`` (as ``all``, without ``--init``: do the glasses come out standing the right
-way up?). Per instance: the error (symmetry-aware), the verdict, and whether the depth was read as
+put it?), ``none`` (as ``all``, without ``--init``: do the glasses come out standing the right
+way up?) and ``photos`` (the photos and the depth, every mask withheld: ``--masks none``). Per instance: the error (symmetry-aware), the verdict, and whether the depth was read as
 seeing through it.
 
 ``python -m autoalign.experiments.studies.glass_photos [--scenes 8] [--views 32] [--spp 32]``
@@ -52,8 +52,9 @@ GLASSWARE = ("mug", "can_plain", "bottle_plain", "travel_mug", "pitcher", "bowl"
 """Procedural models that stand on their -z side, as glassware: cups with a handle (mug, pitcher:
 not symmetric), a tumbler-like can, a bottle, a bowl."""
 GLASS_PER_SCENE = 5
-CONDITIONS = ("all", "resting", "masks", "exact-masks", "exact-all", "none")
+CONDITIONS = ("all", "resting", "masks", "exact-masks", "exact-all", "none", "photos")
 MASKS_ONLY = ["--photos", "off", "--depth", "off"]
+NO_MASKS = ["--masks", "none"]
 
 
 def degrade_masks(scene: Path, rng: np.random.Generator) -> None:
@@ -116,7 +117,8 @@ def run_scene(seed: int, work: Path, views: int, spp: int, conditions: list[str]
         if not (reuse and (out / "refine.json").is_file()):
             shutil.rmtree(out, ignore_errors=True)
             scene = work / ("scene" if condition.startswith("exact") else "scene_degraded")
-            extra = ((MASKS_ONLY if condition.endswith("masks") else []) + ([] if condition == "none" else
+            extra = ((MASKS_ONLY if condition.endswith("masks") else NO_MASKS if condition == "photos" else [])
+                     + ([] if condition == "none" else
                      ["--init", str(work / "init.json")]) + (["--resting"] if condition == "resting" else []))
             run_autoalign("refine", str(scene), "--models", str(work / "models"), *extra, "--out", str(out),
                           "--quiet").check()
@@ -181,7 +183,7 @@ def write(rows: list[dict], args: argparse.Namespace, scenes_done: int) -> None:
           f"with mitsuba ({args.spp} samples a pixel), {args.views} views of 640x480, every other scene before a "
           "mirror; depth through the glass with holes on glass and metal; masks eroded 3 px, 1 view in 4 cut to "
           "half (`exact-`: exact masks); `refine --models` from `--init` 10 mm / 15 deg off (`none`: no seed), "
-          "nothing declared; `resting`: with `--resting` (the table plane fitted to the depth); `masks`: photos and depth off. Errors are symmetry-aware; upside down: more than "
+          "nothing declared; `resting`: with `--resting` (the table plane fitted to the depth); `masks`: photos and depth off; `photos`: every mask withheld (`--masks none`). Errors are symmetry-aware; upside down: more than "
           "90 deg off.", "", *table(rows), "",
           "| scene | condition | object | material | err mm | err deg | verdict | sees through |",
           "|---|---|---|---|---|---|---|---|",
