@@ -164,7 +164,7 @@ def test_refine_models_without_masks(photo_scene, starts, tmp_path):
         assert mm < 1.0 and deg < 1.0, (NAMES[j], mm, deg)
     rec = json.loads((out / "refine.json").read_text())
     for inst in rec["instances"]:
-        assert len(inst["photo"]["agreement"]) == len(inst["image_ids"])
+        assert len(inst["photo"]["agreement"]) == len(inst["image_ids"]) and inst["photo"]["masks_given"] is False
 
 
 @pytest.mark.parametrize("extra, message", [

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from autoalign.engine.uncertainty import uncertainty_of
-from autoalign.quality.verdict import PoseEvidence, judge
+from autoalign.quality.verdict import NO_MASKS_SAID, PoseEvidence, judge
 
 
 def test_a_weak_pose_names_its_largest_turn_and_shift_only() -> None:
@@ -78,3 +78,15 @@ def test_support_excuses_loose_masks_but_not_masks_that_miss_most_of_the_silhoue
         assert missed.status == "check", (med, missed.reasons)
         assert missed.reasons[0].startswith(f"silhouettes do not match the masks (median IoU {med:.2f} < 0.5), "
                                             "though the measured depth agrees")
+
+
+def test_without_masks_the_reasons_say_what_they_compared_with() -> None:
+    """``--masks none``: the IoUs are against the photo's colour regions, and a reason that speaks of
+    masks is followed by one that says so; with masks, nothing is added."""
+    loose = np.full(10, 0.42)
+    with_masks = judge(PoseEvidence(loose, np.ones(10), list(range(10))))
+    without = judge(PoseEvidence(loose, np.ones(10), list(range(10)), masks_given=False))
+    assert with_masks.status == without.status == "failed"
+    assert any("silhouettes do not match the masks" in r for r in with_masks.reasons)
+    assert without.reasons == with_masks.reasons + [NO_MASKS_SAID]
+    assert judge(PoseEvidence(np.full(10, 0.95), np.ones(10), list(range(10)), masks_given=False)).reasons == []

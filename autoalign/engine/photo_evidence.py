@@ -50,20 +50,22 @@ R = TypeVar("R")
 class PhotoEvidence:
     """The region term at the result: per view the band's half-width (px), the share of the band's
     pixels whose colour posterior agrees with the silhouette and the edge contrast across the
-    outline (:class:`~autoalign.losses.region.RegionTarget`; NaN: nothing to compare), and the
-    rounds the colour models were learned in."""
+    outline (:class:`~autoalign.losses.region.RegionTarget`; NaN: nothing to compare), the
+    rounds the colour models were learned in, and whether the instance had masks (``--masks none``:
+    the photo's colour regions stand in for them, in the IoUs too)."""
 
     band_px: NDArray[np.float64]
     agreement: NDArray[np.float64]
     edge_contrast: NDArray[np.float64]
     rounds: int
+    masks_given: bool = True
     name = "photo"
 
     def record(self) -> dict[str, Any]:
         """Per view: the band's half-width (px), the share of the band's pixels whose colour posterior
         agrees with the silhouette, the edge contrast across the outline; and the rounds."""
         return {"band_px": self.band_px, "agreement": self.agreement, "edge_contrast": self.edge_contrast,
-                "rounds": self.rounds}
+                "rounds": self.rounds, "masks_given": self.masks_given}
 
     def evidence(self) -> TermEvidence | None:
         """What the photo says of the pose (:class:`~autoalign.losses.term.TermEvidence`): the median
@@ -97,7 +99,7 @@ def photo_targets(scene: Scene, silhouettes: list[NDArray[np.bool_]],
                 for k, (photo, sil) in enumerate(zip(scene.photos, silhouettes))]
     return (replace(scene, masks=[rt.target for rt in per_view], photos=None),
             PhotoEvidence(np.array([rt.band_px for rt in per_view]), np.array([rt.agreement for rt in per_view]),
-                          np.array([rt.edge_contrast for rt in per_view]), 0))
+                          np.array([rt.edge_contrast for rt in per_view]), 0, has_mask))
 
 
 def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.float64] | Click | None,
@@ -143,7 +145,8 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
     else:  # held near the person's seed, not near the rounds' last pose
         result = refine(targets, pyramid, T, last, progress, anchor=T_seed)
     keep = [k for k, t in enumerate(targets.masks) if np.any(t > 0.5)]  # the views refine used
-    evidence = PhotoEvidence(evidence.band_px[keep], evidence.agreement[keep], evidence.edge_contrast[keep], rounds + 1)
+    evidence = PhotoEvidence(evidence.band_px[keep], evidence.agreement[keep], evidence.edge_contrast[keep], rounds + 1,
+                             has_mask)
     # the IoUs the report and the verdict read are with the instance's own masks where it has them
     compared = scene.subset(keep) if has_mask else targets.subset(keep)
     iou_after, unc = result.iou_after, result.uncertainty

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineResult
 from autoalign.engine.seed_region import SEED_RADIUS, SeedHold
 from autoalign.engine.uncertainty import (MIN_VIEWPOINTS, SAME_AXIS, SAME_VIEWPOINT_DEG, Uncertainty, direction_name,
@@ -310,6 +311,8 @@ class PoseEvidence:
             :func:`~autoalign.geometry.se3.pose_change`); beyond ``seed_radius`` it is a reason to check.
         seed_hold: the masks pulled the pose beyond the seed's radius
             (:class:`~autoalign.engine.seed_region.SeedHold`): a reason to check either way.
+        masks_given: False when the instance had no masks (``--masks none``): the IoUs and the
+            views' weights are then against the photo's colour regions, and the reasons say so.
     """
 
     iou_after: NDArray[np.float64]
@@ -327,6 +330,7 @@ class PoseEvidence:
     seed_move: tuple[float, float] | None = None
     seed_radius: tuple[float, float] = SEED_RADIUS
     seed_hold: SeedHold | None = None
+    masks_given: bool = True
 
     @classmethod
     def of(cls, result: RefineResult, empty_ids: tuple[int, ...] = (), symmetric: bool = False,
@@ -337,7 +341,11 @@ class PoseEvidence:
         return cls(result.iou_after, result.weights, list(result.image_ids), tuple(empty_ids),
                    bool(result.ambiguous), symmetric, result.uncertainty, free_axes_m, result.turn_gap,
                    result.turn_rise, result.turn_rise_axis_m, result.evidence(), seed_move, seed_radius,
-                   result.seed_hold)
+                   result.seed_hold, (photo := result.measurement(PhotoEvidence)) is None or photo.masks_given)
+
+
+NO_MASKS_SAID = ("no masks were given (--masks none): where these reasons speak of masks they mean the photo's "
+                 "colour regions, the pixels whose colours are more the object's than its surroundings'")
 
 
 def judge(e: PoseEvidence) -> Verdict:
@@ -380,4 +388,6 @@ def judge(e: PoseEvidence) -> Verdict:
             reasons.append(f"{len(set_aside)} of {n_all} views set aside (more than {SET_ASIDE_FRACTION:.0%})")
     else:
         status = "ok"
+    if not e.masks_given and any("mask" in r for r in reasons):
+        reasons.append(NO_MASKS_SAID)
     return Verdict(status, reasons, set_aside)
