@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from autoalign.engine.uncertainty import uncertainty_of
+from autoalign.engine.uncertainty import uncertainty_of, weak_directions
 from autoalign.quality.verdict import NO_MASKS_SAID, PoseEvidence, judge
 
 
@@ -35,6 +35,8 @@ def test_a_free_spin_is_not_named_as_a_weak_turn() -> None:
     verdict = judge(PoseEvidence(np.full(10, 0.95), np.ones(10), list(range(10)), uncertainty=u, free_axes_m=z))
     reason = next(r for r in verdict.reasons if r.startswith("weakly observed"))
     assert "sigma up to 2 mm / 3.4 deg (turn about model x: 3.4 deg; shift along model x: 2 mm)" in reason, reason
+    every_turn = tuple(np.eye(3))  # a sphere: no turn to name, the shifts still
+    assert [w.split(":")[0] for w in weak_directions(cov, every_turn)] == ["shift along model x"]
 
 
 def test_refine_models_prints_a_sigma_only_for_ok_poses(capsys) -> None:

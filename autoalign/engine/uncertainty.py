@@ -280,6 +280,8 @@ def _weak(cov_m: NDArray[np.float64], weak_mm: float = WEAK_MM, weak_deg: float 
     for block, unit, limit, what in ((slice(3, 6), np.degrees(1.0), weak_deg, "turn about"),
                                      (slice(0, 3), 1.0, weak_mm, "shift along")):
         B = _complement(free_axes_m) if what == "turn about" else np.eye(3)
+        if B.shape[1] == 0:  # every turn free (a sphere): none to name
+            continue
         vals, vecs = np.linalg.eigh(B.T @ cov_m[block, block] @ B)
         vecs = B @ vecs
         best = float(np.sqrt(max(vals[0], 0.0))) * unit
