@@ -259,8 +259,9 @@ def direction_name(u: NDArray[np.float64]) -> str:
     return "model (" + ", ".join(f"{x:+.2f}" for x in u * np.sign(u[k])) + ")"
 
 
-def _complement(free_axes_m: tuple[NDArray[np.float64], ...]) -> NDArray[np.float64]:
-    """(3, k) orthonormal columns spanning the directions at right angles to every one of ``free_axes_m``."""
+def turns_not_free(free_axes_m: tuple[NDArray[np.float64], ...]) -> NDArray[np.float64]:
+    """(3, k) orthonormal columns (model frame) spanning the turn axes at right angles to every one of
+    ``free_axes_m`` (axes of continuous symmetry); k = 0 when every turn is free."""
     P = np.eye(3)
     for a in free_axes_m:
         a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
@@ -279,7 +280,7 @@ def _weak(cov_m: NDArray[np.float64], weak_mm: float = WEAK_MM, weak_deg: float 
     out = []
     for block, unit, limit, what in ((slice(3, 6), np.degrees(1.0), weak_deg, "turn about"),
                                      (slice(0, 3), 1.0, weak_mm, "shift along")):
-        B = _complement(free_axes_m) if what == "turn about" else np.eye(3)
+        B = turns_not_free(free_axes_m) if what == "turn about" else np.eye(3)
         if B.shape[1] == 0:  # every turn free (a sphere): none to name
             continue
         vals, vecs = np.linalg.eigh(B.T @ cov_m[block, block] @ B)

@@ -28,7 +28,7 @@ from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineResult
 from autoalign.engine.seed_region import SEED_RADIUS, SeedHold
 from autoalign.engine.uncertainty import (MIN_VIEWPOINTS, SAME_AXIS, SAME_VIEWPOINT_DEG, Uncertainty, direction_name,
-                                         turn_sigma_deg, weak_directions)
+                                         turn_sigma_deg, turns_not_free, weak_directions)
 from autoalign.losses.term import Stance, TermEvidence
 
 FAILED_IOU = 0.5
@@ -108,12 +108,9 @@ def largest_sigmas(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.float
     """The largest position sigma (mm) and orientation sigma (degrees) over all directions, the
     turns about ``free_axes_m`` (unit, model frame: axes of continuous symmetry) left out."""
     C = uncertainty.covariance
-    P = np.eye(3)
-    for a in free_axes_m:
-        a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
-        P = P @ (np.eye(3) - np.outer(a, a))
+    B = turns_not_free(free_axes_m)
     s_mm = float(np.sqrt(max(np.linalg.eigvalsh(C[:3, :3]).max(), 0.0)))
-    s_rad = float(np.sqrt(max(np.linalg.eigvalsh(P @ C[3:, 3:] @ P.T).max(), 0.0)))
+    s_rad = float(np.sqrt(max(np.linalg.eigvalsh(B.T @ C[3:, 3:] @ B).max(), 0.0))) if B.shape[1] else 0.0
     return s_mm, float(np.degrees(s_rad))
 
 
