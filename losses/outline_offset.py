@@ -35,20 +35,32 @@ def outline_offset(mask: NDArray[np.bool_], visible: NDArray[np.bool_],
     """The median signed distance (px, > 0: outside) of ``mask``'s outline from the outline of the
     visible silhouette ``visible``, over ``mask``'s outline pixels away from ``others`` (the other
     objects' pixels; ``None``: none) and the image's border; NaN for fewer than
-    :data:`MIN_OUTLINE_PX` such pixels. Exact Euclidean distances between pixel centres, the
+    :data:`MIN_OUTLINE_PX` such pixels or an empty silhouette. Exact Euclidean distances between pixel centres, the
     outline half a pixel beyond its last pixel: a mask equal to the silhouette gives 0, one grown
     by a pixel 1."""
     vis = np.asarray(visible, dtype=bool)
-    v8 = vis.astype(np.uint8)
+    m = np.asarray(mask, dtype=np.uint8)
+    H, W = vis.shape
+    # Worked on the box of both (and OCCLUSION_PX + 1 around it) only: it holds every silhouette pixel
+    # and a ring of background around them, so each distance, and each other object's pixel near the
+    # outline, is the one the whole image gives.
+    if not vis.any():
+        return float("nan")
+    x, y, w, h = cv2.boundingRect(np.bitwise_or(vis.view(np.uint8), m))
+    pad = OCCLUSION_PX + 1
+    x0, y0, x1, y1 = max(x - pad, 0), max(y - pad, 0), min(x + w + pad, W), min(y + h + pad, H)
+    v8 = vis[y0:y1, x0:x1].view(np.uint8)
     d_out = cv2.distanceTransform(1 - v8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     d_in = cv2.distanceTransform(v8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    signed = np.where(vis, 1.0 - d_in, d_out)  # at the mask's last pixel: where its outline lies
-    m = np.asarray(mask, dtype=np.uint8)
+    signed = np.where(v8 > 0, 1.0 - d_in, d_out)  # at the mask's last pixel: where its outline lies
+    m = m[y0:y1, x0:x1]
     edge = (m - cv2.erode(m, np.ones((3, 3), np.uint8))) > 0
     if others is not None:
-        edge &= cv2.dilate(np.asarray(others, dtype=np.uint8), _NEAR) == 0
-    b = OCCLUSION_PX
-    edge[:b], edge[-b:], edge[:, :b], edge[:, -b:] = False, False, False, False
+        near = np.ascontiguousarray(np.asarray(others, dtype=np.uint8)[y0:y1, x0:x1])
+        edge &= cv2.dilate(near, _NEAR) == 0
+    b = OCCLUSION_PX  # the image's border rows and columns, where they fall in the box
+    edge[:max(b - y0, 0)], edge[:, :max(b - x0, 0)] = False, False
+    edge[max(H - b - y0, 0):], edge[:, max(W - b - x0, 0):] = False, False
     return float(np.median(signed[edge])) if edge.sum() >= MIN_OUTLINE_PX else float("nan")
 
 

@@ -28,6 +28,7 @@ from autoalign.geometry.mesh import Mesh
 from autoalign.geometry.se3 import transform_points
 from autoalign.rasterizers.band import find_band, hard_mask
 from autoalign.rasterizers.camera_batch import CameraBatch
+from autoalign.rasterizers.hard_mask_cache import CropHits, HardMaskCache
 from autoalign.rasterizers.outline import NEAR_MM, OutlineFinder
 from autoalign.rasterizers.ray_casting import RayCaster
 from autoalign.rasterizers.soft_edge import soft_edge_values
@@ -111,21 +112,34 @@ class SoftSilhouetteRasterizer:
         self.caster = RayCaster(mesh)
         self.outlines = OutlineFinder(mesh, self.caster, segment_px)
         self.hull = mesh.hull
+        self._held = HardMaskCache()
 
     def hard_masks(self, T_wm: NDArray[np.float64], cameras: list[Camera]) -> list[NDArray[np.bool_]]:
-        """Full-image hard masks (H, W) by ray casting at every pixel centre of the object's crops."""
+        """Full-image hard masks (H, W) by ray casting at every pixel centre of the object's crops
+        (those of the last poses asked for are held: :class:`HardMaskCache`)."""
+        held = self._held.get(T_wm, cameras)
+        missing = [k for k, h in enumerate(held) if h is None]
+        if missing:
+            cast = self._cast_crops(T_wm, [cameras[k] for k in missing])
+            self._held.put(T_wm, [cameras[k] for k in missing], cast)
+            for k, crop in zip(missing, cast):
+                held[k] = crop
+        out = []
+        for cam, ((x0, y0, w, h), hv) in zip(cameras, held):
+            m = np.zeros((cam.height, cam.width), dtype=bool)
+            m[y0:y0 + h, x0:x0 + w] = hv
+            out.append(m)
+        return out
+
+    def _cast_crops(self, T_wm: NDArray[np.float64], cameras: list[Camera]) -> list[CropHits]:
+        """Each view's crop box (the projected hull plus 2 px) and the hard mask within it."""
         cams = CameraBatch.of(cameras)
         crops = self.crops(T_wm, cams, margin=2)
         sizes = crops[:, 2] * crops[:, 3]
         view = np.repeat(np.arange(len(cameras)), sizes)
         uv = np.concatenate([_crop_pixel_centres(c) for c in crops]) if sizes.sum() else np.zeros((0, 2))
         hits = np.split(self.caster.pixel_hits(T_wm, cams, view, uv), np.cumsum(sizes)[:-1])
-        out = []
-        for cam, (x0, y0, w, h), hv in zip(cameras, crops, hits):
-            m = np.zeros((cam.height, cam.width), dtype=bool)
-            m[y0:y0 + h, x0:x0 + w] = hv.reshape(h, w)
-            out.append(m)
-        return out
+        return [((int(x0), int(y0), int(w), int(h)), hv.reshape(h, w)) for (x0, y0, w, h), hv in zip(crops, hits)]
 
     def crops(self, T_wm: NDArray[np.float64], cams: CameraBatch, margin: int) -> NDArray[np.int64]:
         """(N, 4) ``x0, y0, w, h`` covering the projected convex hull plus ``margin`` px, clipped.

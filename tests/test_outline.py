@@ -38,6 +38,32 @@ def test_outline_pixels_next_to_another_object_do_not_count():
     assert outline_offset(mask, sil, others) == pytest.approx(0.0, abs=0.5)
 
 
+def _reference_offset(mask: np.ndarray, sil: np.ndarray, others: np.ndarray | None) -> float:
+    """:func:`outline_offset` worked out on the whole image with scipy's exact distance transform."""
+    from scipy.ndimage import distance_transform_edt
+
+    signed = np.where(sil, 1.0 - distance_transform_edt(sil), distance_transform_edt(~sil))
+    edge = mask & ~cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    if others is not None:
+        edge &= cv2.dilate(others.astype(np.uint8), np.ones((5, 5), np.uint8)) == 0
+    edge[:2], edge[-2:], edge[:, :2], edge[:, -2:] = False, False, False, False
+    return float(np.median(signed[edge])) if edge.sum() >= 20 else float("nan")
+
+
+@pytest.mark.parametrize("centre", [(160, 120), (20, 10), (300, 230), (-10, 120), (160, 250)])
+def test_offset_worked_on_the_box_is_the_whole_image_s(centre):
+    """The offset is worked out on the silhouette's and mask's box only: at the image's middle,
+    corners and edges, and with another object beside it, it is what the whole image gives."""
+    sil = disk(45, centre)
+    mask = disk(50, centre) & ~disk(30, (centre[0] + 40, centre[1]))  # grown, with a bite out of it
+    others = disk(25, (centre[0] - 50, centre[1] + 20)) & ~mask
+    for oth in (None, others):
+        expected = _reference_offset(mask, sil, oth)
+        got = outline_offset(mask, sil, oth)
+        assert (np.isnan(got) and np.isnan(expected)) or got == pytest.approx(expected, abs=1e-4)
+    assert np.isnan(outline_offset(mask, np.zeros(SHAPE, bool)))  # no silhouette: no outline to compare
+
+
 def _scene(masks: list[np.ndarray], ignore: list[np.ndarray] | None = None) -> Scene:
     cam = Camera.from_opencv(np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]]), np.eye(3), np.zeros(3),
                              SHAPE[1], SHAPE[0])

@@ -183,6 +183,25 @@ def test_without_jacobian_same_values():
     assert a.jac.shape == (len(a.band), 6) and np.isfinite(a.jac).all()
 
 
+def test_held_hard_masks_are_the_ones_cast_again():
+    """The hard masks of a pose asked for again (some views held, some not) are those of a fresh
+    rasterizer, and each call's arrays are its own to change."""
+    mesh, cams, T_wm, ref = _agreement_case("mug")
+    T_other = apply_twist(T_wm, np.array([3.0, 0, 0, 0, 0.05, 0]), mesh.centre)
+    ras = SoftSilhouetteRasterizer(mesh)
+    first = ras.hard_masks(T_wm, cams[:6])
+    ras.hard_masks(T_other, cams[:3])
+    again = ras.hard_masks(T_wm, cams[:10])  # six views held, four cast
+    fresh = SoftSilhouetteRasterizer(mesh).hard_masks(T_wm, cams[:10])
+    for a, b in zip(again, fresh):
+        np.testing.assert_array_equal(a, b)
+    assert min(_iou(a, r) for a, r in zip(again, ref)) > 0.99  # and they are open3d's
+    first[0][:] = True  # a caller's own copy: the held crop is not changed by it
+    np.testing.assert_array_equal(ras.hard_masks(T_wm, cams[:1])[0], fresh[0])
+    np.testing.assert_array_equal(ras.hard_masks(T_other, cams[:3])[2],
+                                  SoftSilhouetteRasterizer(mesh).hard_masks(T_other, cams[2:3])[0])
+
+
 # ------------------------------------------------------------------------- derivatives vs finite differences
 
 @pytest.mark.slow

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from autoalign.engine.hypotheses import score_poses
 from autoalign.geometry.se3 import make_pose, so3_exp
@@ -30,6 +29,8 @@ def standings(T_wm: NDArray[np.float64], term: RestingContact) -> NDArray[np.flo
     plane's normal by each of :data:`STAND_UP_YAWS_DEG`: the face's downward direction turned onto
     the plane's downward normal the shortest way, the object centre (``term.centre_m``) kept on the
     same line along the normal and the lowest point put on the plane; (K, 4, 4)."""
+    from scipy.spatial.transform import Rotation  # only here: scipy.spatial costs ~0.4 s to import
+
     n = term.plane.normal
     R = T_wm[:3, :3]
     centre_w = R @ term.centre_m + T_wm[:3, 3]
