@@ -31,23 +31,43 @@ def targets_in_crops(targets: list[NDArray[np.float32]], sil: Silhouettes) -> ND
     return np.concatenate(parts).astype(np.float64) if parts else np.zeros(0)
 
 
+def _view_bounds(view: NDArray[np.int64], n: int) -> NDArray[np.int64]:
+    """Where each view's run starts in ``view`` and where the last one ends, (n + 1,): the flat crop
+    pixels and the band are laid out view by view, so ``view`` is sorted."""
+    return np.searchsorted(view, np.arange(n + 1))
+
+
 def _per_view_sum(values: NDArray[np.float64], view: NDArray[np.int64], n: int) -> NDArray[np.float64]:
-    return np.bincount(view, weights=values, minlength=n)
+    """``sum_p values_p`` per view, (n,) (``view`` sorted; a view with no pixels sums to 0)."""
+    bounds = _view_bounds(view, n)
+    out = np.zeros(n)
+    filled = bounds[1:] > bounds[:-1]
+    if filled.any():  # reduceat sums from each start to the next one given: the empty views are left out
+        out[filled] = np.add.reduceat(np.asarray(values, dtype=np.float64), bounds[:-1][filled])
+    return out
 
 
 def _per_view_vec(coeff: NDArray[np.float64], jac: NDArray[np.float64], view: NDArray[np.int64],
                   n: int) -> NDArray[np.float64]:
-    """``sum_p coeff_p jac_p`` per view, (n, 6)."""
-    return np.stack([np.bincount(view, weights=coeff * jac[:, k], minlength=n) for k in range(6)], 1)
+    """``sum_p coeff_p jac_p`` per view, (n, 6) (``view`` sorted)."""
+    bounds = _view_bounds(view, n)
+    out = np.zeros((n, 6))
+    for v in np.flatnonzero(bounds[1:] > bounds[:-1]):
+        s, e = bounds[v], bounds[v + 1]
+        out[v] = coeff[s:e] @ jac[s:e]
+    return out
 
 
 def _per_view_outer(coeff: NDArray[np.float64], jac: NDArray[np.float64], view: NDArray[np.int64],
                     n: int) -> NDArray[np.float64]:
-    """``sum_p coeff_p jac_p jac_p^T`` per view, (n, 6, 6)."""
+    """``sum_p coeff_p jac_p jac_p^T`` per view, (n, 6, 6) (``view`` sorted), exactly symmetric."""
+    bounds = _view_bounds(view, n)
     H = np.zeros((n, 6, 6))
-    for a in range(6):
-        for b in range(a, 6):
-            H[:, a, b] = H[:, b, a] = np.bincount(view, weights=coeff * jac[:, a] * jac[:, b], minlength=n)
+    weighted = jac * coeff[:, None]
+    for v in np.flatnonzero(bounds[1:] > bounds[:-1]):
+        s, e = bounds[v], bounds[v + 1]
+        M = weighted[s:e].T @ jac[s:e]
+        H[v] = np.triu(M) + np.triu(M, 1).T
     return H
 
 

@@ -87,3 +87,23 @@ def test_wrong_masks_do_not_change_how_the_rest_are_weighed() -> None:
     r = np.array([0.1] * 10 + [0.5] * 5 + [0.98] * 8)
     assert cauchy_weights(r)[0] > cauchy_weights(r, inliers=r < 0.9)[0] * 0.99
     assert cauchy_weights(r)[10] > 2.0 * cauchy_weights(r, inliers=r < 0.9)[10]
+
+
+def test_per_view_sums_are_those_of_each_view_s_pixels_alone():
+    """The per-view sums the losses are built of (band and crop pixels laid out view by view, some
+    views with none) equal sums over each view's pixels taken one view at a time."""
+    from autoalign.losses.silhouette import _per_view_outer, _per_view_sum, _per_view_vec
+
+    rng = np.random.default_rng(3)
+    sizes = [0, 40, 1, 0, 300, 7, 0]  # empty views first, between and last
+    view = np.repeat(np.arange(len(sizes)), sizes)
+    coeff, jac = rng.uniform(0.1, 2.0, len(view)), rng.normal(size=(len(view), 6))
+    sums, vecs, outers = (_per_view_sum(coeff, view, len(sizes)), _per_view_vec(coeff, jac, view, len(sizes)),
+                          _per_view_outer(coeff, jac, view, len(sizes)))
+    for v in range(len(sizes)):
+        c, J = coeff[view == v], jac[view == v]
+        assert sums[v] == pytest.approx(sum(c.tolist()), rel=1e-12, abs=0)
+        np.testing.assert_allclose(vecs[v], sum((ci * Ji for ci, Ji in zip(c, J)), np.zeros(6)), rtol=1e-12)
+        np.testing.assert_allclose(outers[v], sum((ci * np.outer(Ji, Ji) for ci, Ji in zip(c, J)), np.zeros((6, 6))),
+                                   rtol=1e-12, atol=1e-12)
+        np.testing.assert_array_equal(outers[v], outers[v].T)
