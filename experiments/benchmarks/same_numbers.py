@@ -3,7 +3,8 @@ checkouts of the code, case by case in turn, and their poses, sigmas, verdicts, 
 times compared.
 
 The cases: the bundled example seeded (one object; ``--models``; masks only with a seed radius the
-result leaves, so the seed's hold runs) and the YCB-Video RGB-D frames with masks eroded by 4 px
+result leaves, so the seed's hold runs) and unseeded; ``bench_scene``'s scenes of 1, 4 and 8 objects
+x 40 views from 10 mm / 15 deg off; and the YCB-Video RGB-D frames with masks eroded by 4 px
 (every instance 20 mm along its ray and a few degrees off; ``--models`` with and without photos;
 one object with depth; with depth, masks only and a seed radius it leaves). Each command runs in a
 child process whose working folder is the checkout, so it imports that checkout's code; the
@@ -28,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from autoalign.experiments import RESULTS
+from autoalign.experiments.benchmarks.bench_scene import make_bench_scene
 from autoalign.experiments.result_files import write_results
 from autoalign.experiments.studies.rgbd_depth import eroded_folder, starts_along_rays
 from autoalign.experiments.studies.shared_data import YCBV_RGBD
@@ -42,7 +44,13 @@ def cases(work: Path) -> dict[str, list[str]]:
     out = {"example seeded": [str(ex / "scene"), "--model", str(ex / "model.ply"), "--init", str(ex / "init_gt.json")],
            "example --models": [str(ex / "scene"), "--models", str(ex / "models"), "--init", str(ex / "init_gt.json")],
            "example held, photos off": [str(ex / "scene"), "--model", str(ex / "model.ply"), "--init",
-                                        str(ex / "init_gt.json"), "--photos", "off", "--seed-radius", "0.02,0.02"]}
+                                        str(ex / "init_gt.json"), "--photos", "off", "--seed-radius", "0.02,0.02"],
+           "example unseeded": [str(ex / "scene"), "--model", str(ex / "model.ply")]}
+    for n in (1, 4, 8):
+        root = work / f"bench_{n}"
+        make_bench_scene(root, n)
+        out[f"bench_scene {n} object(s)"] = [str(root / "scene"), "--models", str(root / "models"), "--init",
+                                             str(root / "init_gt.json")]
     if not YCBV_RGBD.is_dir():
         return out
     scene = eroded_folder(YCBV_RGBD, work / "ycb_scene", ("scene_camera.json", "scene_gt.json", "rgb", "depth"))
