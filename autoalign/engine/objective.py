@@ -127,6 +127,15 @@ class SilhouetteObjective:
         held.terms = self.terms + (term,)
         return held
 
+    def without_depth(self) -> "SilhouetteObjective | None":
+        """The same objective (views and render count shared) without its depth term; ``None`` when it
+        has none."""
+        if not any(isinstance(t, DepthTerm) for t in self.terms):
+            return None
+        alone = copy.copy(self)
+        alone.terms = tuple(t for t in self.terms if not isinstance(t, DepthTerm))
+        return alone
+
     def at_scale(self, scale: float, max_views: int | None = None) -> LevelViews:
         """The views at ``scale`` (cached), at most ``max_views`` of them spread through the scene
         (see :meth:`Scene.spread`); a resampled pixel is ignored when most of it was."""

@@ -550,8 +550,8 @@ def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best:
                     ) -> tuple[Finalist, Evaluation, Uncertainty | None, SeedHold | None]:
     """Stage 4b, a seed is evidence: when ``best`` ended beyond ``opts.seed_radius`` of the given
     pose ``anchor``, the best pose within it (the schedule from ``anchor`` with the region's
-    penalty, :mod:`autoalign.engine.seed_region`), returned instead unless ``best`` fits clearly
-    better (its full-resolution evaluation ``ev``). The move is measured modulo the model's
+    penalty, :mod:`autoalign.engine.seed_region`; with depth, also from where the other terms alone
+    lead), returned instead unless ``best`` fits clearly better (its full-resolution evaluation ``ev``). The move is measured modulo the model's
     symmetries (``obj.pyramid.symmetries``): a free turn about an axis of continuous symmetry is no
     move. Returns the finalist kept, its evaluation, its uncertainty (``None``: unchanged) and the
     hold (``None``: within the radius)."""
@@ -567,6 +567,12 @@ def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best:
     for levels in (opts.schedule, opts.schedule[-1:]):
         T, traces = run_schedule(held, anchor, levels, opts.optimizer, progress, "within the seed's radius")
         candidates.append((T, traces, levels))
+    no_depth = held.without_depth()
+    if no_depth is not None:  # depth's pull (a metal highlight, a thin part's few samples) can lead a descent
+        # astray from the seed: also from where the masks and photos alone lead, polished with the depth
+        T, _ = run_schedule(no_depth, anchor, opts.schedule, opts.optimizer, progress, "within the seed's radius")
+        T, traces = run_schedule(held, T, opts.schedule[-1:], opts.optimizer, progress, "within the seed's radius")
+        candidates.append((T, traces, opts.schedule[-1:]))
     evs = [obj.evaluate(T, full) for T, _, _ in candidates]
     k = int(np.argmin([e.value for e in evs]))
     (T_near, traces, levels), ev_near = candidates[k], evs[k]
