@@ -97,3 +97,22 @@ def test_a_pose_term_joins_a_copy_and_shares_its_renders(posed) -> None:
     np.testing.assert_allclose(b.grad, a.grad + penalty.grad, rtol=1e-12)
     assert [v.name for v in a.values] == ["mask"] and [v.name for v in b.values] == ["mask", "seed"]
     assert obj.renders == held.renders == 2
+
+
+def test_an_objective_without_its_depth_is_the_one_built_without_it(posed) -> None:
+    """The seed's hold also starts from where the terms other than the depth lead (issue 45): that
+    objective, the seed region kept, gives what one built without depth gives, shares the views and
+    render count, and leaves the one it came from as it was; an objective with no depth has none to drop."""
+    mesh, scene, T = posed
+    pyramid, level = MeshPyramid(mesh), Level(1.0, 1.0, 0)
+    region = SeedRegion(T, mesh.centre, (1.0, 1.0), 100.0)
+    with_depth = SilhouetteObjective(pyramid, scene, depth=DepthNoise()).with_pose_term(region)
+    alone = with_depth.without_depth()
+    assert alone is not None and [t.name for t in alone.terms] == ["mask", region.name]
+    built = SilhouetteObjective(pyramid, scene).with_pose_term(region)
+    off = apply_twist(T, np.array([4.0, 1.0, -2.0, 0.05, 0.0, -0.03]), transform_points(T, mesh.centre[None])[0])
+    got, want = alone.evaluate(off, level), built.evaluate(off, level)
+    np.testing.assert_allclose(got.value, want.value, rtol=1e-12)
+    np.testing.assert_allclose(got.grad, want.grad, rtol=1e-10, atol=1e-14)
+    assert with_depth.renders == alone.renders and [t.name for t in with_depth.terms] == ["depth", "mask", region.name]
+    assert built.without_depth() is None
