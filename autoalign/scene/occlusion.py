@@ -335,10 +335,9 @@ class OcclusionObjective:
         col = {inst: c for c, inst in enumerate(involved)}
         pix = np.unique(np.concatenate([term[1] for term in terms]))
         J = np.zeros((len(pix), 6 * len(involved)))
-        for inst, px, coeff, jac in terms:
-            r = np.searchsorted(pix, px)
+        for inst, px, coeff, jac in terms:  # a term's pixels are distinct: a plain += adds each once
             c = 6 * col[inst]
-            np.add.at(J, (r[:, None], c + np.arange(6)[None]), coeff[:, None] * jac)
+            J[np.searchsorted(pix, px), c:c + 6] += coeff[:, None] * jac
         grad = J.T @ e[pix] / norm
         gn = J.T @ J / norm
         hard_iou = np.nan
