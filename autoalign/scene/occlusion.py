@@ -333,7 +333,10 @@ class OcclusionObjective:
             terms.append((j, px[keep], -s[px[keep]] * others, sils[j].jac[rows[keep]]))
         involved = list(dict.fromkeys(term[0] for term in terms))
         col = {inst: c for c, inst in enumerate(involved)}
-        pix = np.unique(np.concatenate([term[1] for term in terms]))
+        used = np.zeros(w * h, dtype=bool)  # the crop's pixels any term has a row for, in order
+        for term in terms:
+            used[term[1]] = True
+        pix = np.flatnonzero(used)
         J = np.zeros((len(pix), 6 * len(involved)))
         for inst, px, coeff, jac in terms:  # a term's pixels are distinct: a plain += adds each once
             c = 6 * col[inst]
