@@ -156,9 +156,9 @@ class Contact:
     :data:`CONTACT_IOU_DROP`), which says that the object stands on something else, or when at the
     masks' pose it leans more than :data:`CONTACT_MAX_LEAN_DEG` from every stable face. ``declared``:
     by ``--resting``; else offered to glass (:data:`OFFERED_GAP_MM`), and not kept when sunk in the
-    table (:attr:`in_table`). ``stood_up_deg``: sunk, and stood on a stable face instead
-    (:mod:`autoalign.engine.stand_up`), the turn that took (degrees, modulo the symmetries); ``None``
-    otherwise."""
+    table (:attr:`in_table`). ``stood_up_deg``: stood on another stable face instead
+    (:mod:`autoalign.engine.stand_up`: sunk, or where the orientation was searched, the standing the
+    masks fit best), the turn that took (degrees, modulo the symmetries); ``None`` otherwise."""
 
     plane: TablePlane
     gap_before_mm: float
@@ -208,6 +208,12 @@ class Contact:
     def evidence(self) -> TermEvidence:
         """A kept contact supports the pose along the plane's normal; one set aside is said, never
         held against the pose (the object may stand on another)."""
+        if self.kept and self.stood_up_deg is not None and self.gap_before_mm >= -OFFERED_GAP_MM:
+            return TermEvidence(self.name, Stance.NEUTRAL, 1.0,
+                                f"stood on another face: the masks cannot tell its standings apart well, and on the "
+                                f"table they fit it best turned {self.stood_up_deg:.0f} deg from the searched "
+                                f"orientation (median IoU {self.iou_after:.2f} against {self.iou_before:.2f}); check "
+                                "which way up it stands in overlay.png")
         if self.kept and self.stood_up_deg is not None:
             return TermEvidence(self.name, Stance.NEUTRAL, 1.0,
                                 f"stood up on the table its depth shows: where the masks put it, its lowest point lay "

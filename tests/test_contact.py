@@ -303,3 +303,41 @@ def test_glass_sunk_in_its_table_is_stood_up_where_the_orientation_was_searched(
             assert said.stance is Stance.CONTRADICTS and "below the table" in said.reason
             assert (contact.stood_up_deg is not None) == may_turn
             assert ("stood on its best stable face the masks fit worse" in said.reason) == may_turn
+
+
+@pytest.mark.slow
+def test_an_upside_down_glass_resting_on_its_rim_is_stood_right_way_up_where_the_orientation_was_searched() -> None:
+    """Issue 45, must-show 2: upside down on its neck, the bottle rests on the table its depth shows
+    (not sunk in it), so nothing contradicts the pose. Where the orientation was searched its other
+    standings compete on the plane, and the masks fit the one on its base best: back on the truth,
+    said so. From a given pose it stays as given, on the plane."""
+    from autoalign.engine.objective import Level, SilhouetteObjective
+    from autoalign.engine.refine import Finalist, Hypothesis, Stage, _resting
+    from autoalign.losses.term import Stance
+    from autoalign.rasterizers.pyramid import MeshPyramid
+
+    bottle = mesh_from_trimesh(_bottle(), "bottle")
+    cams = ring_cameras(8, np.random.default_rng(2), (25.0, 45.0), (450.0, 650.0), target=(0.0, 0.0, 60.0))
+    opts = RefineOptions(region=None)
+    T_true = make_pose(np.eye(3), np.zeros(3))  # standing on its base on z = 0
+    obj = SilhouetteObjective(MeshPyramid(bottle), _eroded_masks(bottle, T_true, cams), opts.loss, opts.robust,
+                              opts.detail, opts.depth)
+    flip = Rotation.from_euler("x", 180.0, degrees=True).as_matrix()
+    centre = bottle.centre
+    T_flipped = make_pose(flip, centre - flip @ centre)  # upside down about its centre: on its neck, 0 mm from z = 0
+    T_flipped[2, 3] -= RestingContact(TABLE, bottle.hull, bottle.centre, 1.0).gap_mm(T_flipped)
+    ev = obj.evaluate(T_flipped, Level(1.0, opts.schedule[-1].sigma, 0))
+    best = Finalist(Hypothesis(T_flipped, T_flipped, ev.value / len(ev.weights), float(np.mean(ev.terms.iou)),
+                               Stage.FINAL), ev.weights)
+    for may_turn in (False, True):
+        kept, _, contact = _resting(obj, best, ev, TABLE, False, may_turn, opts, None)
+        assert contact.kept and abs(contact.gap_before_mm) < 0.1 and not contact.in_table
+        T = kept.hypothesis.T_final
+        up = np.degrees(np.arccos(np.clip(T[:3, 2] @ T_true[:3, 2], -1.0, 1.0)))  # its axis from upright
+        said = contact.evidence()
+        if may_turn:
+            mm = np.linalg.norm(T[:3, :3] @ centre + T[:3, 3] - centre)
+            assert contact.stood_up_deg > 170.0 and up < 1.0 and mm < 1.0, (contact.stood_up_deg, up, mm)
+            assert said.stance is Stance.NEUTRAL and "stood on another face" in said.reason
+        else:
+            assert contact.stood_up_deg is None and up > 179.0 and "rests on the table" in said.reason

@@ -614,11 +614,11 @@ def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, plane: Ta
     beyond any stable face (:attr:`~autoalign.losses.contact.Contact.kept`): then the object stands
     on something else, and ``best`` stays.
 
-    Offered, and sunk deeper than that below the plane, ``best`` contradicts the depth. Where the
-    orientation was searched (``may_turn``: no pose given), the poses standing it on its stable
-    faces are tried instead (:mod:`autoalign.engine.stand_up`: an upside-down glass), the best two
-    polished on the plane, and the better kept unless the masks fit it clearly worse; otherwise, or
-    from a given pose, the contradiction is recorded and nothing run
+    Where the orientation was searched (``may_turn``: no pose given), the poses standing it on its
+    stable faces (:mod:`autoalign.engine.stand_up`: an upside-down glass) compete too, the best two
+    polished on the plane. Offered, and sunk deeper than that below the plane, ``best`` contradicts
+    the depth: there only the standings are tried, and the better kept unless the masks fit it clearly
+    worse; from a given pose the contradiction is recorded and nothing run
     (:attr:`~autoalign.losses.contact.Contact.in_table`)."""
     h = best.hypothesis
     mesh = obj.pyramid.mesh
@@ -633,11 +633,14 @@ def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, plane: Ta
             return best, ev, Contact(plane, gap, gap, tilt, tilt, iou, iou, declared)
     elif not declared and not (gap <= OFFERED_GAP_MM and tilt <= CONTACT_MAX_LEAN_DEG):
         return None  # the evidence does not put it on the table
-    else:
-        starts = [h.T_final, h.T_init]
+    else:  # where the search chose the orientation, its other standings compete on the plane too: masks
+        # that cannot tell a glass's base from its rim leave the search's pick upside down as often as not
+        starts = [h.T_final, h.T_init] + (list(best_standings(obj.pyramid.with_faces(opts.detail.coarse), obj.scene,
+                                                              h.T_final, term)) if may_turn else [])
     T_on, traces, ev_on = _held_on(obj, term, starts, opts, progress)
     syms = obj.pyramid.symmetries
-    turned = symmetric_pose_change(h.T_final, T_on, obj.centre_m, syms.discrete, syms.continuous)[1] if sunk else None
+    turned = symmetric_pose_change(h.T_final, T_on, obj.centre_m, syms.discrete, syms.continuous)[1]
+    turned = turned if sunk or (may_turn and turned > CONTACT_MAX_LEAN_DEG) else None
     contact = Contact(plane, gap, term.gap_mm(T_on), tilt, term.tilt_deg(T_on), iou, float(np.median(ev_on.terms.iou)),
                       declared, turned)
     on = Hypothesis(h.T_init, T_on, ev_on.value / len(ev_on.weights), float(np.mean(ev_on.terms.iou)), Stage.FINAL,
