@@ -14,14 +14,14 @@ from numpy.typing import NDArray
 from autoalign.engine.hypotheses import score_poses
 from autoalign.geometry.se3 import make_pose, so3_exp
 from autoalign.io.bop import Scene
-from autoalign.losses.contact import RestingContact
+from autoalign.losses.contact import CONTACT_MAX_LEAN_DEG, RestingContact
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
 STAND_UP_YAWS_DEG = tuple(range(0, 360, 45))
 """The turns about the table's normal tried on each stable face (degrees): standing a pose up turns
 it by up to half a turn, and which way round it then stands (a mug's handle) the masks say."""
 STAND_UP_POLISHED = 2
-"""How many of the best-scoring standings are polished with the contact held."""
+"""How many standings are polished with the contact held: the best of each of the best-scoring faces."""
 
 
 def standings(T_wm: NDArray[np.float64], term: RestingContact) -> NDArray[np.float64]:
@@ -47,14 +47,25 @@ def standings(T_wm: NDArray[np.float64], term: RestingContact) -> NDArray[np.flo
 
 def best_standings(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.float64],
                    term: RestingContact) -> NDArray[np.float64]:
-    """The :data:`STAND_UP_POLISHED` standings of ``T_wm`` (:func:`standings`) whose silhouettes fit
-    ``scene``'s masks best (robust hard IoU at 1/4 resolution, each moved across the views to
-    the masks' centroids and put back on the plane), best first; (k, 4, 4)."""
+    """The best standings of ``T_wm`` (:func:`standings`) on :data:`STAND_UP_POLISHED` different
+    faces (their downward directions more than
+    :data:`~autoalign.losses.contact.CONTACT_MAX_LEAN_DEG` apart), by how well their silhouettes fit
+    ``scene``'s masks (robust hard IoU at 1/4 resolution, each moved across the views to the masks'
+    centroids and put back on the plane), best first; (k, 4, 4)."""
     cands = standings(T_wm, term)
     if not len(cands):
         return cands
     scores, moved = score_poses(rast, scene, cands, scale=0.25, recentre=True)
-    best = moved[np.argsort(-scores)[:STAND_UP_POLISHED]]
+    # the best yaw of each of the best distinct faces: two yaws of one face (or of two faces a mesh's
+    # facets split from one) would leave the other way up untried where the masks barely tell them apart
+    downs = np.repeat(term.downs_m, len(STAND_UP_YAWS_DEG), axis=0)
+    kept: list[int] = []
+    for k in np.argsort(-scores):
+        if all(downs[k] @ downs[j] < np.cos(np.radians(CONTACT_MAX_LEAN_DEG)) for j in kept):
+            kept.append(int(k))
+        if len(kept) == STAND_UP_POLISHED:
+            break
+    best = moved[kept]
     for T in best:
         T[:3, 3] -= term.gap_mm(T) * term.plane.normal
     return best
