@@ -1,5 +1,6 @@
 """The verdict's reasons stay short enough to read (issue 43, item 12): a weakly observed pose names
-its largest turn and shift, and refine.json keeps every direction (``Uncertainty.weak``)."""
+its largest turn and shift, and refine.json lists every direction (the free turns of a symmetric
+model left out)."""
 
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ def test_a_free_spin_is_not_named_as_a_weak_turn() -> None:
     cov = np.diag([2.0, 1.0, 1.0, 0.0, 0.0, 0.0]) ** 2
     cov[3:, 3:] = np.diag(np.radians([3.4, 0.5, 17.0])) ** 2
     u = uncertainty_of(cov, cov, np.eye(3))
-    assert u.weak[0].startswith("turn about model z: 17")  # refine.json keeps the covariance's own directions
+    assert u.weak[0].startswith("turn about model z: 17")  # the covariance's own directions
     z = (np.array([0.0, 0.0, 1.0]),)
     verdict = judge(PoseEvidence(np.full(10, 0.95), np.ones(10), list(range(10)), uncertainty=u, free_axes_m=z))
     reason = next(r for r in verdict.reasons if r.startswith("weakly observed"))
@@ -92,3 +93,20 @@ def test_without_masks_the_reasons_say_what_they_compared_with() -> None:
     assert any("silhouettes do not match the masks" in r for r in with_masks.reasons)
     assert without.reasons == with_masks.reasons + [NO_MASKS_SAID]
     assert judge(PoseEvidence(np.full(10, 0.95), np.ones(10), list(range(10)), masks_given=False)).reasons == []
+
+
+def test_refine_json_and_the_label_page_leave_a_free_spin_out_of_the_weak_directions() -> None:
+    """What refine.json's ``weakly_observed`` and the label page list for a can (z its axis of
+    continuous symmetry): every weak direction but its free spin; with no symmetry, every one."""
+    from autoalign.jobs.report import uncertainty_record
+    from autoalign.label.records import Judgement
+
+    cov = np.diag([2.0, 1.0, 1.0, 0.0, 0.0, 0.0]) ** 2
+    cov[3:, 3:] = np.diag(np.radians([3.4, 0.5, 17.0])) ** 2
+    u = uncertainty_of(cov, cov, np.eye(3))
+    z = (np.array([0.0, 0.0, 1.0]),)
+    listed = uncertainty_record(u, z)["weakly_observed"]
+    assert listed == [w for w in u.weak if not w.startswith("turn about model z")] and listed[0].startswith("turn about")
+    assert uncertainty_record(u)["weakly_observed"] == u.weak
+    verdict = judge(PoseEvidence(np.full(10, 0.95), np.ones(10), list(range(10)), uncertainty=u, free_axes_m=z))
+    assert Judgement(verdict, u, z).weakly_observed == listed and Judgement(verdict, None, z).weakly_observed == []

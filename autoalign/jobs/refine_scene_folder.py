@@ -178,7 +178,8 @@ def scene_report(job: FolderJob, inputs: SceneInputs, refined: SceneRefinement, 
                                 None if r.instance.index not in inputs.seeds or inputs.guess is not None else
                                 pose_change(inputs.seeds[r.instance.index], r.result.T_wm,
                                             models.mesh(r.instance.obj_id).centre),
-                                job.seed_radius_mm_deg if r.instance.index in inputs.seeds else None)
+                                job.seed_radius_mm_deg if r.instance.index in inputs.seeds else None,
+                                models.continuous_axes(r.instance.obj_id))
                  for pos, r in enumerate(refined.results)]
     scale = None
     if inputs.guess is not None:

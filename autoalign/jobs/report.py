@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 from autoalign import __version__
 from autoalign.engine.refine import RefineOptions, RefineResult
-from autoalign.engine.uncertainty import BOUNDARY_BIAS_PX, SAME_VIEWPOINT_DEG, Uncertainty, axis_sigmas
+from autoalign.engine.uncertainty import BOUNDARY_BIAS_PX, SAME_VIEWPOINT_DEG, Uncertainty, axis_sigmas, weak_directions
 from autoalign.geometry.camera import PIXEL_CONVENTION
 from autoalign.geometry.se3 import rotation_angle_deg, transform_points
 from autoalign.losses.term import ViewTermsRecord
@@ -89,15 +89,16 @@ def turn_rise_record(r: RefineResult) -> dict[str, Any]:
     return {"turn_rise": r.turn_rise, "turn_rise_axis": axis}
 
 
-def uncertainty_record(u: Uncertainty | None) -> dict[str, Any] | None:
-    """The ``uncertainty`` entry of ``refine.json`` (see :mod:`autoalign.engine.uncertainty`)."""
+def uncertainty_record(u: Uncertainty | None, free_axes_m: tuple[NDArray[np.float64], ...] = ()) -> dict[str, Any] | None:
+    """The ``uncertainty`` entry of ``refine.json`` (see :mod:`autoalign.engine.uncertainty`); the turns
+    about ``free_axes_m`` (the model's axes of continuous symmetry) are not listed as weakly observed."""
     if u is None:
         return None
     return {"sigma_mm": u.sigma_mm, "sigma_deg": u.sigma_deg, "axes": "along / about the model's x, y, z",
             "sigma_along_ray_mm": u.sigma_ray_mm, "sigma_across_ray_mm": u.sigma_across_mm,
             "median_view_direction": u.view_dir_m,
             "ray": "the median view's direction (camera to object centre) in the model's axes",
-            "weakly_observed": list(u.weak), "covariance": u.covariance,
+            "weakly_observed": weak_directions(u.covariance, free_axes_m), "covariance": u.covariance,
             "covariance_of": "twist (v mm, w rad) in the model's axes, about the model centre; jackknife over "
                              f"viewpoints (the views within {SAME_VIEWPOINT_DEG:g} deg of one direction left out "
                              "together, one Gauss-Newton step; a single viewpoint: the views' spread times their "
@@ -297,6 +298,7 @@ class InstanceReport:
     seconds: float
     seed_move: tuple[float, float] | None = None  # how far it ended from its seed pose (mm at the centre, degrees)
     seed_radius: tuple[float, float] | None = None  # the seed's stated uncertainty (mm, degrees)
+    free_axes_m: tuple[NDArray[np.float64], ...] = ()  # its model's axes of continuous symmetry (unit, model frame)
 
     def to_json(self) -> dict[str, Any]:
         res = self.result
@@ -305,7 +307,7 @@ class InstanceReport:
             "model": str(self.model),
             "verdict": self.verdict.status, "reasons": self.verdict.reasons, "set_aside_ids": self.verdict.set_aside,
             "pose": pose_record(res.T_wm), "pose_before": pose_record(res.T_init),
-            "uncertainty": uncertainty_record(res.uncertainty),
+            "uncertainty": uncertainty_record(res.uncertainty, self.free_axes_m),
             "seed": "init" if self.seeded else "hull", "moved_from_seed_mm_deg": self.seed_move,
             "seed_radius_mm_deg": self.seed_radius,
             "seed_hold": None if res.seed_hold is None else res.seed_hold.to_json(),

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.engine.uncertainty import Uncertainty
+from autoalign.engine.uncertainty import Uncertainty, weak_directions
 from autoalign.errors import AutoalignError
 from autoalign.jobs.report import floats
 from autoalign.quality.verdict import Verdict
@@ -144,10 +144,19 @@ class LabelledInstance:
 
 @dataclass(frozen=True)
 class Judgement:
-    """What a refinement said of the pose it gave: autoalign's verdict and the pose's uncertainty."""
+    """What a refinement said of the pose it gave: autoalign's verdict and the pose's uncertainty;
+    ``free_axes_m``: the model's axes of continuous symmetry (unit, model frame), whose turns are no
+    weakness."""
 
     verdict: Verdict
     uncertainty: Uncertainty | None
+    free_axes_m: tuple[NDArray[np.float64], ...] = ()
+
+    @property
+    def weakly_observed(self) -> list[str]:
+        """The weakly observed directions of the pose, the free turns left out (none without an uncertainty)."""
+        u = self.uncertainty
+        return [] if u is None else weak_directions(u.covariance, self.free_axes_m)
 
 
 FAR_FROM_CLICK_PX = 20.0
@@ -193,7 +202,7 @@ def moved(inst: LabelledInstance, obj_id: int, T_wm: NDArray[np.float64], source
         reasons=[unjudged] if judged is None else list(judged.verdict.reasons),
         sigma_mm=None if u is None else [float(x) for x in u.sigma_mm],
         sigma_deg=None if u is None else [float(x) for x in u.sigma_deg],
-        weakly_observed=[] if u is None else list(u.weak),
+        weakly_observed=[] if judged is None else judged.weakly_observed,
         decision="open" if source in NEW_PLACEMENT else inst.decision)
 
 

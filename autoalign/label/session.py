@@ -72,7 +72,7 @@ def judged_refinement(result: RefineResult, scene: Scene, models: ModelSet, obj_
     """The verdict on a refinement of object ``obj_id`` in ``scene`` (as ``refine`` gives it) and its uncertainty."""
     from autoalign.scene.refine import verdict_of
 
-    return Judgement(verdict_of(result, scene.empty, models, obj_id), result.uncertainty)
+    return Judgement(verdict_of(result, scene.empty, models, obj_id), result.uncertainty, models.continuous_axes(obj_id))
 
 
 class LabelSession(SessionScene):
@@ -257,7 +257,8 @@ class LabelSession(SessionScene):
                                    progress=progress)
             for r in refined.results:
                 self._store_pose(r.instance.index, r.instance.obj_id, r.result.T_wm, "together",
-                                 Judgement(r.verdict, r.result.uncertainty))
+                                 Judgement(r.verdict, r.result.uncertainty,
+                                           self.models.continuous_axes(r.instance.obj_id)))
 
     def nudge(self, index: int, image_id: int, move_mm: list[float], turn_deg: list[float]) -> None:
         """Move instance ``index`` by ``move_mm`` and turn it by ``turn_deg`` (rotation vector) about
