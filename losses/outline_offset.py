@@ -35,17 +35,17 @@ def outline_offset(mask: NDArray[np.bool_], visible: NDArray[np.bool_],
     """The median signed distance (px, > 0: outside) of ``mask``'s outline from the outline of the
     visible silhouette ``visible``, over ``mask``'s outline pixels away from ``others`` (the other
     objects' pixels; ``None``: none) and the image's border; NaN for fewer than
-    :data:`MIN_OUTLINE_PX` such pixels or an empty silhouette. Exact Euclidean distances between pixel centres, the
-    outline half a pixel beyond its last pixel: a mask equal to the silhouette gives 0, one grown
-    by a pixel 1."""
+    :data:`MIN_OUTLINE_PX` such pixels or an empty silhouette. Exact Euclidean distances between
+    pixel centres, the outline half a pixel beyond its last pixel: a mask equal to the silhouette
+    gives 0, one grown by a pixel 1."""
     vis = np.asarray(visible, dtype=bool)
+    if not vis.any():
+        return float("nan")
     m = np.asarray(mask, dtype=np.uint8)
     H, W = vis.shape
     # Worked on the box of both (and OCCLUSION_PX + 1 around it) only: it holds every silhouette pixel
     # and a ring of background around them, so each distance, and each other object's pixel near the
     # outline, is the one the whole image gives.
-    if not vis.any():
-        return float("nan")
     x, y, w, h = cv2.boundingRect(np.bitwise_or(vis.view(np.uint8), m))
     pad = OCCLUSION_PX + 1
     x0, y0, x1, y1 = max(x - pad, 0), max(y - pad, 0), min(x + w + pad, W), min(y + h + pad, H)
