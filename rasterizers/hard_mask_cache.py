@@ -37,11 +37,12 @@ class HardMaskCache:
 
     def get(self, T_wm: NDArray[np.float64], cams: list[Camera]) -> list[CropHits | None]:
         """The held crop of each camera at ``T_wm`` (``None`` where it is not held)."""
+        key = np.asarray(T_wm, np.float64).tobytes()
         with self._lock:
-            held = self._poses.get(np.asarray(T_wm, np.float64).tobytes())
+            held = self._poses.get(key)
             if held is None:
                 return [None] * len(cams)
-            self._poses.move_to_end(np.asarray(T_wm, np.float64).tobytes())
+            self._poses.move_to_end(key)
             return [held.get(camera_key(c)) for c in cams]
 
     def put(self, T_wm: NDArray[np.float64], cams: list[Camera], crops: list[CropHits]) -> None:
