@@ -551,10 +551,10 @@ def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best:
     """Stage 4b, a seed is evidence: when ``best`` ended beyond ``opts.seed_radius`` of the given
     pose ``anchor``, the best pose within it (the schedule from ``anchor`` with the region's
     penalty, :mod:`autoalign.engine.seed_region`; with depth, also from where the other terms alone
-    lead), returned instead unless ``best`` fits clearly better (its full-resolution evaluation ``ev``). The move is measured modulo the model's
-    symmetries (``obj.pyramid.symmetries``): a free turn about an axis of continuous symmetry is no
-    move. Returns the finalist kept, its evaluation, its uncertainty (``None``: unchanged) and the
-    hold (``None``: within the radius)."""
+    lead), returned instead unless ``best`` fits clearly better (its full-resolution evaluation
+    ``ev``). The move is measured modulo the model's symmetries (``obj.pyramid.symmetries``): a
+    free turn about an axis of continuous symmetry is no move. Returns the finalist kept, its
+    evaluation, its uncertainty (``None``: unchanged) and the hold (``None``: within the radius)."""
     h = best.hypothesis
     syms = obj.pyramid.symmetries
     move = symmetric_pose_change(anchor, h.T_final, obj.centre_m, syms.discrete, syms.continuous)
@@ -615,8 +615,8 @@ def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, plane: Ta
     on something else, and ``best`` stays.
 
     Where the orientation was searched (``may_turn``: no pose given), the poses standing it on its
-    stable faces (:mod:`autoalign.engine.stand_up`: an upside-down glass) compete too, the best two
-    polished on the plane. Offered, and sunk deeper than that below the plane, ``best`` contradicts
+    stable faces (:mod:`autoalign.engine.stand_up`: an upside-down glass) compete too, the best yaw of
+    each of the two best faces polished on the plane. Offered, and sunk deeper than that below the plane, ``best`` contradicts
     the depth: there only the standings are tried, and the better kept unless the masks fit it clearly
     worse; from a given pose the contradiction is recorded and nothing run
     (:attr:`~autoalign.losses.contact.Contact.in_table`)."""

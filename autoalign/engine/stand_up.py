@@ -59,9 +59,10 @@ def best_standings(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[n
     # the best yaw of each of the best distinct faces: two yaws of one face (or of two faces a mesh's
     # facets split from one) would leave the other way up untried where the masks barely tell them apart
     downs = np.repeat(term.downs_m, len(STAND_UP_YAWS_DEG), axis=0)
+    same_face = np.cos(np.radians(CONTACT_MAX_LEAN_DEG))
     kept: list[int] = []
     for k in np.argsort(-scores):
-        if all(downs[k] @ downs[j] < np.cos(np.radians(CONTACT_MAX_LEAN_DEG)) for j in kept):
+        if all(downs[k] @ downs[j] < same_face for j in kept):
             kept.append(int(k))
         if len(kept) == STAND_UP_POLISHED:
             break
