@@ -110,3 +110,15 @@ def test_a_bad_autoalign_threads_is_a_one_line_error(value: str, monkeypatch: py
     monkeypatch.setenv("AUTOALIGN_THREADS", value)
     with pytest.raises(BackendError, match=f"AUTOALIGN_THREADS={value}: not a positive whole number"):
         backend.thread_count()
+
+
+def test_backend_started_by_two_threads_at_once_starts_once() -> None:
+    """mitsuba's module is loaded lazily: two threads setting its variant at once made one fail."""
+    code = ("import threading; from autoalign.runtime.backend import mitsuba\n"
+            "got = []\n"
+            "def start(): got.append(mitsuba())\n"
+            "ts = [threading.Thread(target=start) for _ in range(4)]\n"
+            "[t.start() for t in ts]; [t.join() for t in ts]\n"
+            "print(len(got), len({id(m) for m in got}), got[0].variant())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["4", "1", "llvm_ad_rgb"]

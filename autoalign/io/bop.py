@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import os
 import re
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -423,29 +424,42 @@ class MaskSet:
     factor: int = 1
 
 
+def _read_mask_at(path: Path, max_pixels: int | None) -> tuple[NDArray[np.bool_], str, tuple[int, int]]:
+    """A mask file (:func:`read_mask`) downscaled by its own :func:`downscale_factor`, its kind, and
+    the file's (height, width)."""
+    m, kind = read_mask(path)
+    f = downscale_factor(m.shape[1], m.shape[0], max_pixels)
+    if f > 1 and kind != "empty":  # whole blocks, so that the scale is exactly 1 / factor
+        return block_mean(m.astype(np.float32), f, Pad.ZEROS) > 0.5, kind, m.shape
+    return m, kind, m.shape
+
+
 def read_masks(paths: dict[tuple[int, int], Path], max_pixels: int | None = MAX_IMAGE_PIXELS) -> MaskSet:
     """Read mask files (:func:`read_mask`); images of more than ``max_pixels`` are downscaled by
     :func:`downscale_factor` (area-averaged, then thresholded at half). Raises unless all share one
-    size and one kind."""
+    size and one kind.
+
+    The files are decoded by a few threads (OpenCV lets go of the GIL while it decodes a PNG), each
+    downscaled as soon as it is read; the checks go in the files' order, so that the error names
+    the same file as reading them one by one would."""
     out = MaskSet({}, [], None)
     kinds: dict[str, Path] = {}
     first: Path | None = None
-    for key, p in paths.items():
-        m, kind = read_mask(p)
-        if out.size is None:
-            out.size, first = m.shape, p
-            out.factor = downscale_factor(m.shape[1], m.shape[0], max_pixels)
-        elif m.shape != out.size:
-            raise AutoalignError(f"{p}: mask is {m.shape[1]}x{m.shape[0]} but {first.name} is "
-                                 f"{out.size[1]}x{out.size[0]}; all masks of a scene must have the image size")
-        if kind == "empty":
-            out.empty.append(key)
-            continue
-        kinds.setdefault(kind, p)
-        f = out.factor
-        if f > 1:  # whole blocks, so that the scale is exactly 1 / factor
-            m = block_mean(m.astype(np.float32), f, Pad.ZEROS) > 0.5
-        out.masks[key] = m
+    with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
+        read = pool.map(_read_mask_at, paths.values(), [max_pixels] * len(paths))
+        for key, p in zip(paths, paths.values()):
+            m, kind, shape = next(read)
+            if out.size is None:
+                out.size, first = shape, p
+                out.factor = downscale_factor(shape[1], shape[0], max_pixels)
+            elif shape != out.size:
+                raise AutoalignError(f"{p}: mask is {shape[1]}x{shape[0]} but {first.name} is "
+                                     f"{out.size[1]}x{out.size[0]}; all masks of a scene must have the image size")
+            if kind == "empty":
+                out.empty.append(key)
+                continue
+            kinds.setdefault(kind, p)
+            out.masks[key] = m
     check_mask_kinds(kinds)
     return out
 

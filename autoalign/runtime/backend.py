@@ -16,6 +16,7 @@ from __future__ import annotations
 import glob
 import os
 import re
+import threading
 from types import ModuleType
 from typing import Any
 
@@ -39,6 +40,7 @@ _FIX = ("install a shared libLLVM >= 16, e.g. `apt-get install libllvm19` on Deb
         "or set DRJIT_LIBLLVM_PATH to its libLLVM*.so")
 
 _mi: ModuleType | None = None
+_MI_LOCK = threading.Lock()
 JIT_ALIGN = 128  # bytes; drjit calls a buffer aligned at 64 and then loads it with `align 128`
 
 
@@ -82,21 +84,27 @@ def configure_libllvm() -> str:
 def mitsuba() -> ModuleType:
     """The ``mitsuba`` module with the ``llvm_ad_rgb`` variant set (imported once)."""
     global _mi
-    if _mi is None:
-        configure_libllvm()
-        with Interrupts.deferred():  # Ctrl-C inside drjit's module init aborts the process
-            import drjit as dr  # noqa: F401  (imported after the libLLVM path is set)
-            import mitsuba as mi
-
-            try:
-                mi.set_variant("llvm_ad_rgb")
-            except Exception as exc:  # pragma: no cover - depends on the machine
-                raise BackendError(f"mitsuba cannot start its LLVM backend ({exc}); {_FIX}") from None
-            threads = thread_count()
-            if threads is not None:
-                dr.set_thread_count(threads)
-        _mi = mi
+    with _MI_LOCK:  # two threads starting the backend at once: mitsuba's lazy module races
+        if _mi is None:
+            _mi = _started_mitsuba()
     return _mi
+
+
+def _started_mitsuba() -> ModuleType:
+    """Import mitsuba with drjit's libLLVM found, set its variant and drjit's thread count."""
+    configure_libllvm()
+    with Interrupts.deferred():  # Ctrl-C inside drjit's module init aborts the process
+        import drjit as dr  # noqa: F401  (imported after the libLLVM path is set)
+        import mitsuba as mi
+
+        try:
+            mi.set_variant("llvm_ad_rgb")
+        except Exception as exc:  # pragma: no cover - depends on the machine
+            raise BackendError(f"mitsuba cannot start its LLVM backend ({exc}); {_FIX}") from None
+        threads = thread_count()
+        if threads is not None:
+            dr.set_thread_count(threads)
+    return mi
 
 
 def thread_count() -> int | None:
