@@ -85,12 +85,12 @@ def test_failed_trials_are_logged_and_retried(tmp_path):
 @pytest.mark.slow
 def test_kill_and_resume(tmp_path):
     script = tmp_path / "slow_study.py"
-    script.write_text(textwrap.dedent(f"""
+    script.write_text(textwrap.dedent("""
         import sys, time
         from autoalign.experiments.studies.runner import StudyConfig, run_study
         def slow(task):
             time.sleep(0.4)
-            return {{"id": task["id"], "method": task["method"], "condition": task["condition"]}}
+            return {"id": task["id"], "method": task["method"], "condition": task["condition"]}
         cfg = StudyConfig(model_ids=(1, 2, 3), trials=3, methods=("paper", "init"))
         run_study(cfg, sys.argv[1], progress=False, task_fn=slow)
     """))
