@@ -20,7 +20,7 @@ so ``dr/dxi = [n, (X - c) x n]``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -48,6 +48,18 @@ MAX_SAMPLES = 4000
 """At most about this many pixels of a view are cast: the term's cost stays small next to the mask's."""
 SAMPLES_MIN = 250
 """Below full resolution the term samples fewer pixels (in proportion to the level's scale), but at least these."""
+PART_SHARE = 0.02
+"""A piece of the surface (:attr:`~autoalign.geometry.mesh.Mesh.parts`) with at least this share of
+the object's depth samples that is off in most of the views that see it is a part of the pose that
+the depth contradicts (:meth:`DepthTerms.part_off`), however well the rest agrees ..."""
+PART_SAMPLES = 10
+"""... a view sees a piece when at least this many of its samples fall on it; the piece is off there
+when most of them lie beyond ``INLIER_SIGMAS`` sigma. At the truth of 46 opaque and metal instances
+of the path-traced glass scenes and of the real YCB-Video frames, no piece was off in more than 19%
+of its views; at two ladles placed 47-59 mm and 71-94 deg off with their bowls on the right one
+(91% and 85% of all samples agreeing), their handles were off in 90% and 100%."""
+PART_MIN_VIEWS = 3
+"""A piece seen in fewer views than this says nothing."""
 
 
 @dataclass(frozen=True)
@@ -70,6 +82,18 @@ class DepthNoise:
         return np.maximum(self.floor_mm, self.k_mm_per_m2 * (np.asarray(z_mm, dtype=np.float64) / 1000.0) ** 2)
 
 
+@dataclass(frozen=True)
+class PartOff:
+    """A piece of the surface (``part``, :attr:`~autoalign.geometry.mesh.Mesh.parts`) holding ``share``
+    of the object's depth samples, off (most of its samples beyond :data:`INLIER_SIGMAS` sigma) in
+    ``views_off`` of the ``views_seen`` views that see it."""
+
+    part: int
+    share: float
+    views_off: int
+    views_seen: int
+
+
 @dataclass
 class DepthTerms:
     """Per-view depth terms of ``N`` views: ``loss`` (N,), ``grad`` (N, 6), ``gn`` (N, 6, 6) (means
@@ -77,7 +101,9 @@ class DepthTerms:
     unmodelled occluder is in front of the object, ``rms_mm`` (N,) the used residuals' RMS (NaN: none),
     ``inliers`` (N,) the share of the used residuals within :data:`INLIER_SIGMAS` sigma (NaN: none);
     ``occluders``: per view the sampled pixels (rows, cols, full resolution) found hidden, and the
-    sampling ``stride`` (px) per view."""
+    sampling ``stride`` (px) per view; ``part_used`` and ``part_inliers`` (N, P): per view the used
+    samples on each piece of the surface (:attr:`~autoalign.geometry.mesh.Mesh.parts`) and how many
+    of them are within :data:`INLIER_SIGMAS` sigma."""
 
     loss: NDArray[np.float64]
     grad: NDArray[np.float64]
@@ -88,12 +114,17 @@ class DepthTerms:
     inliers: NDArray[np.float64]
     occluders: list[tuple[NDArray[np.int64], NDArray[np.int64]]]
     stride: NDArray[np.int64]
+    part_used: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 0), np.int64))
+    part_inliers: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 0), np.int64))
     name = "depth"
 
     def record(self) -> dict[str, Any]:
         """Per view: pixels used, pixels where an unmodelled occluder is in front, the residuals' RMS
         (mm) and the term's loss (noise units)."""
-        return {"used_px": self.used, "hidden_px": self.hidden, "rms_mm": self.rms_mm, "loss": self.loss}
+        part = self.part_off()
+        off = None if part is None else {"share": part.share, "views_off": part.views_off, "views_seen": part.views_seen}
+        return {"used_px": self.used, "hidden_px": self.hidden, "rms_mm": self.rms_mm, "loss": self.loss,
+                "part_off": off}
 
     def evidence(self) -> TermEvidence | None:
         """What the depth says of the pose (:class:`~autoalign.losses.term.TermEvidence`): the median over
@@ -104,14 +135,36 @@ class DepthTerms:
             return None
         agree = float(np.median(self.inliers[judged]))
         within = f"a median {agree:.0%} of the object's depth samples within {INLIER_SIGMAS:g} sigma"
-        if agree >= SUPPORTS:
-            stance, reason = Stance.SUPPORTS, f"the measured depth agrees: {within}"
-        elif agree < CONTRADICTS:
+        part = self.part_off()
+        fails = True
+        if agree < CONTRADICTS:
             stance, reason = Stance.CONTRADICTS, f"the measured depth disagrees: {within} (< {CONTRADICTS:.0%})"
+        elif part is not None:  # the rest may agree, but a piece of the object is where the depth says it is not
+            stance, fails = Stance.CONTRADICTS, False
+            reason = (f"the measured depth disagrees with a part of the object ({part.share:.0%} of its depth samples), "
+                      f"off in {part.views_off} of the {part.views_seen} views that see it, though {within}: "
+                      "look at its outline against the photo in overlay.png")
+        elif agree >= SUPPORTS:
+            stance, reason = Stance.SUPPORTS, f"the measured depth agrees: {within}"
         else:
             stance, reason = Stance.NEUTRAL, f"the measured depth neither confirms nor contradicts the pose: {within}"
-        return TermEvidence("depth", stance, agree, reason, fails=True,
+        return TermEvidence("depth", stance, agree, reason, fails=fails,
                             reliability=np.where(judged, self.inliers, np.nan))
+
+    def part_off(self) -> "PartOff | None":
+        """The piece of the surface the depth contradicts (:data:`PART_SHARE`; the one off in the
+        largest share of the views that see it), or ``None``."""
+        if self.part_used.size == 0 or self.part_used.sum() == 0:
+            return None
+        share = self.part_used.sum(axis=0) / self.part_used.sum()
+        seen = self.part_used >= PART_SAMPLES
+        off = seen & (2 * self.part_inliers < self.part_used)
+        n_seen, n_off = seen.sum(axis=0), off.sum(axis=0)
+        bad = np.flatnonzero((share >= PART_SHARE) & (n_seen >= PART_MIN_VIEWS) & (2 * n_off > n_seen))
+        if not len(bad):
+            return None
+        p = int(bad[np.argmax(n_off[bad] / n_seen[bad])])
+        return PartOff(p, float(share[p]), int(n_off[p]), int(n_seen[p]))
 
     def hidden_mask(self, k: int, shape: tuple[int, int], scale: float) -> NDArray[np.bool_]:
         """View ``k``'s pixels, at ``scale`` of the full resolution (``shape`` (h, w) there), that
@@ -160,9 +213,11 @@ def depth_terms(caster: RayCaster, mesh: Mesh, T_wm: NDArray[np.float64], camera
     would otherwise see its own surface as something in front of it)."""
     n = len(cameras)
     none = np.zeros(0, np.int64)
+    parts = mesh.parts
+    n_parts = int(parts.max()) + 1 if len(parts) else 0
     out = DepthTerms(np.zeros(n), np.zeros((n, 6)), np.zeros((n, 6, 6)), np.zeros(n, np.int64),
                      np.zeros(n, np.int64), np.full(n, np.nan), np.full(n, np.nan), [(none, none)] * n,
-                     np.ones(n, np.int64))
+                     np.ones(n, np.int64), np.zeros((n, n_parts), np.int64), np.zeros((n, n_parts), np.int64))
     normals_m = mesh.face_normals
     for k, (cam, measured) in enumerate(zip(cameras, depths)):
         rows, cols, out.stride[k] = sample_pixels(cam, mesh, T_wm, measured, max_samples)
@@ -197,7 +252,11 @@ def depth_terms(caster: RayCaster, mesh: Mesh, T_wm: NDArray[np.float64], camera
         out.gn[k] = (J * a[:, None]).T @ J / m
         out.used[k] = m
         out.rms_mm[k] = float(np.sqrt(np.mean(r * r)))
-        out.inliers[k] = float(np.mean(np.abs(r) < INLIER_SIGMAS * sigma))
+        inlier = np.abs(r) < INLIER_SIGMAS * sigma
+        out.inliers[k] = float(np.mean(inlier))
+        on = parts[hits.prim[use]]
+        out.part_used[k] = np.bincount(on, minlength=n_parts)
+        out.part_inliers[k] = np.bincount(on[inlier], minlength=n_parts)
     return out
 
 

@@ -75,7 +75,7 @@ def in_doubt(result: Any) -> bool:
     hold let go is not enough: the depth of an opaque object pulls a wrong seed's result away too)."""
     depth = result.measurement(DepthTerms)
     evidence = depth.evidence() if depth is not None else None
-    contradicts = evidence is not None and evidence.stance is Stance.CONTRADICTS
+    contradicts = evidence is not None and evidence.stance is Stance.CONTRADICTS and evidence.fails
     return contradicts or float(np.median(result.iou_after)) < LOOSE_IOU
 
 

@@ -30,6 +30,9 @@ ROUND_MOMENTS = 0.1
 """A surface is nearly round about an axis when its two other second moments differ by at most this
 share: YCB-Video's tuna and soup cans 0.004 and 0.014, a flashlight 0.061; a spray bottle 0.15."""
 _CACHED_LOADED = ("diameter", "principal_axes")
+SURFACE_PARTS = 12
+"""The pieces :attr:`Mesh.parts` splits a surface into: a handle, a spout or a ladle's bowl is one or
+two of them."""
 
 
 def trimesh_module() -> ModuleType:
@@ -144,6 +147,22 @@ class Mesh:
         others = [np.delete(values, i) for i in range(3)]
         round_ = [abs(o[1] - o[0]) <= ROUND_MOMENTS * max(abs(o[1]), 1e-12) for o in others]
         return axes.T[np.array(round_, dtype=bool)].reshape(-1, 3).copy()
+
+    @functools.cached_property
+    def parts(self) -> NDArray[np.int64]:
+        """(F,) each face's piece of the surface, ``0 .. SURFACE_PARTS - 1``: the face centres are
+        split about :data:`SURFACE_PARTS` of them picked farthest first (the first the farthest
+        from their mean), each face to the nearest, so that the pieces are compact and cover the
+        whole object. What the measured depth says is read piece by piece (:mod:`autoalign.losses.depth`)."""
+        c = self.vertices[self.faces].mean(axis=1)
+        k = min(SURFACE_PARTS, len(c))
+        picked = [int(np.argmax(np.sum((c - c.mean(axis=0)) ** 2, axis=1)))]
+        d2 = np.sum((c - c[picked[0]]) ** 2, axis=1)
+        for _ in range(k - 1):
+            picked.append(int(np.argmax(d2)))
+            d2 = np.minimum(d2, np.sum((c - c[picked[-1]]) ** 2, axis=1))
+        seeds = c[picked]
+        return np.argmin(np.sum(seeds ** 2, axis=1) - 2.0 * c @ seeds.T, axis=1).astype(np.int64)  # |c - s|^2 - |c|^2
 
     @property
     def trimesh(self) -> "trimesh.Trimesh":
