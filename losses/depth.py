@@ -54,7 +54,7 @@ the object's depth samples that is off in most of the views that see it is a par
 the depth contradicts (:meth:`DepthTerms.part_off`), however well the rest agrees ..."""
 PART_SAMPLES = 10
 """... a view sees a piece when at least this many of its samples fall on it; the piece is off there
-when most of them lie beyond ``INLIER_SIGMAS`` sigma. At the 46 right results of the 16 opaque and
+when most of them lie beyond ``INLIER_SIGMAS`` sigma. At the 45 right results of the 16 opaque and
 metal instances of the path-traced glass scenes (three conditions), no piece was off in more than
 10% of its views, and at the real YCB-Video frames' labels in none; at two ladles placed 47-59 mm
 and 71-94 deg off with their bowls on the right one (92% and 80% of all samples agreeing), their
