@@ -170,15 +170,22 @@ class DepthTerms:
     def hidden_mask(self, k: int, shape: tuple[int, int], scale: float) -> NDArray[np.bool_]:
         """View ``k``'s pixels, at ``scale`` of the full resolution (``shape`` (h, w) there), that
         its occluders hide: each hidden sample stands for its ``stride``-wide cell."""
-        out = np.zeros(shape, dtype=bool)
+        h, w = shape
         rows, cols = self.occluders[k]
         half = self.stride[k] / 2.0
-        for r, c in zip(rows, cols):
-            # the cell's edges in continuous coordinates, at the level's resolution
-            y0, y1 = int(np.floor(uv_from_opencv(r - half) * scale)), int(np.ceil(uv_from_opencv(r + half) * scale))
-            x0, x1 = int(np.floor(uv_from_opencv(c - half) * scale)), int(np.ceil(uv_from_opencv(c + half) * scale))
-            out[max(y0, 0):y1, max(x0, 0):x1] = True
-        return out
+        # each cell's edges in continuous coordinates, at the level's resolution, clipped to the image
+        y0 = np.clip(np.floor(uv_from_opencv(rows - half) * scale).astype(np.int64), 0, h)
+        y1 = np.clip(np.ceil(uv_from_opencv(rows + half) * scale).astype(np.int64), 0, h)
+        x0 = np.clip(np.floor(uv_from_opencv(cols - half) * scale).astype(np.int64), 0, w)
+        x1 = np.clip(np.ceil(uv_from_opencv(cols + half) * scale).astype(np.int64), 0, w)
+        keep = (y1 > y0) & (x1 > x0)
+        y0, y1, x0, x1 = y0[keep], y1[keep], x0[keep], x1[keep]
+        corners = np.zeros((h + 1, w + 1), dtype=np.int64)  # the cells painted at once: a 2D difference image
+        np.add.at(corners, (y0, x0), 1)
+        np.add.at(corners, (y0, x1), -1)
+        np.add.at(corners, (y1, x0), -1)
+        np.add.at(corners, (y1, x1), 1)
+        return np.cumsum(np.cumsum(corners, axis=0), axis=1)[:h, :w] > 0
 
 
 def sample_pixels(camera: Camera, mesh: Mesh, T_wm: NDArray[np.float64], measured: NDArray[np.float32],

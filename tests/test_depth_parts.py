@@ -75,3 +75,26 @@ def test_a_handle_where_the_depth_sees_the_table_is_contradicted_though_most_sam
     verdict = judge(PoseEvidence(np.full(8, 0.7), np.ones(8), ids, terms=(e,)))
     assert verdict.status == "check" and any("a part of the object" in r for r in verdict.reasons)
     assert d.record()["part_off"]["views_off"] == part.views_off
+
+
+def test_hidden_cells_painted_at_once_are_those_painted_one_by_one() -> None:
+    """:meth:`DepthTerms.hidden_mask` paints every hidden sample's stride-wide cell at once; the
+    same cells painted one by one (clipped to the image) at every level's scale."""
+    from autoalign.geometry.camera import uv_from_opencv
+    from autoalign.losses.depth import DepthTerms
+
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        stride, n = int(rng.integers(1, 9)), int(rng.integers(0, 300))
+        rows, cols = rng.integers(0, 480, n), rng.integers(0, 640, n)
+        z = np.zeros(1)
+        d = DepthTerms(z, np.zeros((1, 6)), np.zeros((1, 6, 6)), np.zeros(1, np.int64), np.zeros(1, np.int64), z, z,
+                       [(rows, cols)], np.array([stride]))
+        scale = float(rng.choice([1.0, 0.5, 0.25, 0.125]))
+        shape = (int(round(480 * scale)), int(round(640 * scale)))
+        want = np.zeros(shape, dtype=bool)
+        for r, c in zip(rows, cols):
+            y0, y1 = int(np.floor(uv_from_opencv(r - stride / 2) * scale)), int(np.ceil(uv_from_opencv(r + stride / 2) * scale))
+            x0, x1 = int(np.floor(uv_from_opencv(c - stride / 2) * scale)), int(np.ceil(uv_from_opencv(c + stride / 2) * scale))
+            want[max(y0, 0):max(y1, 0), max(x0, 0):max(x1, 0)] = True
+        assert np.array_equal(d.hidden_mask(0, shape, scale), want)

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from autoalign.engine import objective as objective_module
 from autoalign.engine.objective import Level
 from autoalign.experiments.scenes.procedural_models import (
     procedural_models,
@@ -35,6 +36,8 @@ from autoalign.geometry.se3 import (
 )
 from autoalign.io.instances import read_instance_scenes, read_instances
 from autoalign.io.models import ModelSet
+from autoalign.losses.silhouette import ViewTerms
+from autoalign.losses.term import TermValues
 from autoalign.rasterizers.pyramid import AS_GIVEN, MeshPyramid
 from autoalign.scene.joint import refine_jointly
 from autoalign.scene.occlusion import JointEvaluation, OcclusionObjective
@@ -218,3 +221,38 @@ def test_joint_jackknife_assembles_each_views_blocks(pair):
     got = jackknife(np.linalg.inv(H), [_one_block(p) for p in parts], per_view)
     np.testing.assert_allclose(got[:12, :12], expected[:12, :12], rtol=1e-6, atol=1e-12 * np.abs(expected).max())
     assert max(len(_one_block(p)[0]) for p in parts) == 18  # a view with both poses and its camera
+
+
+class _Height:
+    """A term for the test: per view ``0.5 (z / 100 mm)^2`` of the object's centre height ``z``."""
+
+    name = "height"
+
+    def residuals(self, fragments) -> TermValues:
+        n, z = len(fragments.views.cameras), fragments.centre_w[2] / 100.0
+        grad, gn = np.zeros((n, 6)), np.zeros((n, 6, 6))
+        grad[:, 2], gn[:, 2, 2] = z / 100.0, 1.0 / 100.0 ** 2
+        return TermValues(self.name, ViewTerms(np.full(n, 0.5 * z * z), grad, gn))
+
+
+def test_a_term_added_to_the_one_list_joins_the_joint_stage(pair, monkeypatch):
+    """Issue 44: a per-view term added to ``view_terms`` (its module and that one list) is summed by
+    the joint stage too: each instance's views carry its loss and derivatives beside the masks', and
+    the record names it."""
+    root, models, truth = pair
+    plain = _objective(root, models)[0].evaluate(truth, FULL)
+    given = objective_module.view_terms
+    monkeypatch.setattr(objective_module, "view_terms", lambda *a: (*given(*a), _Height()))
+    ev = _objective(root, models)[0].evaluate(truth, FULL, weights=plain.weights)
+    heights = [0.5 * (transform_points(T, models.mesh(k + 1).centre[None])[0, 2] / 100.0) ** 2 for k, T in enumerate(truth)]
+    assert heights[0] > 0.01 and heights[1] > 0.01
+    added = 0.0
+    for i, h in enumerate(heights):
+        record = ev.record(i)
+        assert list(record.losses) == ["height", "mask"]
+        np.testing.assert_allclose(record.losses["height"], h)
+        np.testing.assert_allclose(record.losses["mask"], [f.loss for f in plain.fits[i]], rtol=1e-12)
+        added += h * float(np.sum(plain.weights[i]))
+    assert ev.value == pytest.approx(plain.value + added, rel=1e-12)
+    dz = _total_grad(ev, 2)[:, 2] - _total_grad(plain, 2)[:, 2]
+    np.testing.assert_allclose(dz, [np.sqrt(2 * h) / 100.0 * np.sum(w) for h, w in zip(heights, plain.weights)], rtol=1e-9)

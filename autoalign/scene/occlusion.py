@@ -32,9 +32,10 @@ from autoalign.geometry.camera import Camera, pixel_centres
 from autoalign.geometry.se3 import transform_points
 from autoalign.io.instances import InstanceScenes
 from autoalign.losses import robust_view_weights
-from autoalign.losses.depth import DepthNoise, DepthTerm, DepthTerms
+from autoalign.losses.depth import DepthNoise
+from autoalign.losses.mask_term import MaskTerm
 from autoalign.losses.overlap import iou_from_counts
-from autoalign.losses.term import LevelViews, ViewTermsRecord
+from autoalign.losses.term import Fragments, LevelViews, Measured, TermValues, ViewTermsRecord
 from autoalign.rasterizers.camera_batch import CameraBatch
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.rasterizers.soft_silhouette import Silhouettes
@@ -70,14 +71,15 @@ class JointEvaluation:
     """The loss of every instance in every one of its views, with per-view robust weights.
 
     ``fits[i][k]`` is instance ``i`` in its ``k``-th view; ``weights[i]`` (one per view, mean 1)
-    weigh them; ``value = sum_i sum_k weights[i][k] fits[i][k].loss``.
+    weigh them; ``value = sum_i sum_k weights[i][k] fits[i][k].loss``. ``own[i]``: what instance
+    ``i``'s own terms beside the masks gave (:meth:`OcclusionObjective.evaluate`), already in its fits.
     """
 
     fits: list[list[ViewFit]]
     weights: list[NDArray[np.float64]]
     value: float
     robust: bool = True
-    depth: list[DepthTerms | None] | None = None
+    own: list[tuple[TermValues, ...]] | None = None
 
     def iou(self, i: int) -> NDArray[np.float64]:
         return np.array([f.iou for f in self.fits[i]])
@@ -91,19 +93,28 @@ class JointEvaluation:
         return _instance_values(self.fits, self.weights)
 
     def record(self, i: int) -> ViewTermsRecord:
-        """Instance ``i``'s terms per view (:class:`~autoalign.losses.term.ViewTermsRecord`)."""
+        """Instance ``i``'s terms per view (:class:`~autoalign.losses.term.ViewTermsRecord`): its own
+        terms', and the masks' the rest of its fits."""
         loss = np.array([f.loss for f in self.fits[i]])
-        if self.depth is None or self.depth[i] is None:
-            return ViewTermsRecord({"mask": loss}, self.weights[i])
-        d = self.depth[i].loss
-        return ViewTermsRecord({"depth": d, "mask": loss - d}, self.weights[i])
+        own = {v.name: v.views.loss for v in self.own_values(i) if v.views is not None}
+        for term_loss in own.values():
+            loss = loss - term_loss
+        return ViewTermsRecord({**own, "mask": loss}, self.weights[i])
+
+    def own_values(self, i: int) -> tuple[TermValues, ...]:
+        """What instance ``i``'s own terms beside the masks gave, in order."""
+        return () if self.own is None else self.own[i]
+
+    def measured(self, i: int) -> tuple[Measured, ...]:
+        """What instance ``i``'s own terms measured (e.g. :class:`~autoalign.losses.depth.DepthTerms`), in order."""
+        return tuple(v.measured for v in self.own_values(i) if v.measured is not None)
 
     def reweighted(self) -> "JointEvaluation":
         """The same fits with the weights computed from their own IoU (an IRLS step; none if not robust)."""
         if not self.robust:
             return self
         w = [robust_view_weights(self.iou(i)) for i in range(len(self.fits))]
-        return JointEvaluation(self.fits, w, _weighted_value(self.fits, w), self.robust, self.depth)
+        return JointEvaluation(self.fits, w, _weighted_value(self.fits, w), self.robust, self.own)
 
 
 def _instance_values(fits: list[list[ViewFit]], weights: list[NDArray[np.float64]]) -> list[float]:
@@ -138,15 +149,18 @@ class OcclusionObjective:
         detail: the meshes' detail (:class:`~autoalign.rasterizers.pyramid.MeshDetail`).
         depth: the depth sensor's noise; with it, an instance whose scene has measured depth adds
             the depth term (:mod:`autoalign.losses.depth`) to its own twist in each of its views.
+
+    Each instance's own per-view terms are its objective's (:func:`~autoalign.engine.objective.view_terms`,
+    the one list), but for the mask term, whose place the occlusion-aware fit takes: a term added
+    there joins this stage too.
     """
 
     def __init__(self, found: InstanceScenes, pyramids: list[MeshPyramid], robust: bool = True,
                  detail: MeshDetail = MeshDetail(), depth: DepthNoise | None = None) -> None:
         self.rasterizers = [p.fine(detail) for p in pyramids]
         self.robust = robust
-        self.depth = depth
         self.scenes = found.scenes
-        self.objectives = [SilhouetteObjective(p, s, detail=detail) for p, s in zip(pyramids, found.scenes)]
+        self.objectives = [SilhouetteObjective(p, s, detail=detail, depth=depth) for p, s in zip(pyramids, found.scenes)]
         used = sorted({im for s in found.scenes for im in s.image_ids})
         by_id = dict(zip(found.image_ids, found.cameras))
         self.image_ids = used
@@ -190,35 +204,34 @@ class OcclusionObjective:
                 key = (keys[i], tuple((p.j, keys[p.j]) for p in here))
                 fits[i].append(self._last.get(("fit", i, k), key,
                                               lambda: self._fit(i, k, int(g), sil, lv, sils, band_rows, here, level)))
-        depth = self._depth(poses, keys, fits, level)
+        own = [self._own_terms(i, poses[i], keys[i], sils[i], fits[i], level) for i in range(len(poses))]
         if weights is None:
             weights = [robust_view_weights(np.array([f.iou for f in fs])) if self.robust else np.ones(len(fs))
                        for fs in fits]
-        return JointEvaluation(fits, weights, _weighted_value(fits, weights), self.robust, depth)
+        return JointEvaluation(fits, weights, _weighted_value(fits, weights), self.robust, own)
 
-    def _depth(self, poses: list[NDArray[np.float64]], keys: list[tuple], fits: list[list[ViewFit]],
-               level: Level) -> list[DepthTerms | None] | None:
-        """Each instance's depth terms (``None`` without depth), added in place to its views' fits
-        (its own twist comes first in each fit)."""
-        if self.depth is None or all(sc.depths is None for sc in self.scenes):
-            return None
-        out: list[DepthTerms | None] = []
-        term = DepthTerm(self.depth)
-        for i, (sc, rast) in enumerate(zip(self.scenes, self.rasterizers)):
-            if sc.depths is None:
-                out.append(None)
+    def _own_terms(self, i: int, T_wm: NDArray[np.float64], key: tuple, sil: Silhouettes, fits: list[ViewFit],
+                   level: Level) -> tuple[TermValues, ...]:
+        """Instance ``i``'s own per-view terms beside the masks at ``T_wm`` (its objective's, the mask
+        term left out: the occlusion-aware fit is its), added in place to its views' ``fits`` (its
+        own twist comes first in each fit)."""
+        terms = [t for t in self.objectives[i].terms if not isinstance(t, MaskTerm)]
+        if not terms:
+            return ()
+        rast = self.rasterizers[i]
+        fragments = Fragments(T_wm, transform_points(T_wm, self.centres_m[i][None])[0], level.scale,
+                              self.objectives[i].at_scale(level.scale), sil, rast)
+        values = tuple(self._last.get(("term", i, n), key, lambda term=term: term.residuals(fragments))
+                       for n, term in enumerate(terms))
+        for v in values:
+            if v.views is None:
                 continue
-            centre = transform_points(poses[i], self.centres_m[i][None])[0]
-            views = self.objectives[i].at_scale(level.scale)
-            d = self._last.get(("depth", i), keys[i],
-                               lambda: term.measure(rast.caster, rast.mesh, poses[i], centre, views, level.scale))
-            for k, f in enumerate(fits[i]):
+            for k, f in enumerate(fits):
                 grad, gn = f.grad.copy(), f.gn.copy()
-                grad[:6] += d.grad[k]
-                gn[:6, :6] += d.gn[k]
-                fits[i][k] = replace(f, loss=f.loss + float(d.loss[k]), grad=grad, gn=gn)
-            out.append(d)
-        return out
+                grad[:6] += v.views.grad[k]
+                gn[:6, :6] += v.views.gn[k]
+                fits[k] = replace(f, loss=f.loss + float(v.views.loss[k]), grad=grad, gn=gn)
+        return values
 
     # -------------------------------------------------------------------------------- steps
     def _overlaps(self, sils: list[Silhouettes], keys: list[tuple], poses: list[NDArray[np.float64]],

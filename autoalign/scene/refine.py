@@ -168,10 +168,10 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
                                          joint.poses[k], unc.weak_turn_axes, pyramids[k].mesh.centre,
                                          opts.disambiguation.weak_turns)
             gap = own - float(scores.max())
-        depth = None if joint.evaluation.depth is None else joint.evaluation.depth[k]
+        by_terms = joint.evaluation.measured(k)  # its own terms' records beside the masks (the depth's)
         seen = r.result.measurement(SeeThrough)
         if seen is not None:  # the depth sees through it: the joint stage did not use it either
-            depth = measured_see_through(found.scenes[k], pyramids[k], joint.poses[k], opts, seen.declared)
+            by_terms += (measured_see_through(found.scenes[k], pyramids[k], joint.poses[k], opts, seen.declared),)
         had_photo = r.result.measurement(PhotoEvidence)
         iou = joint.evaluation.hard_iou(k)
         own_scene = given.scenes[k]
@@ -192,7 +192,7 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
             mesh = pyramids[k].mesh
             on = RestingContact(contact.plane, mesh.hull, mesh.centre, 1.0, mesh.resting_downs)
             contact = replace(contact, gap_after_mm=on.gap_mm(joint.poses[k]), tilt_after_deg=on.tilt_deg(joint.poses[k]))
-        measured = tuple(m for m in (depth, evidence, contact) if m is not None)
+        measured = by_terms + tuple(m for m in (evidence, contact) if m is not None)
         after.append(replace(r.result, T_wm=joint.poses[k], iou_after=iou, weights=joint.evaluation.weights[k],
                              uncertainty=unc, turn_gap=gap, turn_rise=rise[0], turn_rise_axis_m=rise[1],
                              terms=joint.evaluation.record(k), measured=measured))

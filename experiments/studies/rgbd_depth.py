@@ -176,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, default=YCBV_RGBD)
     p.add_argument("--out", type=Path, default=RESULTS)
-    p.add_argument("--masks", default=",".join(MASKS), help=f"some of {';'.join(MASKS)}, separated by ;")
+    p.add_argument("--masks", default=";".join(MASKS), help=f"some of {';'.join(MASKS)}, separated by ;")
     p.add_argument("--depth", default=",".join(DEPTHS), help=f"some of {','.join(DEPTHS)}")
     p.add_argument("--name", default="rgbd_depth", help="the results' file name in --out, without suffix")
     a = p.parse_args(argv)
