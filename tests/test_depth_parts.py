@@ -1,6 +1,7 @@
 """The measured depth read piece by piece: a pose whose body sits right but whose handle lies where
 the sensor sees the table is contradicted, though most of its depth samples agree (issue 45: two
-ladles 47-59 mm off with their bowls in place were called `ok` by their depth's median share)."""
+ladles 47-59 mm off with their bowls in place were called `ok` by their depth's median share); and
+the pixels the depth finds hidden, painted at once."""
 
 from __future__ import annotations
 
@@ -9,14 +10,15 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import trimesh
-
 from autoalign.experiments.scenes.synthetic import default_K, ring_cameras
+from autoalign.losses.depth import SUPPORTS, DepthNoise, DepthTerms, depth_terms
+from autoalign.losses.term import Stance
+from autoalign.rasterizers.ray_casting import RayCaster
+
+from autoalign.geometry.camera import uv_from_opencv
 from autoalign.geometry.mesh import SURFACE_PARTS, mesh_from_trimesh
 from autoalign.geometry.se3 import make_pose, so3_exp, transform_points
-from autoalign.losses.depth import SUPPORTS, DepthNoise, depth_terms
-from autoalign.losses.term import Stance
 from autoalign.quality.verdict import PoseEvidence, judge
-from autoalign.rasterizers.ray_casting import RayCaster
 from tests.conftest import open3d_depth
 
 
@@ -80,9 +82,6 @@ def test_a_handle_where_the_depth_sees_the_table_is_contradicted_though_most_sam
 def test_hidden_cells_painted_at_once_are_those_painted_one_by_one() -> None:
     """:meth:`DepthTerms.hidden_mask` paints every hidden sample's stride-wide cell at once; the
     same cells painted one by one (clipped to the image) at every level's scale."""
-    from autoalign.geometry.camera import uv_from_opencv
-    from autoalign.losses.depth import DepthTerms
-
     rng = np.random.default_rng(0)
     for _ in range(50):
         stride, n = int(rng.integers(1, 9)), int(rng.integers(0, 300))
