@@ -10,15 +10,15 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import trimesh
-from autoalign.experiments.scenes.synthetic import default_K, ring_cameras
-from autoalign.losses.depth import SUPPORTS, DepthNoise, DepthTerms, depth_terms
-from autoalign.losses.term import Stance
-from autoalign.rasterizers.ray_casting import RayCaster
 
+from autoalign.experiments.scenes.synthetic import default_K, ring_cameras
 from autoalign.geometry.camera import uv_from_opencv
 from autoalign.geometry.mesh import SURFACE_PARTS, mesh_from_trimesh
 from autoalign.geometry.se3 import make_pose, so3_exp, transform_points
+from autoalign.losses.depth import SUPPORTS, DepthNoise, DepthTerms, depth_terms
+from autoalign.losses.term import Stance
 from autoalign.quality.verdict import PoseEvidence, judge
+from autoalign.rasterizers.ray_casting import RayCaster
 from tests.conftest import open3d_depth
 
 
