@@ -60,6 +60,8 @@ def test_masks_pulling_to_a_far_basin_leave_the_result_within_the_seed_radius_an
 
     held = refine(scene, mesh, seed)
     assert held.seed_hold is not None and not held.seed_hold.kept_far
+    assert free.holds == () and [type(t).__name__ for t in held.holds] == ["SeedRegion"]  # kept by --models' joint stage
+    assert held.holds[0].term(held.T_wm).value == pytest.approx(0.0, abs=1e-6)  # the result lies within the region
     assert held.seed_hold.far_loss > 0.5 * held.seed_hold.near_loss  # the far pose fits only a little better
     mm, deg = pose_change(seed, held.T_wm, mesh.centre)
     assert mm <= SEED_RADIUS[0] * 1.02 and deg <= SEED_RADIUS[1] * 1.02, (mm, deg)

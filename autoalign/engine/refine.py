@@ -49,7 +49,7 @@ from autoalign.losses import targets_in_crops
 from autoalign.losses.silhouette import boundary_bias_grads
 from autoalign.losses.contact import (CONTACT_MAX_LEAN_DEG, CONTACT_STIFFNESS, OFFERED_GAP_MM, Contact, RestingContact,
                                       TablePlane)
-from autoalign.losses.term import Measured, TermEvidence, ViewTermsRecord
+from autoalign.losses.term import Measured, PoseTerm, TermEvidence, ViewTermsRecord
 from autoalign.losses.overlap import iou_from_counts, view_ious
 from autoalign.rasterizers.pyramid import MeshPyramid
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
@@ -175,6 +175,9 @@ class RefineResult:
             the IoUs are with the instance's masks, or with the targets where it has none.
         seed_hold: where the masks pulled the pose beyond a given seed's radius, the far pose and
             which was returned (:class:`~autoalign.engine.seed_region.SeedHold`); ``None`` otherwise.
+        holds: the terms on the pose alone that hold the result (:class:`~autoalign.losses.term.PoseTerm`):
+            the seed's region where the result is the best pose within it, the resting contact kept;
+            the joint stage of several objects keeps them.
     """
 
     T_wm: NDArray[np.float64]
@@ -197,6 +200,7 @@ class RefineResult:
     terms: ViewTermsRecord | None = None
     measured: tuple[Measured, ...] = ()
     seed_hold: SeedHold | None = None
+    holds: tuple[PoseTerm, ...] = ()
 
     def evidence(self) -> tuple[TermEvidence, ...]:
         """What each kind of evidence beside the masks says of the pose, in the order it was measured
@@ -545,6 +549,17 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
     return final, standing, ev, uncertainty, TurnTests(turn_gap, *rise)
 
 
+def _seed_region(obj: SilhouetteObjective, anchor: NDArray[np.float64], opts: RefineOptions) -> SeedRegion:
+    """The region of poses within ``opts.seed_radius`` of the given pose ``anchor``, as a term on the pose."""
+    return SeedRegion(anchor, obj.centre_m, opts.seed_radius, STIFFNESS * len(obj.scene), obj.pyramid.symmetries)
+
+
+def _contact(obj: SilhouetteObjective, plane: TablePlane) -> RestingContact:
+    """The object resting on ``plane`` on one of its stable faces, as a term on the pose."""
+    mesh = obj.pyramid.mesh
+    return RestingContact(plane, mesh.hull, obj.centre_m, CONTACT_STIFFNESS * len(obj.scene), mesh.resting_downs)
+
+
 def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best: Finalist, ev: Evaluation,
                     opts: RefineOptions, progress: Progress | None
                     ) -> tuple[Finalist, Evaluation, Uncertainty | None, SeedHold | None]:
@@ -560,7 +575,7 @@ def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best:
     move = symmetric_pose_change(anchor, h.T_final, obj.centre_m, syms.discrete, syms.continuous)
     if opts.seed_radius is None or (move[0] <= opts.seed_radius[0] and move[1] <= opts.seed_radius[1]):
         return best, ev, None, None
-    held = obj.with_pose_term(SeedRegion(anchor, obj.centre_m, opts.seed_radius, STIFFNESS * len(obj.scene), syms))
+    held = obj.with_pose_term(_seed_region(obj, anchor, opts))
     full = Level(1.0, opts.schedule[-1].sigma, 0)
     candidates = []
     # the whole schedule, which the far pose's pull may take to the region's edge, and the last level alone
@@ -621,8 +636,7 @@ def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, plane: Ta
     worse; from a given pose the contradiction is recorded and nothing run
     (:attr:`~autoalign.losses.contact.Contact.in_table`)."""
     h = best.hypothesis
-    mesh = obj.pyramid.mesh
-    term = RestingContact(plane, mesh.hull, obj.centre_m, CONTACT_STIFFNESS * len(obj.scene), mesh.resting_downs)
+    term = _contact(obj, plane)
     gap, tilt = term.gap_mm(h.T_final), term.tilt_deg(h.T_final)
     iou = float(np.median(ev.terms.iou))
     sunk = not declared and gap < -OFFERED_GAP_MM
@@ -768,13 +782,15 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
     final, standing, final_ev, uncertainty, turn = _disambiguate(obj, scene, mesh, final, others + dropped,
                                                                  given_pose, opts, progress, pose_only)
     timings["refine"] = time.perf_counter() - t0
-    hold = None
+    hold, holds = None, []
     if given_pose or anchor is not None:
         t0 = time.perf_counter()
-        kept, final_ev, held_unc, hold = _held_near_seed(obj, np.asarray(seed if anchor is None else anchor),
-                                                         final[0], final_ev, opts, progress)
+        given = np.asarray(seed if anchor is None else anchor)
+        kept, final_ev, held_unc, hold = _held_near_seed(obj, given, final[0], final_ev, opts, progress)
         if held_unc is not None:  # the pose within the radius: the far pose's turn gap says nothing of it
             final, uncertainty, turn = [kept] + final, held_unc, TurnTests()
+        if hold is not None and not hold.kept_far:
+            holds.append(_seed_region(obj, given, opts))
         timings["seed"] += time.perf_counter() - t0
     contact = None
     plane = opts.resting if opts.resting is not None else opts.table_offered
@@ -786,6 +802,7 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
             rested, rested_ev, contact = rested_as
             if contact.kept:
                 final, final_ev = [rested] + final, rested_ev
+                holds.append(_contact(obj, plane))
                 if uncertainty is not None:
                     uncertainty = final_uncertainty(obj, final_ev, rested.hypothesis.T_final, opts.schedule[-1],
                                                     opts.optimizer)
@@ -806,4 +823,4 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
         weights=final[0].weights, history=history, image_ids=list(scene.image_ids), uncertainty=uncertainty,
         turn_gap=turn.gap, turn_rise=turn.rise, turn_rise_axis_m=turn.rise_axis_m, terms=final_ev.record(),
         measured=final_ev.measured + ((contact,) if contact else ()),
-        seed_hold=hold)
+        seed_hold=hold, holds=tuple(holds))

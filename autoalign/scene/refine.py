@@ -38,17 +38,16 @@ from autoalign.engine.hypotheses import turn_scores
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineOptions, RefineResult, refine
 from autoalign.engine.see_through import measured_see_through
-from autoalign.engine.seed_region import SEED_RADIUS, STIFFNESS, SeedRegion
+from autoalign.engine.seed_region import SEED_RADIUS
 from autoalign.engine.solver import GaussNewton, LevenbergMarquardt, StepRule
 from autoalign.engine.uncertainty import with_outline_disagreement, with_scale_sigma
 from autoalign.geometry.se3 import pose_change, symmetric_pose_change, transform_points
 from autoalign.errors import AutoalignError
 from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
-from autoalign.losses.contact import CONTACT_STIFFNESS, Contact, RestingContact
+from autoalign.losses.contact import Contact, RestingContact
 from autoalign.losses.region import RegionOptions
 from autoalign.losses.see_through import SeeThrough
-from autoalign.losses.term import PoseTerm
 from autoalign.losses.outline_offset import shared_outline_offset
 from autoalign.losses.overlap import view_ious
 from autoalign.quality.verdict import PoseEvidence, Verdict, judge
@@ -214,28 +213,6 @@ def _all_flagged(results: list[InstanceResult], reason: str) -> list[InstanceRes
                                        reasons=r.verdict.reasons + [reason])) for r in results]
 
 
-def pose_holds(alone: list[InstanceResult], pyramids: list[MeshPyramid], seeds: dict[int, NDArray[np.float64]],
-               radius: tuple[float, float]) -> list[tuple[PoseTerm, ...]]:
-    """Per instance, the terms on its pose that held it alone, for the joint stage to keep: the
-    region its seed holds it in, where its result alone is the best pose within its seed's radius
-    (:class:`~autoalign.engine.seed_region.SeedHold`, the far pose not kept; the joint stage moved
-    such a pose 3.3 mm off where the pose alone was 0.5 mm), and the resting contact it was held to
-    (:class:`~autoalign.losses.contact.Contact` kept)."""
-    out: list[tuple[PoseTerm, ...]] = []
-    for r, pyramid in zip(alone, pyramids):
-        hold, seed = r.result.seed_hold, seeds.get(r.instance.index)
-        terms: list[PoseTerm] = []
-        if hold is not None and not hold.kept_far and seed is not None:
-            terms.append(SeedRegion(np.asarray(seed, dtype=np.float64), pyramid.mesh.centre, radius,
-                                    STIFFNESS * len(r.result.image_ids), pyramid.symmetries))
-        contact = r.result.measurement(Contact)
-        if contact is not None and contact.kept:
-            terms.append(RestingContact(contact.plane, pyramid.mesh.hull, pyramid.mesh.centre,
-                                        CONTACT_STIFFNESS * len(r.result.image_ids), pyramid.mesh.resting_downs))
-        out.append(tuple(terms))
-    return out
-
-
 def joint_rule(opts: RefineOptions) -> StepRule | None:
     """The joint stage's step rule for ``opts.optimizer`` (``None``: its Levenberg-Marquardt). The
     joint stage solves the instances' L2 mask residuals together (the occlusion-aware objective):
@@ -285,7 +262,7 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
                 continue
         pyramids = [models.pyramid(r.instance.obj_id) for r in alone]
         start = [r.result.T_wm for r in alone]
-        holds = pose_holds(alone, pyramids, given_seeds, seed_radius)
+        holds = [r.result.holds for r in alone]  # the terms on the pose that held each alone, kept jointly
         t0 = time.perf_counter()
         given = found  # the instances as read: their own masks and photos
         photo_alone: list[PhotoEvidence | None] = [None] * len(alone)
