@@ -447,7 +447,7 @@ def read_masks(paths: dict[tuple[int, int], Path], max_pixels: int | None = MAX_
     first: Path | None = None
     with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
         read = pool.map(_read_mask_at, paths.values(), [max_pixels] * len(paths))
-        for key, p in zip(paths, paths.values()):
+        for key, p in paths.items():
             m, kind, shape = next(read)
             if out.size is None:
                 out.size, first = shape, p

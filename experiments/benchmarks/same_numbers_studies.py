@@ -25,9 +25,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 
 from autoalign.experiments import RESULTS
+from autoalign.experiments.benchmarks.same_numbers import largest_difference
 from autoalign.experiments.result_files import write_results
 
 
@@ -69,9 +69,7 @@ def _largest(a: dict[tuple, dict[str, Any]], b: dict[tuple, dict[str, Any]], fie
     """The largest absolute difference of ``field`` over the instances (None where no row has it)."""
     pairs = [(x.get(field), b[k].get(field)) for k, x in a.items()]
     pairs = [(x, y) for x, y in pairs if x is not None and y is not None]
-    if not pairs:
-        return None
-    return float(max(np.max(np.abs(np.asarray(x, np.float64) - np.asarray(y, np.float64))) for x, y in pairs))
+    return max((largest_difference(x, y) for x, y in pairs), default=None)
 
 
 def compare_rows(before: dict[tuple, dict[str, Any]], after: dict[tuple, dict[str, Any]]) -> dict[str, Any]:
