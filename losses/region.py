@@ -59,6 +59,8 @@ class RegionOptions:
             each with its own pair of models (RBOT's local models: a cluttered background differs
             around the object); one with fewer than ``min_sector_px`` pixels inside or outside
             uses the models of the whole band.
+        edge_weight: where the masks are withheld, the photo's edges pull the outline too
+            (:mod:`autoalign.losses.edge`) with this weight against the region targets; ``None``: not.
     """
 
     bins: int = 16
@@ -72,6 +74,7 @@ class RegionOptions:
     min_sector_px: int = 100
     round_ftol: float = 1e-6
     sectors: int = 8
+    edge_weight: float | None = 0.5
 
     def band_px(self, silhouette: NDArray[np.bool_]) -> float:
         """The band's half-width (px) for a silhouette."""

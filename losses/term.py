@@ -30,7 +30,8 @@ from autoalign.rasterizers.soft_silhouette import Silhouettes, SoftSilhouetteRas
 class LevelViews:
     """The views of one resolution level: cameras, area-resampled targets in [0, 1], per-view
     target sums, and the pixels not compared (``None``: all are), all at that resolution; and the
-    same views' full-resolution cameras, masks and measured depth (mm, 0 = none; ``None``: no depth)."""
+    same views' full-resolution cameras, masks, measured depth (mm, 0 = none; ``None``: no depth) and
+    photos (BGR uint8; ``None``: none read by a term)."""
 
     cameras: list[Camera]
     targets: list[NDArray[np.float32]]
@@ -39,6 +40,7 @@ class LevelViews:
     full_cameras: list[Camera]
     full_masks: list[NDArray[np.float32]]
     depths: list[NDArray[np.float32]] | None = None
+    photos: list[NDArray[np.uint8]] | None = None
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,7 @@ from autoalign.geometry.se3 import transform_points
 from autoalign.io.bop import Scene
 from autoalign.losses import ViewTerms, robust_view_weights
 from autoalign.losses.depth import DepthNoise, DepthTerm
+from autoalign.losses.edge import EdgeTerm
 from autoalign.losses.mask_term import MaskTerm
 from autoalign.losses.term import (
     Fragments,
@@ -76,14 +77,17 @@ class Evaluation:
         return ViewTermsRecord.of(self.values, self.weights)
 
 
-def view_terms(loss: str, depth: DepthNoise | None, scene: Scene) -> tuple[Term, ...]:
+def view_terms(loss: str, depth: DepthNoise | None, scene: Scene, edges: float | None = None) -> tuple[Term, ...]:
     """The evidence terms every view of ``scene`` is compared with, in order: the depth term (with a
     sensor's ``depth`` noise and measured depth) before the mask term (``loss``), which does not
-    compare the pixels the depth shows hidden. The one list of per-view terms."""
+    compare the pixels the depth shows hidden, and the edge term (with weight ``edges`` and the
+    scene's photos). The one list of per-view terms."""
     terms: list[Term] = []
     if depth is not None and scene.depths is not None:
         terms.append(DepthTerm(depth))
     terms.append(MaskTerm(loss))
+    if edges is not None and scene.photos is not None:
+        terms.append(EdgeTerm(edges))
     return tuple(terms)
 
 
@@ -99,12 +103,14 @@ class SilhouetteObjective:
         depth: the depth sensor's noise: with it, and the scene's measured depth
             (:attr:`~autoalign.io.bop.Scene.depths`), each view's term adds the depth term
             (:mod:`autoalign.losses.depth`) to the mask term; ``None``: masks only.
+        edges: the edge term's weight: with it, and the scene's photos, each view's term adds the
+            photo's edges under the outline (:mod:`autoalign.losses.edge`); ``None``: no edge term.
 
     The terms are :func:`view_terms`, plus those on the pose alone given to :meth:`with_pose_term`.
     """
 
     def __init__(self, pyramid: MeshPyramid, scene: Scene, loss: str = "l2", robust: bool = True,
-                 detail: MeshDetail = MeshDetail(), depth: DepthNoise | None = None) -> None:
+                 detail: MeshDetail = MeshDetail(), depth: DepthNoise | None = None, edges: float | None = None) -> None:
         self.pyramid = pyramid
         self.detail = detail
         self.depth = depth
@@ -112,7 +118,8 @@ class SilhouetteObjective:
         self.scene = scene
         self.loss_name = loss
         self.robust = robust
-        self.terms: tuple[Term, ...] = view_terms(loss, depth, scene)
+        self.edges = edges
+        self.terms: tuple[Term, ...] = view_terms(loss, depth, scene, edges)
         self._levels: dict[tuple[float, int | None], LevelViews] = {}
         self._renders = [0]  # shared with the objectives made by with_pose_term
 
@@ -152,7 +159,7 @@ class SilhouetteObjective:
             tg = [resampled(m, c) for m, c in zip(scene.masks, cams)]
             ignore = None if scene.ignore is None else [resampled(g, c) > 0.5 for g, c in zip(scene.ignore, cams)]
             self._levels[key] = LevelViews(cams, tg, np.array([float(t.sum()) for t in tg]), ignore, scene.cameras,
-                                           scene.masks, scene.depths)
+                                           scene.masks, scene.depths, scene.photos)
         return self._levels[key]
 
     def subset(self, idx: list[int] | NDArray[np.int64]) -> "SilhouetteObjective":
@@ -160,13 +167,14 @@ class SilhouetteObjective:
         resampled targets of every view at each scale already computed taken from this one."""
         idx = [int(i) for i in idx]
         sub = SilhouetteObjective(self.pyramid, self.scene.subset(idx), self.loss_name, self.robust, self.detail,
-                                  self.depth)
+                                  self.depth, self.edges)
         for (scale, max_views), lv in self._levels.items():
             if max_views is None:
                 sub._levels[(scale, None)] = LevelViews(
                     [lv.cameras[i] for i in idx], [lv.targets[i] for i in idx], lv.totals[idx],
                     None if lv.ignore is None else [lv.ignore[i] for i in idx], [lv.full_cameras[i] for i in idx],
-                    [lv.full_masks[i] for i in idx], None if lv.depths is None else [lv.depths[i] for i in idx])
+                    [lv.full_masks[i] for i in idx], None if lv.depths is None else [lv.depths[i] for i in idx],
+                    None if lv.photos is None else [lv.photos[i] for i in idx])
         return sub
 
     def use_cameras(self, cameras: list[Camera]) -> None:

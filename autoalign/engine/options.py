@@ -143,6 +143,8 @@ class RefineOptions:
             on it when the other evidence puts it there (:data:`~autoalign.losses.contact.OFFERED_GAP_MM`).
         table_offered: the plane offered (set by :mod:`autoalign.engine.see_through` for the runs
             without the depth; ``None``: none).
+        edges: the weight of the photo's edges under the outline (:mod:`autoalign.losses.edge`), set by
+            the photo rounds where the masks are withheld (``RegionOptions.edge_weight``); ``None``: not used.
     """
 
     loss: str = "l2"
@@ -159,3 +161,4 @@ class RefineOptions:
     resting: TablePlane | None = None
     offer_table: bool = True
     table_offered: TablePlane | None = None
+    edges: float | None = None

@@ -90,14 +90,15 @@ class PhotoEvidence:
 def photo_targets(scene: Scene, silhouettes: list[NDArray[np.bool_]],
                   options: RegionOptions) -> tuple[Scene, PhotoEvidence]:
     """``scene`` with each view's region target as its mask (see :mod:`autoalign.losses.region`),
-    the views' photos dropped (they are used), and the per-view evidence."""
+    the views' photos dropped (they are used) unless it has no masks (the edge term reads them then:
+    :mod:`autoalign.losses.edge`), and the per-view evidence."""
     if scene.photos is None:
         raise ValueError("the scene has no photos")
     has_mask = scene.has_masks
     per_view = [region_target(photo, sil, scene.masks[k] if has_mask else None,
                               None if scene.ignore is None else scene.ignore[k], options)
                 for k, (photo, sil) in enumerate(zip(scene.photos, silhouettes))]
-    return (replace(scene, masks=[rt.target for rt in per_view], photos=None),
+    return (replace(scene, masks=[rt.target for rt in per_view], photos=None if has_mask else scene.photos),
             PhotoEvidence(np.array([rt.band_px for rt in per_view]), np.array([rt.agreement for rt in per_view]),
                           np.array([rt.edge_contrast for rt in per_view]), 0, has_mask))
 
@@ -112,8 +113,8 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
 
     region = options.region
     assert region is not None
-    masks_only = replace(options, region=None)
     has_mask = scene.has_masks
+    masks_only = replace(options, region=None, edges=None if has_mask else region.edge_weight)
     if seed is None or isinstance(seed, Click):
         if not has_mask:
             raise AutoalignError("without masks the photos refine a coarse pose: give --init (a coarse scene_gt.json)")

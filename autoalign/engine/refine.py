@@ -765,7 +765,7 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
     timings["seed"] = time.perf_counter() - t_start
 
     t0 = time.perf_counter()
-    obj = SilhouetteObjective(pyramid, scene, opts.loss, opts.robust, opts.detail, opts.depth)
+    obj = SilhouetteObjective(pyramid, scene, opts.loss, opts.robust, opts.detail, opts.depth, opts.edges)
     timings["setup"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

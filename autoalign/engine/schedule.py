@@ -46,6 +46,6 @@ def polish(scene: Scene, pyramid: MeshPyramid, T: NDArray[np.float64], levels: t
     """``T`` descended through ``levels`` on the masks of ``scene`` (its depth too), and nothing
     else: no search, no disambiguation, no report. Returns the pose, the iterations and the renders."""
     obj = SilhouetteObjective(pyramid, scene.without_empty_masks(), options.loss, options.robust, options.detail,
-                              options.depth)
+                              options.depth, options.edges)
     T, traces = run_schedule(obj, T, levels, options.optimizer, progress, label)
     return T, sum(tr.iterations for tr in traces), obj.renders

@@ -275,21 +275,22 @@ class JointProblem:
 def refine_jointly(found: InstanceScenes, pyramids: list[MeshPyramid], poses: list[NDArray[np.float64]],
                    with_cameras: bool = False, level: Level = LEVEL, prior: CameraPrior | None = None,
                    detail: MeshDetail = MeshDetail(), robust: bool = True, with_scale: bool = False,
-                   depth: DepthNoise | None = None,
+                   depth: DepthNoise | None = None, edges: float | None = None,
                    scale_from: list[bool] | None = None, progress: Progress | None = None,
                    rule: StepRule | None = None, holds: list[tuple[PoseTerm, ...]] | None = None) -> JointRefinement:
     """Refine the poses of all instances of ``found`` (their meshes: ``pyramids``, drawn at
     ``detail.fine``) together from ``poses`` (world from model, mm), occlusion-aware, with
     ``with_cameras`` a correction of every camera and with ``with_scale`` the scene's scale
     (``robust``: views weighted by their fit, as in :class:`~autoalign.engine.refine.RefineOptions`;
-    ``depth``: the sensor's noise, for the instances whose scenes have measured depth). ``scale_from`` (per instance, default all): the
+    ``depth``: the sensor's noise, for the instances whose scenes have measured depth; ``edges``: the
+    edge term's weight, for those whose scenes carry photos: :mod:`autoalign.losses.edge`). ``scale_from`` (per instance, default all): the
     instances whose fit decides the scale; the others move with it but do not pull it.
     Levenberg-Marquardt (:func:`~autoalign.engine.solver.minimise`; or the step ``rule`` given) with
     IRLS view weights. ``holds``: per instance, the terms on its pose alone that held it when it was
     refined alone (the seed region, :class:`~autoalign.engine.seed_region.SeedRegion`; the resting
     contact, :class:`~autoalign.losses.contact.RestingContact`; none: free), which join the solve
     (not the covariance, as alone)."""
-    objective = OcclusionObjective(found, pyramids, robust, detail, depth)
+    objective = OcclusionObjective(found, pyramids, robust, detail, depth, edges)
     centres_m = objective.centres_m
     p = np.mean([transform_points(T, c[None])[0] for T, c in zip(poses, centres_m)], axis=0)
     problem = JointProblem(objective, level, centres_m, p, prior or CameraPrior(), with_cameras, with_scale, scale_from,

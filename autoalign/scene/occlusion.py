@@ -149,6 +149,8 @@ class OcclusionObjective:
         detail: the meshes' detail (:class:`~autoalign.rasterizers.pyramid.MeshDetail`).
         depth: the depth sensor's noise; with it, an instance whose scene has measured depth adds
             the depth term (:mod:`autoalign.losses.depth`) to its own twist in each of its views.
+        edges: the edge term's weight; with it, an instance whose scene carries photos (its masks
+            withheld) adds the edge term (:mod:`autoalign.losses.edge`) the same way.
 
     Each instance's own per-view terms are its objective's (:func:`~autoalign.engine.objective.view_terms`,
     the one list), but for the mask term, whose place the occlusion-aware fit takes: a term added
@@ -156,11 +158,13 @@ class OcclusionObjective:
     """
 
     def __init__(self, found: InstanceScenes, pyramids: list[MeshPyramid], robust: bool = True,
-                 detail: MeshDetail = MeshDetail(), depth: DepthNoise | None = None) -> None:
+                 detail: MeshDetail = MeshDetail(), depth: DepthNoise | None = None,
+                 edges: float | None = None) -> None:
         self.rasterizers = [p.fine(detail) for p in pyramids]
         self.robust = robust
         self.scenes = found.scenes
-        self.objectives = [SilhouetteObjective(p, s, detail=detail, depth=depth) for p, s in zip(pyramids, found.scenes)]
+        self.objectives = [SilhouetteObjective(p, s, detail=detail, depth=depth, edges=edges)
+                           for p, s in zip(pyramids, found.scenes)]
         used = sorted({im for s in found.scenes for im in s.image_ids})
         by_id = dict(zip(found.image_ids, found.cameras))
         self.image_ids = used

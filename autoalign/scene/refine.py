@@ -271,15 +271,17 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
             given = others_left_out(found, models, {r.instance.index: r.result.T_wm for r in alone})
             found, photo_alone = region_targets(given, models, start, opts.region, opts.detail, leave_out=False)
         opaque = without_see_through_depth(found, alone)
+        edges = opts.region.edge_weight if opts.region is not None else None  # on the instances without masks
         attempt = (refine_jointly(opaque, pyramids, start, with_cameras=True, detail=opts.detail, robust=opts.robust,
-                                  with_scale=solve_scale, depth=opts.depth, scale_from=scale_from, progress=progress,
-                                  rule=rule, holds=holds)
+                                  with_scale=solve_scale, depth=opts.depth, edges=edges, scale_from=scale_from,
+                                  progress=progress, rule=rule, holds=holds)
                    if refine_cameras else None)
         if attempt is not None and corrections_accepted(attempt.view_misfit_before, attempt.view_misfit_after):
             joint = attempt
         else:
             joint = refine_jointly(opaque, pyramids, start, detail=opts.detail, robust=opts.robust, with_scale=solve_scale,
-                                   depth=opts.depth, scale_from=scale_from, progress=progress, rule=rule, holds=holds)
+                                   depth=opts.depth, edges=edges, scale_from=scale_from, progress=progress, rule=rule,
+                                   holds=holds)
         if solve_scale:
             found = found.through({**scaled_cameras(found.camera_by_id, joint.scale), **joint.cameras})
             scale, scale_sigma = scale * joint.scale, joint.scale_sigma
