@@ -158,7 +158,8 @@ class Contact:
     by ``--resting``; else offered to glass (:data:`OFFERED_GAP_MM`), and not kept when sunk in the
     table (:attr:`in_table`). ``stood_up_deg``: stood on another stable face instead
     (:mod:`autoalign.engine.stand_up`: sunk, or where the orientation was searched, the standing the
-    masks fit best), the turn that took (degrees, modulo the symmetries); ``None`` otherwise."""
+    masks fit best), the turn that took (degrees, modulo the symmetries); ``None`` otherwise.
+    ``nearest``: sunk from a given pose with the masks withheld, stood on its nearest stable face."""
 
     plane: TablePlane
     gap_before_mm: float
@@ -169,6 +170,7 @@ class Contact:
     iou_after: float
     declared: bool = True
     stood_up_deg: float | None = None
+    nearest: bool = False
     name = "contact"
 
     @property
@@ -196,11 +198,12 @@ class Contact:
         return {"plane": self.plane.record(), "gap_before_mm": self.gap_before_mm, "gap_after_mm": self.gap_after_mm,
                 "tilt_before_deg": self.tilt_before_deg, "tilt_after_deg": self.tilt_after_deg,
                 "median_iou_before": self.iou_before, "median_iou_on_plane": self.iou_after, "kept": self.kept,
-                "declared": self.declared, "stood_up_deg": self.stood_up_deg,
+                "declared": self.declared, "stood_up_deg": self.stood_up_deg, "stood_on_nearest_face": self.nearest,
                 "rule": ("" if self.declared else
                          f"offered (the depth sees through it) when its lowest point lies within {OFFERED_GAP_MM:g} mm "
                          "of the plane the depth shows; sunk deeper below it, the depth contradicts the pose, "
-                         "and where the orientation was searched it is stood on its stable faces instead; ")
+                         "and where the orientation was searched it is stood on its stable faces instead (from a "
+                         "given pose with the masks withheld, on its nearest); ")
                         + f"kept unless the masks fit the pose on the plane worse by more than {CONTACT_IOU_DROP:g} "
                         f"in median IoU, or it leans more than {CONTACT_MAX_LEAN_DEG:g} deg from every stable face "
                         "at the masks' pose"}
@@ -215,10 +218,12 @@ class Contact:
                                 f"orientation (median IoU {self.iou_after:.2f} against {self.iou_before:.2f}); check "
                                 "which way up it stands in overlay.png")
         if self.kept and self.stood_up_deg is not None:
+            how = ("leaning or sunk), so it was stood on its nearest stable face" if self.nearest else
+                   f"upside down or on its side), so it was turned {self.stood_up_deg:.0f} deg onto the stable "
+                   "face the masks fit best")
             return TermEvidence(self.name, Stance.NEUTRAL, 1.0,
                                 f"stood up on the table its depth shows: where the masks put it, its lowest point lay "
-                                f"{-self.gap_before_mm:.1f} mm inside that table (upside down or on its side), so it "
-                                f"was turned {self.stood_up_deg:.0f} deg onto the stable face the masks fit best "
+                                f"{-self.gap_before_mm:.1f} mm inside that table ({how} "
                                 f"(median IoU {self.iou_after:.2f} against {self.iou_before:.2f})")
         if self.kept:
             why = "" if self.declared else " (its depth sees through it, and it stands on the plane the depth shows)"
@@ -228,8 +233,8 @@ class Contact:
                                 f"{self.gap_after_mm:+.1f} mm and {self.tilt_after_deg:.1f} deg at the result")
         if self.in_table:
             tried = ("" if self.stood_up_deg is None else
-                     f" (stood on its best stable face the masks fit worse: median IoU {self.iou_after:.2f} "
-                     f"against {self.iou_before:.2f})")
+                     f" (stood on its {'nearest' if self.nearest else 'best'} stable face the masks fit worse: "
+                     f"median IoU {self.iou_after:.2f} against {self.iou_before:.2f})")
             return TermEvidence(self.name, Stance.CONTRADICTS, 0.0,
                                 f"its lowest point lies {-self.gap_before_mm:.1f} mm below the table its depth shows "
                                 "through it: nothing stands inside the table, so the pose is wrong (upside down, or "

@@ -343,3 +343,43 @@ def test_an_upside_down_glass_resting_on_its_rim_is_stood_right_way_up_where_the
             assert said.stance is Stance.NEUTRAL and "stood on another face" in said.reason
         else:
             assert contact.stood_up_deg is None and up > 179.0 and "rests on the table" in said.reason
+
+
+def test_a_given_pose_sunk_and_leaning_without_masks_is_stood_on_its_nearest_face() -> None:
+    """Issue 45, must-show 2 (photos alone): from a given pose, glass whose colour regions leave it
+    leaning 12 deg and 8 mm inside the table its depth shows contradicts that depth. With the masks
+    withheld (the photos alone place it) it is stood on its nearest stable face, the shortest turn,
+    and polished there: back on the truth, said so. With masks the given pose stays, and the
+    contradiction is said (a glass in a hollow of the table is where its masks put it)."""
+    from autoalign.engine.objective import Level, SilhouetteObjective
+    from autoalign.engine.refine import Finalist, Hypothesis, Stage, _resting
+    from autoalign.losses.term import Stance
+    from autoalign.rasterizers.pyramid import MeshPyramid
+
+    bottle = mesh_from_trimesh(_bottle(), "bottle")
+    cams = ring_cameras(8, np.random.default_rng(4), (25.0, 45.0), (450.0, 650.0), target=(0.0, 0.0, 60.0))
+    T_true = make_pose(np.eye(3), np.zeros(3))  # standing on its base on z = 0
+    obj = SilhouetteObjective(MeshPyramid(bottle), _eroded_masks(bottle, T_true, cams, px=1), "l2", True,
+                              RefineOptions().detail, None)
+    lean = Rotation.from_euler("x", 12.0, degrees=True).as_matrix()
+    centre = bottle.centre
+    T_sunk = make_pose(lean, centre - lean @ centre)  # leaning about its centre
+    T_sunk[2, 3] -= RestingContact(TABLE, bottle.hull, bottle.centre, 1.0).gap_mm(T_sunk) + 8.0
+    ev = obj.evaluate(T_sunk, Level(1.0, RefineOptions().schedule[-1].sigma, 0))
+    best = Finalist(Hypothesis(T_sunk, T_sunk, ev.value / len(ev.weights), float(np.mean(ev.terms.iou)),
+                               Stage.FINAL), ev.weights)
+    for withheld in (False, True):
+        opts = RefineOptions(region=None, depth=None, masks_withheld=withheld)
+        kept, _, contact = _resting(obj, best, ev, TABLE, False, False, opts, None)
+        said = contact.evidence()
+        assert contact.gap_before_mm < -7.5
+        if withheld:
+            T = kept.hypothesis.T_final
+            mm = np.linalg.norm(T[:3, :3] @ centre + T[:3, 3] - centre)
+            up = np.degrees(np.arccos(np.clip(T[:3, 2] @ T_true[:3, 2], -1.0, 1.0)))
+            assert contact.kept and contact.nearest and abs(contact.gap_after_mm) < 0.5, contact.record()
+            assert 10.0 < contact.stood_up_deg < 14.0 and up < 0.5 and mm < 1.0, (contact.stood_up_deg, up, mm)
+            assert said.stance is Stance.NEUTRAL and "nearest stable face" in said.reason
+        else:
+            assert kept is best and contact.in_table and not contact.kept and contact.stood_up_deg is None
+            assert said.stance is Stance.CONTRADICTS and "below the table" in said.reason

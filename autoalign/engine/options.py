@@ -145,6 +145,9 @@ class RefineOptions:
             without the depth; ``None``: none).
         edges: the weight of the photo's edges under the outline (:mod:`autoalign.losses.edge`), set by
             the photo rounds where the masks are withheld (``RegionOptions.edge_weight``); ``None``: not used.
+        masks_withheld: set by the photo rounds when the scene has no masks (the photos alone place the
+            object): a given pose sunk in the offered table is then stood on its nearest stable face
+            (:func:`~autoalign.engine.refine._resting`), as nothing but the colour regions hold it there.
     """
 
     loss: str = "l2"
@@ -162,3 +165,4 @@ class RefineOptions:
     offer_table: bool = True
     table_offered: TablePlane | None = None
     edges: float | None = None
+    masks_withheld: bool = False

@@ -38,7 +38,7 @@ from autoalign.engine.see_through import refine_minding_see_through
 from autoalign.engine.seed_region import CLEARLY_BETTER, STIFFNESS, SeedHold, SeedRegion
 from autoalign.engine.seeding import Click, click_centre, hull_centre, rotation_grid
 from autoalign.engine.solver import StepRule, Trace
-from autoalign.engine.stand_up import best_standings
+from autoalign.engine.stand_up import best_standings, nearest_standing
 from autoalign.engine.turn_profile import with_turn_profiles
 from autoalign.engine.uncertainty import Uncertainty, pose_uncertainty, viewpoint_groups
 from autoalign.errors import AutoalignError
@@ -634,15 +634,21 @@ def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, plane: Ta
     each of the two best faces polished on the plane. Offered, and sunk deeper than that below the plane, ``best`` contradicts
     the depth: there only the standings are tried, and the better kept unless the masks fit it clearly
     worse; from a given pose the contradiction is recorded and nothing run
-    (:attr:`~autoalign.losses.contact.Contact.in_table`)."""
+    (:attr:`~autoalign.losses.contact.Contact.in_table`), unless the masks are withheld
+    (``opts.masks_withheld``: the photos alone place it, and clear glass leaves a seed's tilt, sunk in
+    the table): then ``best`` and its start are each stood on their nearest stable face
+    (:func:`~autoalign.engine.stand_up.nearest_standing`) and polished on the plane, on the same rule."""
     h = best.hypothesis
     term = _contact(obj, plane)
     gap, tilt = term.gap_mm(h.T_final), term.tilt_deg(h.T_final)
     iou = float(np.median(ev.terms.iou))
     sunk = not declared and gap < -OFFERED_GAP_MM
-    if sunk:  # in the table its depth shows: stood on its faces where the orientation is the search's
-        starts = list(best_standings(obj.pyramid.with_faces(opts.detail.coarse), obj.scene, h.T_final, term)
-                      if may_turn else [])
+    nearest = sunk and not may_turn and opts.masks_withheld
+    if sunk:  # in the table its depth shows: stood on its faces where the orientation is the search's,
+        # from a given pose without masks on the face nearest its own orientation and its start's
+        starts = (list(best_standings(obj.pyramid.with_faces(opts.detail.coarse), obj.scene, h.T_final, term))
+                  if may_turn else [T for T in (nearest_standing(h.T_final, term), nearest_standing(h.T_init, term))
+                                    if T is not None] if nearest else [])
         if not starts:
             return best, ev, Contact(plane, gap, gap, tilt, tilt, iou, iou, declared)
     elif not declared and not (gap <= OFFERED_GAP_MM and tilt <= CONTACT_MAX_LEAN_DEG):
@@ -656,7 +662,7 @@ def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, plane: Ta
     turned = symmetric_pose_change(h.T_final, T_on, obj.centre_m, syms.discrete, syms.continuous)[1]
     turned = turned if sunk or (may_turn and turned > CONTACT_MAX_LEAN_DEG) else None
     contact = Contact(plane, gap, term.gap_mm(T_on), tilt, term.tilt_deg(T_on), iou, float(np.median(ev_on.terms.iou)),
-                      declared, turned)
+                      declared, turned, nearest=nearest)
     on = Hypothesis(h.T_init, T_on, ev_on.value / len(ev_on.weights), float(np.mean(ev_on.terms.iou)), Stage.FINAL,
                     tuple(zip(opts.schedule, traces)))
     return Finalist(on, ev_on.weights), ev_on, contact

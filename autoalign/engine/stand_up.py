@@ -4,7 +4,9 @@ depth shows through it (:data:`~autoalign.losses.contact.OFFERED_GAP_MM`). Nothi
 table, so the poses that stand it on each of its stable faces (trimesh's stable poses,
 :attr:`~autoalign.geometry.mesh.Mesh.resting_downs`), its centre kept above where it was, are
 scored against the masks; the best few are polished with the contact held
-(:func:`autoalign.engine.refine._resting`), and the masks decide between them."""
+(:func:`autoalign.engine.refine._resting`), and the masks decide between them. From a given pose
+with the masks withheld (the photos alone place it), the pose is stood on its nearest face the
+shortest way (:func:`nearest_standing`): the orientation is the person's."""
 
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.engine.hypotheses import score_poses
-from autoalign.geometry.se3 import make_pose, so3_exp
+from autoalign.geometry.se3 import make_pose, rotation_angle_deg, so3_exp
 from autoalign.io.bop import Scene
 from autoalign.losses.contact import CONTACT_MAX_LEAN_DEG, RestingContact
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
@@ -43,6 +45,16 @@ def standings(T_wm: NDArray[np.float64], term: RestingContact) -> NDArray[np.flo
             T[:3, 3] -= term.gap_mm(T) * n  # the plane's heights are linear: this puts the lowest point on it
             out.append(T)
     return np.array(out).reshape(-1, 4, 4)
+
+
+def nearest_standing(T_wm: NDArray[np.float64], term: RestingContact) -> NDArray[np.float64] | None:
+    """``T_wm`` (world from model, mm) stood on the stable face nearest the plane's downward normal,
+    turned the shortest way and not about the normal (of :func:`standings`, the one that turns it
+    least: a given orientation kept as far as the table allows), (4, 4); ``None`` without stable faces."""
+    cands = standings(T_wm, term)
+    if not len(cands):
+        return None
+    return cands[int(np.argmin([rotation_angle_deg(T[:3, :3], T_wm[:3, :3]) for T in cands]))]
 
 
 def best_standings(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.float64],
