@@ -19,6 +19,8 @@ or leaving the band change it continuously. Its residual is the square root, one
 
 from __future__ import annotations
 
+import weakref
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -48,6 +50,21 @@ def edge_strength(photo: NDArray[np.uint8], width: int, height: int) -> NDArray[
     return np.minimum(g / max(top, 1e-6), 1.0).astype(np.float32)
 
 
+_STRENGTHS: dict[tuple[int, int, int], NDArray[np.float32]] = {}
+"""Edge strengths by (the photo's ``id``, width, height), each dropped when its photo is: every
+instance of a scene, every photo round and the joint stage read the same photos."""
+
+
+def shared_edge_strength(photo: NDArray[np.uint8], width: int, height: int) -> NDArray[np.float32]:
+    """:func:`edge_strength`, worked out once per photo and size while the photo lives."""
+    key = (id(photo), width, height)
+    strength = _STRENGTHS.get(key)
+    if strength is None:
+        strength = _STRENGTHS[key] = edge_strength(photo, width, height)
+        weakref.finalize(photo, _STRENGTHS.pop, key, None)
+    return strength
+
+
 class EdgeTerm:
     """The soft outline against the photo's edges (module doc), with ``weight`` against the mask term."""
 
@@ -55,13 +72,6 @@ class EdgeTerm:
 
     def __init__(self, weight: float) -> None:
         self.weight = float(weight)
-        self._maps: dict[tuple[int, int, int], NDArray[np.float32]] = {}  # (id of the photo, w, h) -> E
-
-    def _strength(self, photo: NDArray[np.uint8], width: int, height: int) -> NDArray[np.float32]:
-        key = (id(photo), width, height)
-        if key not in self._maps:
-            self._maps[key] = edge_strength(photo, width, height)
-        return self._maps[key]
 
     def residuals(self, fragments: Fragments) -> TermValues:
         views, sil = fragments.views, fragments.silhouettes
@@ -76,7 +86,7 @@ class EdgeTerm:
                 continue
             x0, y0, w, _ = sil.crops[k]
             local = b[lo:hi] - sil.offsets[k]
-            miss[lo:hi] = 1.0 - self._strength(photo, cam.width, cam.height)[y0 + local // w, x0 + local % w]
+            miss[lo:hi] = 1.0 - shared_edge_strength(photo, cam.width, cam.height)[y0 + local // w, x0 + local % w]
         s = sil.soft[b]
         on = 4.0 * s * (1.0 - s)
         p, dp = on * on, 2.0 * on * 4.0 * (1.0 - 2.0 * s)  # the outline's weight of a pixel, and d p / d s

@@ -85,3 +85,21 @@ def test_photos_alone_place_a_glass_like_object_by_its_edges() -> None:
     axis_deg = np.degrees(np.arccos(np.clip(with_edges.T_wm[:3, 2] @ T_true[:3, 2], -1.0, 1.0)))  # it is round
     assert mm_with < 2.5 and axis_deg < 2.0, (mm_with, axis_deg)
     assert mm_without > 3.5, mm_without
+
+
+def test_edge_strengths_are_shared_while_their_photo_lives() -> None:
+    """Every instance, photo round and the joint stage read one scene's photos: their edge strengths
+    are worked out once per photo and size, and dropped with the photo."""
+    import gc
+
+    from autoalign.losses.edge import _STRENGTHS, shared_edge_strength
+
+    photo = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    first = shared_edge_strength(photo, 32, 24)
+    assert shared_edge_strength(photo, 32, 24) is first and first.shape == (24, 32)
+    assert np.array_equal(first, edge_strength(photo, 32, 24))
+    key = (id(photo), 32, 24)
+    assert key in _STRENGTHS
+    del photo
+    gc.collect()
+    assert key not in _STRENGTHS
