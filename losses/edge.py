@@ -9,12 +9,13 @@ the object's own edge in all of them.
 
 Per view, the edge strength ``E`` in [0, 1]: the photo at the level's resolution
 (:data:`EDGE_BLUR_PX` blur), the gradient magnitude of its most-changing channel, blurred the same
-(a thin line, as glass shows its outline, has its gradient on its two flanks and none on it; blurred,
-they make one ridge on the line), over its :data:`EDGE_PERCENTILE` percentile, clipped at 1. The view's loss is ``weight / 2`` times the mean of
-``1 - E`` along the soft outline, each band pixel weighed by ``(4 s (1 - s))^2`` with ``s`` the soft
-silhouette (1 on the outline, 0 off it): it falls as the outline moves onto edges, whatever the
-outline's length (a sum would favour a shorter outline, an object pushed away), and pixels entering
-or leaving the band change it continuously. Its residual is the square root, one per view.
+(a thin line, as glass shows its outline, has its gradient on its two flanks and none on it;
+blurred, they make one ridge on the line), over its :data:`EDGE_PERCENTILE` percentile, clipped at
+1. The view's loss is ``weight / 2`` times the mean of ``1 - E`` along the soft outline, each band
+pixel weighed by ``(4 s (1 - s))^2`` with ``s`` the soft silhouette (1 on the outline, 0 off it):
+it falls as the outline moves onto edges, whatever the outline's length (a sum would favour a
+shorter outline, an object pushed away), and pixels entering or leaving the band change it
+continuously. Its residual is the square root, one per view.
 """
 
 from __future__ import annotations

@@ -110,7 +110,8 @@ class SilhouetteObjective:
     """
 
     def __init__(self, pyramid: MeshPyramid, scene: Scene, loss: str = "l2", robust: bool = True,
-                 detail: MeshDetail = MeshDetail(), depth: DepthNoise | None = None, edges: float | None = None) -> None:
+                 detail: MeshDetail = MeshDetail(), depth: DepthNoise | None = None,
+                 edges: float | None = None) -> None:
         self.pyramid = pyramid
         self.detail = detail
         self.depth = depth
