@@ -459,8 +459,9 @@ def _with_best_turn(obj: SilhouetteObjective, scene: Scene, final: list[Finalist
 
 def _turn_rise(obj: SilhouetteObjective, T_wm: NDArray[np.float64], axes_m: NDArray[np.float64],
                angles_deg: tuple[float, ...], level: Level) -> tuple[float, NDArray[np.float64]]:
-    """How much the whole objective (depth included) rises at ``level`` when the pose ``T_wm`` is
-    turned by ``angles_deg`` about each of ``axes_m`` (rows, unit, model frame): over the axes, the
+    """How much the whole objective (every term: the masks, the depth where measured) rises at
+    ``level`` when the pose ``T_wm`` is turned by ``angles_deg`` about each of ``axes_m`` (rows, unit,
+    model frame): over the axes, the
     smallest relative rise to the best of that axis's turns (negative: a turn fits better), and that
     axis. The masks' hard IoU, which the near turns use, is blind to a turn about a near-symmetry
     axis; this says whether any evidence sees it."""
@@ -511,8 +512,8 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
     * **Weak turns.** From a given pose, the best's turns about its weakly observed axes are
       scored at 1/4 resolution and a clearly better one is polished; how much worse the best
       turn fits is returned (``turn_gap``; ``None`` when none were tried).
-    * **Turn rise.** With measured depth, how much the whole objective rises when the result is
-      turned 10-20 degrees about the axes it is nearly round about (:attr:`Mesh.round_axes
+    * **Turn rise.** How much the whole objective (depth included where measured) rises when the
+      result is turned 10-20 degrees about the axes it is nearly round about (:attr:`Mesh.round_axes
       <autoalign.geometry.mesh.Mesh.round_axes>`; :func:`_turn_rise`; ``turn_rise``): a
       measurement for the verdict only, nothing is refined from it (refined, it took a scene whose
       cameras were 10% off in scale, so its depth disagreed, to a turn the masks did not support).
@@ -543,6 +544,7 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
             standing = _rank(final, others, mesh.centre, opts)
             if final[0] is not best:
                 ev, uncertainty = _final_state(obj, final[0].hypothesis, final[0].weights, levels, opts.optimizer)
+    # obj.depth is the sensor's noise model (set by default, measured depth or not; None with --depth off)
     if obj.depth is None or not opts.disambiguation.near_turns or not len(mesh.round_axes):
         return final, standing, ev, uncertainty, TurnTests(turn_gap)
     rise = _turn_rise(obj, final[0].hypothesis.T_final, mesh.round_axes, opts.disambiguation.near_turns, levels[-1])

@@ -62,10 +62,11 @@ several degrees off in it, in a small dip of the loss that the turns of 30-180 d
 scenes with systematic mask errors (``experiments/results/uncertainty_calibration.md``) it flags
 the instances given there, false alarms and misses counted."""
 NEAR_TURN_RISE = 0.1
-"""With measured depth, the object is also named nearly symmetric when turning the pose by 10-20
-degrees about an axis it is nearly round about raises the whole objective by less than this share
-(``turn_rise``): neither the masks, the photo nor the depth then fix that turn, whatever its sigma
-says (a YCB-Video tuna can seen from one side ended 8.8 deg off about its axis, sigma 0.33 deg,
+"""The object is also named nearly symmetric when turning the pose by 10-20 degrees about an axis it
+is nearly round about raises the whole objective (the masks, and the photos and the depth where the
+scene has them) by less than this share (``turn_rise``; measured whenever the depth's noise model is
+set, as by default, with measured depth or without; not with ``--depth off``): none of them then
+fixes that turn, whatever its sigma says (a YCB-Video tuna can seen from one side ended 8.8 deg off about its axis, sigma 0.33 deg,
 ``ok``). Measured on the one-viewpoint RGB-D scenes of ``photo_evidence`` (72 instances of
 procedural and YCB-Video models): undeclared near-symmetric objects -0.031 to 0.055 (the tuna can,
 a tomato soup can, a flashlight), every other undeclared one nearly round about an axis (an oil can,
@@ -115,7 +116,7 @@ def largest_sigmas(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.float
 
 
 def flat_turn(turn_rise: float | None, symmetric: bool) -> bool:
-    """Whether, with depth, a turn of 10-20 degrees barely changes the whole fit (``turn_rise`` below
+    """Whether a turn of 10-20 degrees barely changes the whole fit (``turn_rise`` below
     :data:`NEAR_TURN_RISE`) of a model whose symmetries are not declared (declared ones explain it)."""
     return not symmetric and turn_rise is not None and turn_rise < NEAR_TURN_RISE
 
@@ -130,7 +131,7 @@ def nearly_symmetric(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.flo
     The sigma is what the views show (:attr:`~autoalign.engine.uncertainty.Uncertainty.spread`,
     where the weak turns are found), without the prior on a shared outline shift: that prior
     counts in the verdict's large-sigma rule, but it says nothing of a dip in the loss along the
-    turn that the descent may stop in. With measured depth, a flat ``turn_rise`` (below
+    turn that the descent may stop in. A flat ``turn_rise`` (below
     :data:`NEAR_TURN_RISE`) names it nearly symmetric too, unless its symmetries are declared."""
     if flat_turn(turn_rise, symmetric):
         return True
@@ -276,7 +277,7 @@ def _sigma_reasons(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.float
         turns = "; ".join(f"the turn about {direction_name(a)} ({turn_sigma_deg(uncertainty.covariance, a):.2g} deg)"
                           for a in axes)
         if flat:
-            turns += f" (turned 10-20 deg about it, the whole fit, depth included, changes by {100 * rise:+.1f}%)"
+            turns += f" (turned 10-20 deg about it, the whole fit changes by {100 * rise:+.1f}%)"
         return [f"nearly symmetric: {turns} is weakly observed; check that the object's distinguishing "
                 "detail (a handle, a label, a notch) sits where the photo shows it"]
     return []
