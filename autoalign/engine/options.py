@@ -144,7 +144,8 @@ class RefineOptions:
         table_offered: the plane offered (set by :mod:`autoalign.engine.see_through` for the runs
             without the depth; ``None``: none).
         edges: the weight of the photo's edges under the outline (:mod:`autoalign.losses.edge`), set by
-            the photo rounds where the masks are withheld (``RegionOptions.edge_weight``); ``None``: not used.
+            the photo rounds (``RegionOptions.edge_weight``); the term joins where the scene carries its
+            photos, as the photo rounds' targets do only where the masks are withheld; ``None``: not used.
         masks_withheld: set by the photo rounds when the scene has no masks (the photos alone place the
             object): a given pose sunk in the offered table is then stood on its nearest stable face
             (:func:`~autoalign.engine.refine._resting`), as nothing but the colour regions hold it there.

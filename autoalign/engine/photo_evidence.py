@@ -114,8 +114,8 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
     region = options.region
     assert region is not None
     has_mask = scene.has_masks
-    masks_only = replace(options, region=None, edges=None if has_mask else region.edge_weight,
-                         masks_withheld=not has_mask)
+    # the edge term joins where the targets keep the photos, which they do without masks (photo_targets)
+    masks_only = replace(options, region=None, edges=region.edge_weight, masks_withheld=not has_mask)
     if seed is None or isinstance(seed, Click):
         if not has_mask:
             raise AutoalignError("without masks the photos refine a coarse pose: give --init (a coarse scene_gt.json)")

@@ -461,10 +461,9 @@ def _turn_rise(obj: SilhouetteObjective, T_wm: NDArray[np.float64], axes_m: NDAr
                angles_deg: tuple[float, ...], level: Level) -> tuple[float, NDArray[np.float64]]:
     """How much the whole objective (every term: the masks, the depth where measured) rises at
     ``level`` when the pose ``T_wm`` is turned by ``angles_deg`` about each of ``axes_m`` (rows, unit,
-    model frame): over the axes, the
-    smallest relative rise to the best of that axis's turns (negative: a turn fits better), and that
-    axis. The masks' hard IoU, which the near turns use, is blind to a turn about a near-symmetry
-    axis; this says whether any evidence sees it."""
+    model frame): over the axes, the smallest relative rise to the best of that axis's turns
+    (negative: a turn fits better), and that axis. The masks' hard IoU, which the near turns use, is
+    blind to a turn about a near-symmetry axis; this says whether any evidence sees it."""
     own = obj.evaluate(T_wm, level, with_derivatives=False).value
     values = np.array([[obj.evaluate(T, level, with_derivatives=False).value
                         for T in turns(T_wm, a, obj.centre_m, angles_deg)] for a in axes_m])
@@ -648,9 +647,12 @@ def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, plane: Ta
     nearest = sunk and not may_turn and opts.masks_withheld
     if sunk:  # in the table its depth shows: stood on its faces where the orientation is the search's,
         # from a given pose without masks on the face nearest its own orientation and its start's
-        starts = (list(best_standings(obj.pyramid.with_faces(opts.detail.coarse), obj.scene, h.T_final, term))
-                  if may_turn else [T for T in (nearest_standing(h.T_final, term), nearest_standing(h.T_init, term))
-                                    if T is not None] if nearest else [])
+        if may_turn:
+            starts = list(best_standings(obj.pyramid.with_faces(opts.detail.coarse), obj.scene, h.T_final, term))
+        elif nearest:
+            starts = [T for T in (nearest_standing(h.T_final, term), nearest_standing(h.T_init, term)) if T is not None]
+        else:
+            starts = []
         if not starts:
             return best, ev, Contact(plane, gap, gap, tilt, tilt, iou, iou, declared)
     elif not declared and not (gap <= OFFERED_GAP_MM and tilt <= CONTACT_MAX_LEAN_DEG):

@@ -66,11 +66,12 @@ NEAR_TURN_RISE = 0.1
 is nearly round about raises the whole objective (the masks, and the photos and the depth where the
 scene has them) by less than this share (``turn_rise``; measured whenever the depth's noise model is
 set, as by default, with measured depth or without; not with ``--depth off``): none of them then
-fixes that turn, whatever its sigma says (a YCB-Video tuna can seen from one side ended 8.8 deg off about its axis, sigma 0.33 deg,
-``ok``). Measured on the one-viewpoint RGB-D scenes of ``photo_evidence`` (72 instances of
-procedural and YCB-Video models): undeclared near-symmetric objects -0.031 to 0.055 (the tuna can,
-a tomato soup can, a flashlight), every other undeclared one nearly round about an axis (an oil can,
-a mug, brackets) 0.15 or more; the rest are round about no axis, and not measured."""
+fixes that turn, whatever its sigma says (a YCB-Video tuna can seen from one side ended 8.8 deg off
+about its axis, sigma 0.33 deg, ``ok``). Measured on the one-viewpoint RGB-D scenes of
+``photo_evidence`` (72 instances of procedural and YCB-Video models): undeclared near-symmetric
+objects -0.031 to 0.055 (the tuna can, a tomato soup can, a flashlight), every other undeclared one
+nearly round about an axis (an oil can, a mug, brackets) 0.15 or more; the rest are round about no
+axis, and not measured."""
 SAME_FIT = 1.05
 """A pose kept within the seed's radius whose loss is within this factor of the far one's fits as
 well (a symmetric object's equivalent turn, say): the masks do not pull it away, no reason is given."""

@@ -25,7 +25,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-
 from autoalign.experiments import RESULTS
 from autoalign.experiments.benchmarks.same_numbers import largest_difference
 from autoalign.experiments.result_files import write_results
