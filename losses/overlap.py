@@ -14,6 +14,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from autoalign.io.bop import Scene
 
+LOOSE_FIT_IOU = 0.75
+"""Median IoU below this: the silhouette fits the masks loosely (the verdict asks for a look,
+:data:`~autoalign.quality.verdict.CHECK_IOU`); masks that miss much of the object fit it about as
+well turned over, so without a given pose the photos choose its side (:mod:`autoalign.engine.photo_evidence`)."""
+
 
 def iou_from_counts(inter: ArrayLike, area_a: ArrayLike, area_b: ArrayLike) -> NDArray[np.float64]:
     """IoU from pixel counts (any matching shapes): ``inter / (area_a + area_b - inter)``."""

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 import autoalign
-from autoalign.engine.photo_evidence import PhotoEvidence, photo_targets
+from autoalign.engine.hypotheses import flips
+from autoalign.engine.photo_evidence import PhotoEvidence, best_side, photo_rounds, photo_targets, photo_value
 from autoalign.engine.refine import RefineOptions, refine
 from autoalign.experiments.scenes.photo_scene import PhotoScene, write_photo_scene
 from autoalign.experiments.scenes.procedural_models import procedural_models
@@ -237,3 +238,30 @@ def test_a_result_far_from_its_seed_is_flagged_with_the_distance(photo_scene, tm
         assert rec["seed"]["radius_mm_deg"] == ([5.0, 5.0] if radius else [25.0, 30.0])
         far = [r for r in rec["reasons"] if "from the given seed" in r]
         assert bool(far) == flagged and (rc == 3 and rec["verdict"] == "check" if flagged else True)
+
+
+@pytest.mark.slow
+def test_without_a_pose_the_photos_choose_the_side_the_masks_cannot(photo_scene):
+    """Masks cut to their left half fit an L-bracket turned half over about as well; the photo rounds
+    from that turned pose stay turned, and from it and its half turns the one whose own colour targets
+    it fits best is the truth (:func:`~autoalign.engine.photo_evidence.best_side`, the no-seed path)."""
+    k = 2
+    mesh, T_true = photo_scene.meshes[k], photo_scene.poses[k]
+    scene = read_scene(photo_scene.folder, k)
+    cut = []
+    for m in scene.masks:
+        xs = np.nonzero(m.any(0))[0]
+        c = m.copy()
+        c[:, (xs.min() + xs.max()) // 2:] = 0.0
+        cut.append(c)
+    scene = with_photos(replace(scene, masks=cut))
+    pyramid, options = MeshPyramid(mesh), RefineOptions()
+    masks_only = replace(options, region=None, edges=options.region.edge_weight)
+    turned = flips(T_true, mesh.principal_axes, mesh.centre)[0]
+    stays = photo_rounds(scene, pyramid, turned, masks_only, options.region)
+    chosen = best_side(scene, pyramid, turned, masks_only, options.region)
+    assert _errors(stays.T_wm, T_true, mesh.centre)[1] > 90.0
+    mm, deg = _errors(chosen.T_wm, T_true, mesh.centre)
+    assert mm < 1.0 and deg < 1.0, (mm, deg)
+    values = [photo_value(scene, pyramid, r.T_wm, masks_only, options.region)[0] for r in (chosen, stays)]
+    assert values[0] < values[1] * (1.0 - options.ranking.ambiguity_tol), values

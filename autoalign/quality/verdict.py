@@ -29,12 +29,13 @@ from autoalign.engine.refine import RefineResult
 from autoalign.engine.seed_region import SEED_RADIUS, SeedHold
 from autoalign.engine.uncertainty import (MIN_VIEWPOINTS, SAME_AXIS, SAME_VIEWPOINT_DEG, Uncertainty, direction_name,
                                          turn_sigma_deg, turns_not_free, weak_directions)
+from autoalign.losses.overlap import LOOSE_FIT_IOU
 from autoalign.losses.term import Stance, TermEvidence
 
 FAILED_IOU = 0.5
 """Median IoU below this: the silhouette does not match the masks; the pose is taken as wrong."""
-CHECK_IOU = 0.75
-"""Median IoU below this: a loose fit, to be looked at."""
+CHECK_IOU = LOOSE_FIT_IOU
+"""Median IoU below this: a loose fit, to be looked at (:data:`~autoalign.losses.overlap.LOOSE_FIT_IOU`)."""
 LOW_WEIGHT = 0.3
 """A view whose robust weight (mean 1) ends below this, with an IoU under ``LOW_WEIGHT_MAX_IOU``,
 is counted as set aside: its mask disagrees with the others."""
