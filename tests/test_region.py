@@ -116,19 +116,23 @@ def test_photos_alone_refine_every_object(photo_scene, starts):
         assert np.median(photo.agreement) > np.median(at_start.agreement) + 0.02
 
 
-@pytest.mark.slow
-def test_photos_complete_masks_that_miss_half_the_object(photo_scene, starts):
-    """Every mask cut to its left half: masks alone end off, with the photos within 2 mm / 2 deg."""
-    k = 0
-    mesh, T_true = photo_scene.meshes[k], photo_scene.poses[k]
-    scene = read_scene(photo_scene.folder, k)
+def _left_halves(scene):
+    """``scene`` with every mask cut to the left half of its columns."""
     cut = []
     for m in scene.masks:
         xs = np.nonzero(m.any(0))[0]
         c = m.copy()
         c[:, (xs.min() + xs.max()) // 2:] = 0.0
         cut.append(c)
-    scene = replace(scene, masks=cut)
+    return replace(scene, masks=cut)
+
+
+@pytest.mark.slow
+def test_photos_complete_masks_that_miss_half_the_object(photo_scene, starts):
+    """Every mask cut to its left half: masks alone end off, with the photos within 2 mm / 2 deg."""
+    k = 0
+    mesh, T_true = photo_scene.meshes[k], photo_scene.poses[k]
+    scene = _left_halves(read_scene(photo_scene.folder, k))
     alone = refine(scene, mesh, starts[k], RefineOptions(region=None))
     both = refine(with_photos(scene), mesh, starts[k])
     mm_a, deg_a = _errors(alone.T_wm, T_true, mesh.centre)
@@ -247,14 +251,7 @@ def test_without_a_pose_the_photos_choose_the_side_the_masks_cannot(photo_scene)
     it fits best is the truth (:func:`~autoalign.engine.photo_evidence.best_side`, the no-seed path)."""
     k = 2
     mesh, T_true = photo_scene.meshes[k], photo_scene.poses[k]
-    scene = read_scene(photo_scene.folder, k)
-    cut = []
-    for m in scene.masks:
-        xs = np.nonzero(m.any(0))[0]
-        c = m.copy()
-        c[:, (xs.min() + xs.max()) // 2:] = 0.0
-        cut.append(c)
-    scene = with_photos(replace(scene, masks=cut))
+    scene = with_photos(_left_halves(read_scene(photo_scene.folder, k)))
     pyramid, options = MeshPyramid(mesh), RefineOptions()
     masks_only = replace(options, region=None, edges=options.region.edge_weight)
     turned = flips(T_true, mesh.principal_axes, mesh.centre)[0]
