@@ -97,9 +97,8 @@ def photo_targets(scene: Scene, silhouettes: list[NDArray[np.bool_]],
     if scene.photos is None:
         raise ValueError("the scene has no photos")
     has_mask = scene.has_masks
-    per_view = [region_target(photo, sil, scene.masks[k] if has_mask else None,
-                              None if scene.ignore is None else scene.ignore[k], options)
-                for k, (photo, sil) in enumerate(zip(scene.photos, silhouettes))]
+    per_view = [region_target(view.photo, sil, view.mask if has_mask else None, view.ignore, options)
+                for view, sil in zip(scene.views, silhouettes)]
     return (replace(scene, masks=[rt.target for rt in per_view], photos=None if has_mask else scene.photos),
             PhotoEvidence(np.array([rt.band_px for rt in per_view]), np.array([rt.agreement for rt in per_view]),
                           np.array([rt.edge_contrast for rt in per_view]), 0, has_mask))

@@ -55,7 +55,8 @@ def _mask_support(scene: Scene, X: NDArray[np.float64], dilate_px: int = 0) -> N
     count = np.zeros(len(X), dtype=np.int64)
     kernel = np.ones((2 * dilate_px + 1,) * 2, np.uint8) if dilate_px else None
     Xh = np.column_stack([X, np.ones(len(X))]).astype(np.float32)
-    for cam, m in zip(scene.cameras, scene.masks):
+    for view in scene.views:
+        cam, m = view.camera, view.mask
         P = cam.K @ np.column_stack([cam.R_w2c, cam.t_w2c])  # world to homogeneous pixels, (3, 4)
         uvw = Xh @ P.T.astype(np.float32)
         z = uvw[:, 2]
@@ -105,11 +106,11 @@ def hull_centre(scene: Scene, diameter: float, grid: int = 40, min_fraction: flo
         raise AutoalignError("the masks are empty in every view; check the segmentation or --instance")
     if start is None:
         origins, dirs = [], []
-        for cam, m in zip(scene.cameras, scene.masks):
-            ys, xs = np.nonzero(m > 0.5)
+        for view in scene.views:
+            ys, xs = np.nonzero(view.mask > 0.5)
             if len(xs):
-                origins.append(cam.centre)
-                dirs.append(cam.pixel_rays(xs.mean(), ys.mean())[0])
+                origins.append(view.camera.centre)
+                dirs.append(view.camera.pixel_rays(xs.mean(), ys.mean())[0])
         centre = closest_point_to_rays(np.array(origins), np.array(dirs))
     else:
         centre = np.asarray(start, float)

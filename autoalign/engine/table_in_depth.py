@@ -30,7 +30,9 @@ def plane_from_depth(scene: Scene) -> TablePlane:
 
     assert scene.depths is not None
     points = []
-    for cam, z in zip(scene.cameras, scene.depths):
+    for view in scene.views:
+        cam, z = view.camera, view.depth
+        assert z is not None
         rows, cols = np.nonzero(z[::DEPTH_STEP, ::DEPTH_STEP] > 0)
         rows, cols = rows * DEPTH_STEP, cols * DEPTH_STEP
         points.append(cam.centre + z[rows, cols, None] * cam.depth_rays(cols, rows))

@@ -35,6 +35,27 @@ from autoalign.geometry.se3 import invert, make_pose
 from autoalign.io.block_mean import Pad, block_mean
 
 
+@dataclass(frozen=True)
+class View:
+    """What one view of one instance holds: what a pose is compared with there.
+
+    Attributes:
+        camera: the view's camera (world frame of ``scene_camera.json``, mm; internal pixel centres).
+        mask: (H, W) float32 in [0, 1] (1 = object).
+        image_id: the BOP image id.
+        ignore: the pixels not compared (``None``: none).
+        depth: measured depth (H, W) float32, mm along the optical axis, 0 = none (``None``: no depth).
+        photo: (H, W, 3) uint8 BGR (``None``: not used as evidence).
+    """
+
+    camera: Camera
+    mask: NDArray[np.float32]
+    image_id: int
+    ignore: NDArray[np.bool_] | None = None
+    depth: NDArray[np.float32] | None = None
+    photo: NDArray[np.uint8] | None = None
+
+
 @dataclass
 class Scene:
     """Calibrated views of one object instance.
@@ -70,6 +91,13 @@ class Scene:
 
     def __len__(self) -> int:
         return len(self.cameras)
+
+    @property
+    def views(self) -> list[View]:
+        """One :class:`View` per view, in order: its camera, mask, image id, ignored pixels, depth and photo."""
+        return [View(self.cameras[k], self.masks[k], self.image_ids[k],
+                     None if self.ignore is None else self.ignore[k], None if self.depths is None else self.depths[k],
+                     None if self.photos is None else self.photos[k]) for k in range(len(self))]
 
     @property
     def has_masks(self) -> bool:
@@ -230,9 +258,9 @@ def check_depth_units(scene: Scene, depths: list[NDArray[np.float32]]) -> None:
     if X is None:
         return
     ratios = []
-    for cam, m, d in zip(scene.cameras, scene.masks, depths):
-        inside = (np.asarray(m) > 0.5) & (d > 0)
-        z = float(cam.to_camera(X[None])[0, 2])
+    for view, d in zip(scene.views, depths):
+        inside = (np.asarray(view.mask) > 0.5) & (d > 0)
+        z = float(view.camera.to_camera(X[None])[0, 2])
         if inside.sum() >= 20 and z > 0:
             ratios.append(float(np.median(d[inside])) / z)
     if not ratios:
@@ -252,13 +280,13 @@ def masks_meeting_point(scene: Scene) -> NDArray[np.float64] | None:
     """The point (world, mm) nearest in least squares to the rays through the masks' centroids;
     ``None`` with fewer than two masks or rays too nearly parallel (within some 8 degrees) to meet."""
     A, b, n = np.zeros((3, 3)), np.zeros(3), 0
-    for cam, m in zip(scene.cameras, scene.masks):
-        ys, xs = np.nonzero(np.asarray(m) > 0.5)
+    for view in scene.views:
+        ys, xs = np.nonzero(np.asarray(view.mask) > 0.5)
         if len(xs) == 0:
             continue
-        d = cam.pixel_rays(xs.mean(), ys.mean())[0]
+        d = view.camera.pixel_rays(xs.mean(), ys.mean())[0]
         P = np.eye(3) - np.outer(d, d)  # off the ray
-        A, b, n = A + P, b + P @ cam.centre, n + 1
+        A, b, n = A + P, b + P @ view.camera.centre, n + 1
     if n < 2 or np.linalg.eigvalsh(A)[0] < 0.005 * n:
         return None
     return np.linalg.solve(A, b)

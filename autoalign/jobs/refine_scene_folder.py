@@ -238,7 +238,7 @@ def scene_overlay(refined: SceneRefinement, models: ModelSet, scene_dir: Path, d
     layers = []
     for r, scene in zip(refined.results, found.scenes):
         rast = models.pyramid(r.instance.obj_id).fine(detail)
-        masks = {im: np.asarray(m) > 0.5 for im, m in zip(scene.image_ids, scene.masks)}
+        masks = {v.image_id: np.asarray(v.mask) > 0.5 for v in scene.views}
         layers.append((instance_label(r.instance.obj_id, r.verdict.status), masks,
                        np.stack(rast.hard_masks(r.result.T_wm, cams))))
     return render_instances_overlay(found.cameras, found.image_ids, scene_dir, layers, views)

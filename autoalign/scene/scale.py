@@ -75,7 +75,7 @@ def scale_from_masks(found: InstanceScenes, models: ModelSet,
             continue
         ratios: list[float] = []
         mesh = models.mesh(inst.obj_id)
-        views = [(cam, m > 0.5) for cam, m in zip(scene.cameras, scene.masks) if (m > 0.5).any()]
+        views = [(v.camera, v.mask > 0.5) for v in scene.views if (v.mask > 0.5).any()]
         if len(views) < 2:
             continue
         centroids = [np.argwhere(m).mean(0) for _, m in views]  # (row, column)
