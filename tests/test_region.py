@@ -262,3 +262,19 @@ def test_without_a_pose_the_photos_choose_the_side_the_masks_cannot(photo_scene)
     assert mm < 1.0 and deg < 1.0, (mm, deg)
     values = [photo_value(scene, pyramid, r.T_wm, masks_only, options.region)[0] for r in (chosen, stays)]
     assert values[0] < values[1] * (1.0 - options.ranking.ambiguity_tol), values
+
+
+@pytest.mark.slow
+def test_without_a_pose_masks_that_fit_are_not_second_guessed(photo_scene, monkeypatch):
+    """No seed and the scene's own masks, which fit: the object is placed as before, the photos'
+    half turns (:func:`~autoalign.engine.photo_evidence.best_side`) are not tried."""
+    import autoalign.engine.photo_evidence as photo_evidence
+
+    tried = []
+    monkeypatch.setattr(photo_evidence, "best_side", lambda *args, **kwargs: tried.append(args))
+    k = 2
+    mesh, T_true = photo_scene.meshes[k], photo_scene.poses[k]
+    result = refine(with_photos(read_scene(photo_scene.folder, k)), mesh, None)
+    assert not tried
+    mm, deg = _errors(result.T_wm, T_true, mesh.centre)
+    assert mm < 1.0 and deg < 1.0, (mm, deg)

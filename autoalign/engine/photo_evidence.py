@@ -8,7 +8,9 @@ depth included) at the schedule's first level; once a round moves the pose less 
 tolerance (or after ``rounds``), a last round on targets learned at the pose reached runs the rest
 of the schedule with the disambiguation and the report (:func:`~autoalign.engine.refine.refine`).
 The histograms stay fixed within a round, so the solver compares its steps on one objective;
-learning them again between rounds is the alternation PWP3D and RBOT use per frame.
+learning them again between rounds is the alternation PWP3D and RBOT use per frame. Without a given
+pose, where the masks alone fit loosely and find another pose almost as good, the rounds also start
+from the half turns of theirs, and the photos choose (:func:`best_side`).
 """
 
 from __future__ import annotations
@@ -166,7 +168,7 @@ def best_side(scene: Scene, pyramid: MeshPyramid, T_masks: NDArray[np.float64], 
     turns are screened by ``SCREEN_ROUNDS`` rounds each, and the rounds of one that wins go on from
     there. Masks that miss much of an object fit it turned over about as well, while its colours
     separate along the whole outline only the right way up (a blob cut in half ended 178 deg off on
-    the masks' pose). Screening in 12 of 40 views cost 0.8 times as much and lost that blob."""
+    the masks' pose)."""
     tol = options.ranking.ambiguity_tol
     best = photo_rounds(scene, pyramid, T_masks, options, region, progress)
     value, n = photo_value(scene, pyramid, best.T_wm, options, region)
@@ -191,9 +193,10 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
     """Refine with the photos of ``scene`` as evidence (module doc); ``refine`` is the mask engine.
 
     A seed without a pose (a click, or none) is first placed from the masks alone; where they fit that
-    pose loosely (median IoU below :data:`~autoalign.losses.overlap.LOOSE_FIT_IOU`) the rounds run from
-    it and from its half turns (:func:`best_side`). With no mask either, there is nothing to place it
-    from and an error says what to give."""
+    pose loosely (median IoU below :data:`~autoalign.losses.overlap.LOOSE_FIT_IOU`) and find a clearly
+    different pose that fits almost as well (``ambiguous``), the rounds run from it and from its half
+    turns (:func:`best_side`). With no mask either, there is nothing to place it from and an error says
+    what to give."""
 
     region = options.region
     assert region is not None
@@ -206,10 +209,11 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
             raise AutoalignError("without masks the photos refine a coarse pose: give --init (a coarse scene_gt.json)")
         placed = refine(replace(scene, photos=None), pyramid, seed, masks_only, progress, pose_only=True)
         T_seed = placed.T_wm
-        loose = np.median(placed.iou_after) < LOOSE_FIT_IOU  # masks that miss much of it: the photos choose its side
+        # masks that miss much of it and find another pose nearly as good: the photos choose its side
+        choose_side = placed.ambiguous and np.median(placed.iou_after) < LOOSE_FIT_IOU
     else:
-        T_seed, loose = np.asarray(seed, dtype=np.float64), False
-    run = (best_side if loose else photo_rounds)(scene, pyramid, T_seed, masks_only, region, progress)
+        T_seed, choose_side = np.asarray(seed, dtype=np.float64), False
+    run = (best_side if choose_side else photo_rounds)(scene, pyramid, T_seed, masks_only, region, progress)
     T, rounds, iterations, renders = run.T_wm, run.rounds, run.iterations, run.renders
     targets, evidence = photo_targets(scene, rast.hard_masks(T, scene.cameras), region)
     if not targets.has_masks:
