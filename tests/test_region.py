@@ -262,6 +262,11 @@ def test_without_a_pose_the_photos_choose_the_side_the_masks_cannot(photo_scene)
     assert mm < 1.0 and deg < 1.0, (mm, deg)
     values = [photo_value(scene, pyramid, r.T_wm, masks_only, options.region)[0] for r in (chosen, stays)]
     assert values[0] < values[1] * (1.0 - options.ranking.ambiguity_tol), values
+    side = chosen.side  # what refine.json says of it: the half turn that undoes the start's
+    assert side is not None and side.chosen == 0, side
+    assert side.turn_values[0] < side.masks_value * (1.0 - options.ranking.ambiguity_tol)
+    assert PhotoEvidence(np.zeros(1), np.zeros(1), np.zeros(1), 1, True, side).record()["side"]["chosen"].startswith(
+        "half turn about model axis")
 
 
 @pytest.mark.slow

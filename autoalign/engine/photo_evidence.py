@@ -50,26 +50,51 @@ R = TypeVar("R")
 """The engine's result (:class:`~autoalign.engine.refine.RefineResult`): the engine calls this module."""
 
 
+@dataclass(frozen=True)
+class SideChoice:
+    """Without a given pose, which side the photos chose (:func:`best_side`): the photo objective
+    (:func:`photo_value`) after the rounds from the masks' pose and after each of its half turns'
+    screening rounds, the half turns' axes (unit, model frame), and the one chosen (``None``: the
+    masks' pose)."""
+
+    masks_value: float
+    turn_values: tuple[float, ...]
+    axes_m: tuple[tuple[float, float, float], ...]
+    chosen: int | None
+
+    def record(self) -> dict[str, Any]:
+        """As ``refine.json`` writes it under the photo's record."""
+        return {"masks_pose_value": self.masks_value, "half_turn_values": list(self.turn_values),
+                "half_turn_axes_model": [list(a) for a in self.axes_m],
+                "chosen": "the masks' pose" if self.chosen is None else
+                "half turn about model axis ({:+.3f}, {:+.3f}, {:+.3f})".format(*self.axes_m[self.chosen])}
+
+
 @dataclass
 class PhotoEvidence:
     """The region term at the result: per view the band's half-width (px), the share of the band's
     pixels whose colour posterior agrees with the silhouette and the edge contrast across the
     outline (:class:`~autoalign.losses.region.RegionTarget`; NaN: nothing to compare), the
     rounds the colour models were learned in, and whether the instance had masks (``--masks none``:
-    the photo's colour regions stand in for them, in the IoUs too)."""
+    the photo's colour regions stand in for them, in the IoUs too); without a given pose, the side it
+    chose where it was asked to (:class:`SideChoice`)."""
 
     band_px: NDArray[np.float64]
     agreement: NDArray[np.float64]
     edge_contrast: NDArray[np.float64]
     rounds: int
     masks_given: bool = True
+    side: SideChoice | None = None
     name = "photo"
 
     def record(self) -> dict[str, Any]:
         """Per view: the band's half-width (px), the share of the band's pixels whose colour posterior
-        agrees with the silhouette, the edge contrast across the outline; and the rounds."""
-        return {"band_px": self.band_px, "agreement": self.agreement, "edge_contrast": self.edge_contrast,
-                "rounds": self.rounds, "masks_given": self.masks_given}
+        agrees with the silhouette, the edge contrast across the outline; the rounds, and the side chosen."""
+        out = {"band_px": self.band_px, "agreement": self.agreement, "edge_contrast": self.edge_contrast,
+               "rounds": self.rounds, "masks_given": self.masks_given}
+        if self.side is not None:
+            out["side"] = self.side.record()
+        return out
 
     def evidence(self) -> TermEvidence | None:
         """What the photo says of the pose (:class:`~autoalign.losses.term.TermEvidence`): the median
@@ -114,13 +139,14 @@ one was too few: two of three turned objects were lost)."""
 @dataclass(frozen=True)
 class Rounds:
     """Where the photo rounds from one start led: the pose, the rounds, iterations and renders spent,
-    and whether the last round moved the pose less than the tolerance."""
+    whether the last round moved the pose less than the tolerance, and the side chosen (:func:`best_side`)."""
 
     T_wm: NDArray[np.float64]
     rounds: int
     iterations: int
     renders: int
     settled: bool = False
+    side: SideChoice | None = None
 
 
 def photo_rounds(scene: Scene, pyramid: MeshPyramid, T_wm: NDArray[np.float64], options: RefineOptions,
@@ -172,19 +198,22 @@ def best_side(scene: Scene, pyramid: MeshPyramid, T_masks: NDArray[np.float64], 
     tol = options.ranking.ambiguity_tol
     best = photo_rounds(scene, pyramid, T_masks, options, region, progress)
     value, n = photo_value(scene, pyramid, best.T_wm, options, region)
-    iterations, renders, turned = best.iterations, best.renders + n, False
-    for T_flip in flips(T_masks, pyramid.mesh.principal_axes, pyramid.mesh.centre):
+    iterations, renders, masks_value, turn_values, chosen = best.iterations, best.renders + n, value, [], None
+    axes = pyramid.mesh.principal_axes
+    for k, T_flip in enumerate(flips(T_masks, axes, pyramid.mesh.centre)):
         other = photo_rounds(scene, pyramid, T_flip, options, region, progress, max_rounds=SCREEN_ROUNDS)
         other_value, n = photo_value(scene, pyramid, other.T_wm, options, region)
         iterations, renders = iterations + other.iterations, renders + other.renders + n
+        turn_values.append(other_value)
         if np.isfinite(other_value) and (not np.isfinite(value) or other_value < value * (1.0 - tol)):
-            best, value, turned = other, other_value, True
-    if turned and not best.settled:  # a half turn won before its rounds settled: they go on
+            best, value, chosen = other, other_value, k
+    if chosen is not None and not best.settled:  # a half turn won before its rounds settled: they go on
         more = photo_rounds(scene, pyramid, best.T_wm, options, region, progress,
                             max_rounds=region.rounds - SCREEN_ROUNDS)
         iterations, renders = iterations + more.iterations, renders + more.renders
         best = replace(more, rounds=best.rounds + more.rounds)
-    return replace(best, iterations=iterations, renders=renders)
+    side = SideChoice(masks_value, tuple(turn_values), tuple(tuple(float(x) for x in a) for a in axes), chosen)
+    return replace(best, iterations=iterations, renders=renders, side=side)
 
 
 def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.float64] | Click | None,
@@ -226,7 +255,7 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
         result = refine(targets, pyramid, T, last, progress, anchor=T_seed)
     keep = [k for k, t in enumerate(targets.masks) if np.any(t > 0.5)]  # the views refine used
     evidence = PhotoEvidence(evidence.band_px[keep], evidence.agreement[keep], evidence.edge_contrast[keep], rounds + 1,
-                             has_mask)
+                             has_mask, run.side)
     # the IoUs the report and the verdict read are with the instance's own masks where it has them
     compared = scene.subset(keep) if has_mask else targets.subset(keep)
     iou_after, unc = result.iou_after, result.uncertainty

@@ -185,7 +185,8 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
             unc = with_scale_sigma(unc, joint.scale_sigma, distance)
         # the alone turn rise weighed its depth against cameras of the unsolved scale: then it says nothing
         rise = (r.result.turn_rise, r.result.turn_rise_axis_m) if joint.scale_sigma == 0.0 else (None, None)
-        evidence = had_photo if photo[k] is None or had_photo is None else replace(photo[k], rounds=had_photo.rounds)
+        evidence = (had_photo if photo[k] is None or had_photo is None
+                    else replace(photo[k], rounds=had_photo.rounds, side=had_photo.side))
         contact = r.result.measurement(Contact)
         if contact is not None and contact.kept:  # held to the plane in the joint stage too: its gap there
             mesh = pyramids[k].mesh
