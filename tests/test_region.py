@@ -256,7 +256,9 @@ def test_without_a_pose_the_photos_choose_the_side_the_masks_cannot(photo_scene)
     masks_only = replace(options, region=None, edges=options.region.edge_weight)
     turned = flips(T_true, mesh.principal_axes, mesh.centre)[0]
     stays = photo_rounds(scene, pyramid, turned, masks_only, options.region)
-    chosen = best_side(scene, pyramid, turned, masks_only, options.region)
+    stages: list[str] = []
+    chosen = best_side(scene, pyramid, turned, masks_only, options.region, lambda stage, *_: stages.append(stage))
+    assert {f"half turn {k} of 3: photo round 1" for k in (1, 2, 3)} <= set(stages)  # progress names each start
     assert _errors(stays.T_wm, T_true, mesh.centre)[1] > 90.0
     mm, deg = _errors(chosen.T_wm, T_true, mesh.centre)
     assert mm < 1.0 and deg < 1.0, (mm, deg)

@@ -151,11 +151,11 @@ class Rounds:
 
 def photo_rounds(scene: Scene, pyramid: MeshPyramid, T_wm: NDArray[np.float64], options: RefineOptions,
                  region: RegionOptions, progress: Callable[[str, int, int], None] | None = None,
-                 max_rounds: int | None = None) -> Rounds:
+                 max_rounds: int | None = None, stage: str = "photo round") -> Rounds:
     """The rounds of the module doc from ``T_wm``: colour models learned at the pose reached, the pose
     descended on their targets at the schedule's first level by the masks' engine (``options``), until a
     round moves it less than ``region``'s tolerance (or after ``max_rounds``, by default the region's
-    ``rounds``)."""
+    ``rounds``); ``progress`` is told each round as ``stage`` and its number."""
     rast = pyramid.fine(options.detail)
     first_level = (replace(options.schedule[0], ftol=region.round_ftol),)
     T, iterations, renders, rounds, settled = T_wm, 0, 0, 0, False
@@ -163,7 +163,7 @@ def photo_rounds(scene: Scene, pyramid: MeshPyramid, T_wm: NDArray[np.float64], 
         targets, _ = photo_targets(scene, rast.hard_masks(T, scene.cameras), region)
         if not targets.has_masks:
             break
-        T_new, its, n = polish(targets, pyramid, T, first_level, options, progress, f"photo round {r + 1}")
+        T_new, its, n = polish(targets, pyramid, T, first_level, options, progress, f"{stage} {r + 1}")
         iterations, renders, rounds = iterations + its, renders + n, rounds + 1
         mm, deg = pose_change(T, T_new, pyramid.mesh.centre)
         T = T_new
@@ -201,7 +201,8 @@ def best_side(scene: Scene, pyramid: MeshPyramid, T_masks: NDArray[np.float64], 
     iterations, renders, masks_value, turn_values, chosen = best.iterations, best.renders + n, value, [], None
     axes = pyramid.mesh.principal_axes
     for k, T_flip in enumerate(flips(T_masks, axes, pyramid.mesh.centre)):
-        other = photo_rounds(scene, pyramid, T_flip, options, region, progress, max_rounds=SCREEN_ROUNDS)
+        other = photo_rounds(scene, pyramid, T_flip, options, region, progress, max_rounds=SCREEN_ROUNDS,
+                             stage=f"half turn {k + 1} of {len(axes)}: photo round")
         other_value, n = photo_value(scene, pyramid, other.T_wm, options, region)
         iterations, renders = iterations + other.iterations, renders + other.renders + n
         turn_values.append(other_value)
@@ -209,7 +210,7 @@ def best_side(scene: Scene, pyramid: MeshPyramid, T_masks: NDArray[np.float64], 
             best, value, chosen = other, other_value, k
     if chosen is not None and not best.settled:  # a half turn won before its rounds settled: they go on
         more = photo_rounds(scene, pyramid, best.T_wm, options, region, progress,
-                            max_rounds=region.rounds - SCREEN_ROUNDS)
+                            max_rounds=region.rounds - SCREEN_ROUNDS, stage=f"half turn {chosen + 1}: photo round")
         iterations, renders = iterations + more.iterations, renders + more.renders
         best = replace(more, rounds=best.rounds + more.rounds)
     side = SideChoice(masks_value, tuple(turn_values), tuple(tuple(float(x) for x in a) for a in axes), chosen)
