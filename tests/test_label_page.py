@@ -127,9 +127,10 @@ def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
                                "document.body.dataset.clickToFirstOutlinesMs !== undefined")
         assert page.evaluate("window.searchedOutlines") >= N_VIEWS
         assert page.evaluate("document.querySelectorAll('.view polyline.searched').length") == 0
-        first, refined_ms = (float(page.evaluate(f"document.body.dataset.{k}"))
-                             for k in ("clickToFirstOutlinesMs", "clickToContoursMs"))
-        assert first < refined_ms
+        # the refined pose is outlined before its uncertainty and verdict, solid, and the judged one last
+        first, refined, judged = (float(page.evaluate(f"document.body.dataset.{k}")) for k in
+                                  ("clickToFirstOutlinesMs", "clickToRefinedPoseMs", "clickToContoursMs"))
+        assert first <= refined <= judged and first < judged, (first, refined, judged)
         page.screenshot(path=str(shots / "2-placed.png"))
         placed = session_instance(out, 0)
         assert placed["obj_id"] == 1 and placed["source"] == "click" and placed["verdict"] == "ok"
@@ -227,17 +228,19 @@ def test_click_nudge_refine_accept_export_in_a_real_browser(labelled, tmp_path):
 @pytest.mark.slow
 def test_a_click_shows_the_searched_pose_first_and_keeps_only_the_refined_one(labelled, tmp_path):
     """While a click is refined, the orientation search's pose is the instance's (so the page outlines
-    it at once), marked as being refined, never saved to session.json (not even by another change
-    saved meanwhile) nor kept for undo; the refined pose replaces it. A click that fails after it
-    was shown leaves the instance as it was."""
+    it at once), marked as being refined, then the refined pose before its uncertainty and verdict,
+    marked as being judged; neither is saved to session.json (not even by another change saved
+    meanwhile) nor kept for undo; the judged pose replaces them. A click that fails after a pose was
+    shown leaves the instance as it was."""
     from autoalign.errors import AutoalignError
-    from autoalign.label.records import BEING_REFINED
+    from autoalign.label.records import BEING_JUDGED, BEING_REFINED
     from autoalign.label.session import LabelSession
 
     models = ModelSet.read(labelled.models)
     session = LabelSession(labelled.scene, models, tmp_path / "out")
     col, row = mask_pixel(mask_of(labelled.scene, 0, 0))
-    seen = []
+    seen, shown = [], []
+    put = session.state.put
 
     def watch(stage: str, done: int, total: int) -> None:  # on the refining thread, mid-refinement
         inst = session.instances[0]
@@ -246,14 +249,31 @@ def test_a_click_shows_the_searched_pose_first_and_keeps_only_the_refined_one(la
             saved = json.loads(session.session_path.read_text())["instances"]
             seen.append((inst.source, inst.reasons, inst.verdict, [i["obj_id"] for i in saved]))
 
+    def put_watched(inst, shown_only: bool = False) -> None:
+        if inst.index == 0:
+            shown.append((inst.source, inst.reasons[:1] if inst.verdict is None else inst.verdict, shown_only,
+                          inst.T_wm.copy()))
+        put(inst, shown_only)
+
+    session.state.put = put_watched
     assert session.place(1, 0, float(col), float(row), watch) == 0
-    assert seen and {s[:3] == ("search", [BEING_REFINED], None) for s in seen} == {True}, seen[:3]
+    # mid-refinement: the search's pose, then the refined one, never judged
+    marked = [(source, tuple(reasons), verdict) for source, reasons, verdict, _ in seen]
+    assert marked[0] == ("search", (BEING_REFINED,), None), marked[:3]
+    assert set(marked) <= {("search", (BEING_REFINED,), None), ("refining", (BEING_JUDGED,), None)}, set(marked)
+    assert marked == sorted(marked, key=lambda m: m[0] == "refining"), marked
     assert {tuple(objs) for *_, objs in seen} == {(None, None)}  # saved meanwhile: instance 0 as it was
+    # the search's pose, the refined ones before their uncertainty (the masks' pose, then the photos'),
+    # then the judged one, saved
+    refining = ("refining", [BEING_JUDGED], True)
+    assert [s[:3] for s in shown] == [("search", [BEING_REFINED], True), refining, refining, ("click", "ok", False)], \
+        [s[:3] for s in shown]
+    assert np.array_equal(shown[2][3], shown[3][3])  # nothing moves the photos' pose after its preview
     placed = session_instance(tmp_path / "out", 0)
     assert placed["source"] == "click" and placed["verdict"] == "ok"
     mm, deg = pose_error(np.array(placed["T_wm"]), labelled.truth[0], models.mesh(1).centre)
     assert mm < 1.0 and deg < 1.0
-    with pytest.raises(AutoalignError, match="nothing to undo"):  # the searched pose is no step back
+    with pytest.raises(AutoalignError, match="nothing to undo"):  # the shown poses are no step back
         session.undo(0)
 
     class Stop(Exception):

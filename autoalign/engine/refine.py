@@ -382,8 +382,10 @@ def final_uncertainty(obj: SilhouetteObjective, ev: Evaluation, T_wm: NDArray[np
 
 
 PosePreview = Callable[[NDArray[np.float64]], None]
-"""``preview(T_wm)``: the orientation search's first answer (world-from-model, 4x4, mm), before any
-descent, disambiguation or verdict; for showing something at once (the label page's click)."""
+"""``preview(T_wm)``: a pose worth showing before the result is ready (world-from-model, 4x4, mm), for
+showing something at once (the label page's click): the orientation search's first answer, before any
+descent, and the refined pose before its uncertainty and verdict are worked out (the stages after them,
+a seed's hold, a resting contact, a weak turn, may still move it)."""
 
 
 def _seed(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,
@@ -496,7 +498,7 @@ def _with_orbit(obj: SilhouetteObjective, scene: Scene, final: list[Finalist], s
 
 def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: list[Finalist],
                   others: list[Hypothesis], given_pose: bool, opts: RefineOptions, progress: Progress | None,
-                  pose_only: bool = False
+                  pose_only: bool = False, preview: PosePreview | None = None
                   ) -> tuple[list[Finalist], Standing, Evaluation, Uncertainty | None, TurnTests]:
     """Stage 4: poses the polish cannot tell apart from the best by descent.
 
@@ -519,6 +521,7 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
 
     Returns the finalists, their standing, the full-resolution evaluation and the uncertainty of
     the best (``None`` for ``pose_only`` without a given pose: then nothing reads it), and its turn tests.
+    The best pose goes to ``preview`` before its uncertainty is worked out.
     """
     levels = opts.schedule
     final, standing = _with_orbit(obj, scene, final, _rank(final, others, mesh.centre, opts), mesh.centre, others,
@@ -532,6 +535,8 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
         if len(final) > before:  # the near turns' minima may be a 1/n turn apart (a keyed gear's teeth)
             final, standing = _with_orbit(obj, scene, final, standing, mesh.centre, others, opts, progress)
     best = final[0]
+    if preview is not None:  # the pose first, its uncertainty (a sizeable part of the time) when ready
+        preview(best.hypothesis.T_final.copy())
     ev, uncertainty = _final_state(obj, best.hypothesis, best.weights, levels, opts.optimizer,
                                    with_uncertainty=given_pose or not pose_only)
     turn_gap = None
@@ -735,10 +740,11 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
         progress: called as ``progress(stage, done, total)`` while it works.
         anchor: the pose ``options.seed_radius`` is measured from (default: a seed pose; the photo
             rounds pass the person's seed while refining from their own last pose).
-        preview: called with the best-scoring orientation of the search's grid at the seed's
-            centre when a search starts (a click or no seed), before any descent: once, or twice
-            when depth that sees through the object is set aside and the search run again. The
-            result is unchanged by it.
+        preview: called with the poses to show before the result is ready (:data:`PosePreview`):
+            the best-scoring orientation of the search's grid at the seed's centre when a search
+            starts (a click or no seed), before any descent; then each refinement's pose before its
+            uncertainty is worked out (with photos, the masks' pose and then the photos'). Depth that
+            sees through the object, set aside, runs them again. The result is unchanged by it.
     """
     seed, anchor = checked_inputs(scene, mesh, seed, anchor)
     opts = options or RefineOptions()
@@ -790,7 +796,7 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
     t0 = time.perf_counter()
     final, dropped = _polish(obj, finalists, rest, opts, progress)
     final, standing, final_ev, uncertainty, turn = _disambiguate(obj, scene, mesh, final, others + dropped,
-                                                                 given_pose, opts, progress, pose_only)
+                                                                 given_pose, opts, progress, pose_only, preview)
     timings["refine"] = time.perf_counter() - t0
     hold, holds = None, []
     if given_pose or anchor is not None:

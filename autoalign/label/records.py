@@ -25,8 +25,14 @@ WORST_VIEWS = 3
 MOVED_BY_HAND = "moved by hand since the last refinement: refine from here to judge it"
 SEARCHED = "search"
 """The source of a click's first pose, the orientation search's best, shown while it is refined (not saved)."""
+REFINING = "refining"
+"""The source of a click's pose refined so far, shown while the refinement ends and its uncertainty and
+verdict are worked out (not saved)."""
+SHOWN_ONLY = (SEARCHED, REFINING)
+"""Sources of the poses a click shows before its result: neither saved nor kept for undo."""
 BEING_REFINED = "the orientation search's best pose, shown while it is refined and judged"
-NEW_PLACEMENT = ("click", SEARCHED)
+BEING_JUDGED = "refined so far, shown while the refinement ends and its uncertainty and verdict are worked out"
+NEW_PLACEMENT = ("click",) + SHOWN_ONLY
 """Sources that place an object anew: its decision starts over."""
 MAX_POSITION_MM = 1e6
 """A pose farther than this (1 km) from the world's origin is refused: nothing a scene shows is there,
@@ -193,9 +199,9 @@ def moved(inst: LabelledInstance, obj_id: int, T_wm: NDArray[np.float64], source
           judged: Judgement | None) -> LabelledInstance:
     """``inst`` as object ``obj_id`` at ``T_wm`` (4x4, mm), set by ``source``, fitting its masks by
     ``ious``; with ``judged`` (after a refinement) its verdict and uncertainty, else none (moved by
-    hand, or :data:`SEARCHED`: not yet refined). A click starts its decision over."""
+    hand, or one of :data:`SHOWN_ONLY`: not yet refined or judged). A click starts its decision over."""
     u = None if judged is None else judged.uncertainty
-    unjudged = BEING_REFINED if source == SEARCHED else MOVED_BY_HAND
+    unjudged = {SEARCHED: BEING_REFINED, REFINING: BEING_JUDGED}.get(source, MOVED_BY_HAND)
     return replace(
         inst, obj_id=obj_id, T_wm=T_wm, source=source, ious=ious, pose_revision=inst.pose_revision + 1,
         verdict=None if judged is None else judged.verdict.status,

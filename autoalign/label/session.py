@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.engine.refine import RefineOptions, RefineResult, refine
+from autoalign.engine.refine import PosePreview, RefineOptions, RefineResult, refine
 from autoalign.engine.seeding import Click
 from autoalign.errors import AutoalignError
 from autoalign.geometry.camera import uv_from_opencv
@@ -52,7 +52,9 @@ from autoalign.label.page_geometry import (
 )
 from autoalign.label.records import (
     DECISIONS,
+    REFINING,
     SEARCHED,
+    SHOWN_ONLY,
     JobState,
     Judgement,
     LabelledInstance,
@@ -66,6 +68,19 @@ from autoalign.label.state import SessionState
 from autoalign.label.undo import UndoHistory
 
 __all__ = ["LabelSession", "Progress"]  # Progress: for the server's jobs
+
+
+def click_previews(store: Callable[[NDArray[np.float64], str], None]) -> PosePreview:
+    """The engine's previews of a click (:data:`~autoalign.engine.refine.PosePreview`) given to ``store``
+    with their source: the first is the orientation search's pose (:data:`SEARCHED`), the others
+    refined poses before their uncertainty and verdict (:data:`REFINING`)."""
+    shown: list[str] = []
+
+    def show(T_wm: NDArray[np.float64]) -> None:
+        shown.append(SEARCHED if not shown else REFINING)
+        store(T_wm, shown[-1])
+
+    return show
 
 
 def judged_refinement(result: RefineResult, scene: Scene, models: ModelSet, obj_id: int) -> Judgement:
@@ -177,18 +192,19 @@ class LabelSession(SessionScene):
                     judged: Judgement | None = None, click: tuple[int, float, float] | None = None) -> None:
         """Set the pose (and its judgement; placed from a ``click``, image id and OpenCV u, v: far from it, flagged).
         Raises, changing nothing, if the pose is not a finite rigid transform near the scene
-        (:func:`~autoalign.label.records.pose_problem`). A click's searched pose (:data:`SEARCHED`)
-        is shown but neither saved (:meth:`SessionState.put`) nor kept for undo: the refined pose replaces it."""
+        (:func:`~autoalign.label.records.pose_problem`). A click's searched and refining poses
+        (:data:`~autoalign.label.records.SHOWN_ONLY`) are shown but neither saved
+        (:meth:`SessionState.put`) nor kept for undo: the judged pose replaces them."""
         T_wm = checked_pose(T_wm, f"instance {index}: refused a pose ({source})")
         silhouettes = self._renderer.silhouettes(obj_id, T_wm)  # ray-cast once for the fit and the outlines
         judged = judged if click is None or judged is None else far_from_click(judged, silhouettes[click[0]], *click)
         ious, polys = fit(self.scene_of(index), silhouettes), outlines(silhouettes)
         with self.state.lock:
             inst = self.instances[index]
-            if inst.placed and inst.source != SEARCHED:
+            if inst.placed and inst.source not in SHOWN_ONLY:
                 self._undo.push(inst)
             self._contours[index] = (inst.pose_revision + 1, polys)
-            self.state.put(moved(inst, obj_id, T_wm, source, ious, judged), shown_only=source == SEARCHED)
+            self.state.put(moved(inst, obj_id, T_wm, source, ious, judged), shown_only=source in SHOWN_ONLY)
 
     def _judged(self, index: int, obj_id: int, result: RefineResult) -> Judgement:
         """The verdict on a refinement of instance ``index`` (as ``refine`` gives it) and its uncertainty."""
@@ -212,20 +228,22 @@ class LabelSession(SessionScene):
     def place(self, obj_id: int, image_id: int, u: float, v: float, progress: Progress | None = None) -> int:
         """Place ``obj_id`` on the instance clicked at OpenCV pixel ``(u, v)`` of ``image_id``: position from
         the click's ray and the other views' masks, orientation searched, then refined (``engine.refine``,
-        with the photos where the scene has them); returns the instance. A click next to a mask that missed
+        with the photos where the scene has them); returns the instance. The search's first pose is shown at
+        once (:data:`~autoalign.label.records.SEARCHED`), each refined pose before its uncertainty and
+        verdict (:data:`~autoalign.label.records.REFINING`), and the judged pose last. A click next to a mask that missed
         the part clicked means that mask's instance (:meth:`~autoalign.label.scene.SessionScene.click_target`)."""
         self.check_object(obj_id)
         index, *near = self.click_target(image_id, u, v)  # off a mask but next to one: seeded from its mask
         iu, iv = uv_from_opencv(np.array(near, dtype=np.float64))
+        show = click_previews(lambda T_wm, source: self._store_pose(index, obj_id, T_wm, source))
         with self._render:
             try:
                 result = refine(self.scene_of(index), self.models.pyramid(obj_id),
-                                Click(image_id, float(iu), float(iv)), self.options, progress=progress,
-                                preview=lambda T: self._store_pose(index, obj_id, T, SEARCHED))
+                                Click(image_id, float(iu), float(iv)), self.options, progress=progress, preview=show)
                 self._store_pose(index, obj_id, result.T_wm, "click", self._judged(index, obj_id, result),
                                  (image_id, float(u), float(v)))  # the person's own click, for the distance
             except BaseException:
-                if self.state.put_back(index):  # the searched pose shown meanwhile was not a label
+                if self.state.put_back(index):  # the poses shown meanwhile were no label
                     self._contours.pop(index, None)
                 raise
         return index

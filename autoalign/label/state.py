@@ -20,7 +20,7 @@ class SessionState:
     (short: no rendering under it), then call :meth:`changed`.
 
     An instance can be shown at a pose that is not a label yet (:meth:`put` ``shown_only``: a click's
-    first pose while it is refined): the pages see it, ``session.json`` keeps it as it was."""
+    poses before its result): the pages see it, ``session.json`` keeps it as it was."""
 
     def __init__(self, instances: dict[int, LabelledInstance], revision: int, save: Save) -> None:
         self.instances = instances

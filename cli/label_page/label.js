@@ -11,7 +11,7 @@ let selected = null;          // instance number
 let activeView = null;        // image id whose camera axes the keys use
 const drawn = {};             // instance -> pose_revision drawn
 const rowHtml = {};           // instance -> the HTML of its row in the list, as last written
-let clickedAt = null;         // {job, t0, first} of the last click, to time click -> first and refined outlines on screen
+let clickedAt = null;         // {job, t0, first, refined} of the last click, to time click -> outlines on screen
 let shownJob = 0;
 let pressedAt = null;         // where the last click began: pointer events have sub-pixel positions, clicks not
 // The server's token, sent with every change: a page on another site cannot read it, so its POSTs are
@@ -83,7 +83,7 @@ async function clickView(e, v) {
   const t0 = performance.now();
   status(`placing obj ${obj}…`);
   const reply = await post("/api/place", {obj_id: obj, image_id: v.image_id, u: u, v: y});
-  if (reply) clickedAt = {job: reply.job, t0: t0, first: false};
+  if (reply) clickedAt = {job: reply.job, t0: t0, first: false, refined: false};
 }
 
 function instanceRow(inst) {
@@ -209,13 +209,23 @@ async function apply(s) {
   const j = s.job;
   const clicked = clickedAt && clickedAt.job === j.number && j.instance != null ?
     s.instances.find((i) => i.index === j.instance) : null;
+  const shownOnly = clicked && (clicked.source === "search" || clicked.source === "refining");
   if (clicked && !clickedAt.first && drawn[j.instance] === clicked.pose_revision &&
-      (clicked.source === "search" || (!j.running && !j.error))) {
-    // the first outlines of this click: the orientation search's pose (dashed), or the refined one
+      (shownOnly || (!j.running && !j.error))) {
+    // the first outlines of this click: the orientation search's pose (dashed), or a refined one
     const t0 = clickedAt.t0;
     clickedAt.first = true;
     requestAnimationFrame(() => requestAnimationFrame(() => {
       document.body.dataset.clickToFirstOutlinesMs = (performance.now() - t0).toFixed(0);
+    }));
+  }
+  if (clicked && !clickedAt.refined && drawn[j.instance] === clicked.pose_revision &&
+      (clicked.source === "refining" || (!j.running && !j.error))) {
+    // the first refined pose of this click, before its uncertainty and verdict (or with them)
+    const t0 = clickedAt.t0;
+    clickedAt.refined = true;
+    requestAnimationFrame(() => requestAnimationFrame(() => {
+      document.body.dataset.clickToRefinedPoseMs = (performance.now() - t0).toFixed(0);
     }));
   }
   if (clickedAt && clickedAt.job === j.number && !j.running && !j.error && j.instance != null &&

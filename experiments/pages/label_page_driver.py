@@ -160,13 +160,15 @@ def wait_job_done(page: Any, number: int | None = None, timeout_s: float = 120.0
 @dataclass
 class Placement:
     """One click of :func:`place_in_largest_view`: the view clicked, the times from the click to the
-    first outlines on screen (the orientation search's pose, dashed) and to the refined pose's
-    outlines (s, measured in the page), and the session's state once the job ended."""
+    judged pose's outlines on screen, to the first outlines (the orientation search's pose, dashed)
+    and to the first refined pose's (before its uncertainty and verdict; s, measured in the page),
+    and the session's state once the job ended."""
 
     image_id: int
     click_to_outlines_s: float
     state: dict
-    click_to_first_outlines_s: float | None  # None: the page draws no outline before the refined pose
+    click_to_first_outlines_s: float | None  # None: the page draws no outline before the judged pose
+    click_to_refined_pose_s: float | None = None  # None: the page draws no refined pose before the judged one
 
     def instance(self, index: int) -> dict:
         return next(i for i in self.state["instances"] if i["index"] == index)
@@ -185,7 +187,8 @@ def place_in_largest_view(page: Any, scene: Path, index: int, obj_id: int) -> Pl
     w, h = sizes[im]  # the masks may have been downscaled on reading: click in the views' resolution
     mask = cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
     page.select_option("#object", str(obj_id))
-    page.evaluate("delete document.body.dataset.clickToContoursMs; delete document.body.dataset.clickToFirstOutlinesMs")
+    page.evaluate("delete document.body.dataset.clickToContoursMs; delete document.body.dataset.clickToFirstOutlinesMs; "
+                  "delete document.body.dataset.clickToRefinedPoseMs")
     col, row = mask_pixel(mask)
     click_view(page, im, col, row, w, h)
     try:
@@ -195,4 +198,6 @@ def place_in_largest_view(page: Any, scene: Path, index: int, obj_id: int) -> Pl
     page.wait_for_function("document.body.dataset.clickToContoursMs !== undefined")
     ms = float(page.evaluate("document.body.dataset.clickToContoursMs"))
     first_ms = page.evaluate("document.body.dataset.clickToFirstOutlinesMs")  # set first, by pages that draw it
-    return Placement(im, ms / 1000.0, wait_job_done(page), None if first_ms is None else float(first_ms) / 1000.0)
+    refined_ms = page.evaluate("document.body.dataset.clickToRefinedPoseMs")  # likewise
+    return Placement(im, ms / 1000.0, wait_job_done(page), None if first_ms is None else float(first_ms) / 1000.0,
+                     None if refined_ms is None else float(refined_ms) / 1000.0)
