@@ -53,6 +53,8 @@ def label_scene(scene: Path, out: Path, shot: Path) -> list[dict]:
                               symmetries(models, obj))
             rows.append({"scene": scene.name, "obj_id": obj, "view": placed.image_id, "views": len(inst["views"]),
                          "click_to_outlines_s": placed.click_to_outlines_s,
+                         "click_to_first_outlines_s": placed.click_to_first_outlines_s,
+                         "click_to_refined_pose_s": placed.click_to_refined_pose_s,
                          "error_mm": err.pos_err_mm, "error_deg": err.rot_err_deg,
                          "verdict": after["verdict"], "median_iou": after["median_iou"], "reasons": after["reasons"]})
             print(json.dumps(rows[-1]), flush=True)
@@ -60,6 +62,10 @@ def label_scene(scene: Path, out: Path, shot: Path) -> list[dict]:
         page.screenshot(path=str(shot))
         browser.close()
     return rows
+
+
+def _s(seconds: float | None) -> str:
+    return "-" if seconds is None else f"{seconds:.2f}"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -75,10 +81,15 @@ def main(argv: list[str] | None = None) -> int:
              "`python -m autoalign.experiments.pages.label_page_real`: each object of the rigid group clicked once in the "
              "page (headless Chromium, 2 cores), the scene's object chosen, in the view where its SAM mask is "
              "largest; error against `gt_world.json` modulo symmetries (the dataset's labels are a few px off).", "",
-             "| scene | obj | views | click to outlines (s) | error mm / deg | median IoU | verdict | reasons |",
-             "|---|---|---|---|---|---|---|---|"]
+             "Times from the click: to the first outlines (the orientation search's pose), to the first refined "
+             "pose (the masks', before the photos refine it and before its uncertainty and verdict) and to the "
+             "judged pose.", "",
+             "| scene | obj | views | click to first outlines (s) | to refined pose (s) | to judged pose (s) | "
+             "error mm / deg | median IoU | verdict | reasons |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['scene']} | {r['obj_id']} | {r['views']} | {r['click_to_outlines_s']:.2f} | "
+        lines.append(f"| {r['scene']} | {r['obj_id']} | {r['views']} | {_s(r['click_to_first_outlines_s'])} | "
+                     f"{_s(r['click_to_refined_pose_s'])} | {r['click_to_outlines_s']:.2f} | "
                      f"{r['error_mm']:.1f} / {r['error_deg']:.1f} | {r['median_iou']:.2f} | {r['verdict']} | "
                      f"{'; '.join(r['reasons'])[:160]} |")
     write_results("label_page_real", rows, lines)
