@@ -207,12 +207,14 @@ class RegionTarget:
     band's pixels whose posterior agrees with the pose's silhouette (> 1/2 inside, < 1/2 outside),
     and the edge contrast: the mean posterior in a ring just inside the outline (:data:`EDGE_RING_PX`)
     less that in the ring just outside it (near 1: the outline lies on the photo's object edge; near 0
-    or below: the colours do not change there; NaN: nothing to compare)."""
+    or below: the colours do not change there; NaN: nothing to compare), and how well the colour models
+    tell the object from its surroundings (:func:`colour_separation`)."""
 
     target: NDArray[np.float32]
     band_px: float
     agreement: float
     edge_contrast: float = float("nan")
+    separation: float = float("nan")
 
 
 SECTOR_EDGE_RAD = 0.01
@@ -344,7 +346,43 @@ def region_target(photo: NDArray[np.uint8], silhouette: NDArray[np.bool_], mask:
     # what the photo alone says of the pose: its colours' agreement with the silhouette, and their change across it
     agree = np.where(sil_n, post_n > 0.5, post_n < 0.5)[band_n & (post_n != 0.5)]
     return RegionTarget(target, band, float(agree.mean()) if agree.size else float("nan"),
-                        edge_contrast(sil, post, excl, (d_in, d_out)))
+                        edge_contrast(sil, post, excl, (d_in, d_out)),
+                        colour_separation(key_n, inside_n, outside_n, options.bins, options.sectors, options.min_sector_px))
+
+
+MIN_SEPARATION_PX = 20
+"""Pixels each side needs for :func:`colour_separation` to say something (fewer: NaN)."""
+
+
+def colour_separation(key: NDArray[np.int64], inside: NDArray[np.bool_], outside: NDArray[np.bool_], bins: int,
+                      groups: int = 1, min_px: int = 0) -> float:
+    """How well the colour models learned from the ``inside`` and ``outside`` pixels (their keys,
+    :meth:`ColourModel.learn_keys`, with its ``groups`` and ``min_px``) tell the two apart: the mean
+    posterior of the inside pixels less that of the outside pixels, each pixel's posterior from models
+    learned without it (leave-one-out: with a few thousand pixels in ``groups * bins^3`` bins, a model
+    always recognises its own pixels). Near 0: the same colours on both sides (clear glass shows its
+    background's); near 1: no colour shared. NaN with fewer than :data:`MIN_SEPARATION_PX` pixels a side."""
+    if np.count_nonzero(inside) < MIN_SEPARATION_PX or np.count_nonzero(outside) < MIN_SEPARATION_PX:
+        return float("nan")
+    n = bins ** 3
+    fg = np.bincount(key[inside], minlength=groups * n).astype(np.float64).reshape(groups, n)
+    bg = np.bincount(key[outside], minlength=groups * n).astype(np.float64).reshape(groups, n)
+    weak = np.minimum(fg.sum(1), bg.sum(1)) < min_px
+    fg[weak], bg[weak] = fg.sum(0), bg.sum(0)
+    n_fg, n_bg = fg.sum(1), bg.sum(1)
+    eps = 0.5 / n  # as :meth:`ColourModel.posterior`
+
+    def mean_posterior(k: NDArray[np.int64], own_fg: bool) -> float:
+        f, b = fg.ravel()[k], bg.ravel()[k]
+        nf, nb = n_fg[k // n], n_bg[k // n]
+        if own_fg:
+            f, nf = f - 1.0, nf - 1.0
+        else:
+            b, nb = b - 1.0, nb - 1.0
+        pf, pb = f / np.maximum(nf, 1.0) + eps, b / np.maximum(nb, 1.0) + eps
+        return float(np.mean(pf / (pf + pb)))
+
+    return mean_posterior(key[inside], True) - mean_posterior(key[outside], False)
 
 
 def edge_contrast(region: NDArray[np.bool_], post: NDArray[np.float64], exclude: NDArray[np.bool_] | None = None,

@@ -27,6 +27,7 @@ from autoalign.losses.region import (
     ColourModel,
     RegionOptions,
     colour_codes,
+    colour_separation,
     region_target,
 )
 from autoalign.rasterizers.pyramid import MeshPyramid
@@ -98,6 +99,38 @@ def test_region_target_completes_a_partial_mask():
     assert t[60, 45] > 0.99
     assert 0.3 < t[45, 25] < 0.9  # claimed by the mask, surroundings by colour
     assert t[60, 95] < 0.05 and t[5, 5] == 0.0  # surroundings in the band, and beyond it
+
+
+def test_colour_separation_is_the_leave_one_out_posteriors_contrast():
+    """:func:`colour_separation` equals, pixel by pixel, the posterior of models learned again
+    without that pixel (:class:`ColourModel`, two sectors), averaged inside less outside; a photo
+    whose object shows its background's colours (clear glass) reads near 0, one of distinct colours
+    near 1, and too few pixels a side NaN."""
+    rng = np.random.default_rng(1)
+    bins, groups = 2, 2
+    key = rng.integers(0, groups * bins ** 3, 300)
+    inside = rng.random(300) < 0.4
+    outside = ~inside & (rng.random(300) < 0.8)
+    by_hand = []
+    for side in (inside, outside):
+        for i in np.flatnonzero(side):
+            without = np.ones(300, bool)
+            without[i] = False
+            model = ColourModel.learn_keys(key, inside & without, outside & without, bins, groups)
+            by_hand.append((model.posterior_of_keys(key[i:i + 1])[0], side is inside))
+    mean_in = np.mean([p for p, is_in in by_hand if is_in])
+    mean_out = np.mean([p for p, is_in in by_hand if not is_in])
+    assert colour_separation(key, inside, outside, bins, groups) == pytest.approx(mean_in - mean_out, abs=1e-12)
+
+    sil = np.zeros((120, 120), bool)
+    sil[30:90, 30:90] = True
+    texture = rng.integers(0, 256, (120, 120, 3), dtype=np.uint8)  # the same colours everywhere
+    glassy = region_target(texture, sil, None, None, RegionOptions()).separation
+    distinct = texture.copy()
+    distinct[sil] = (180, 40, 160)
+    distinct[~sil] = (40, 160, 40)
+    assert abs(glassy) < 0.1 and region_target(distinct, sil, None, None, RegionOptions()).separation > 0.95
+    assert np.isnan(colour_separation(key, inside & (np.arange(300) < 30), outside, bins, groups))
 
 
 @pytest.mark.slow

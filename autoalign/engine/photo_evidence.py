@@ -77,7 +77,8 @@ class PhotoEvidence:
     outline (:class:`~autoalign.losses.region.RegionTarget`; NaN: nothing to compare), the
     rounds the colour models were learned in, and whether the instance had masks (``--masks none``:
     the photo's colour regions stand in for them, in the IoUs too); without a given pose, the side it
-    chose where it was asked to (:class:`SideChoice`)."""
+    chose where it was asked to (:class:`SideChoice`); per view how well its colour models tell the
+    object from its surroundings (:func:`~autoalign.losses.region.colour_separation`; ``None``: not measured)."""
 
     band_px: NDArray[np.float64]
     agreement: NDArray[np.float64]
@@ -85,13 +86,17 @@ class PhotoEvidence:
     rounds: int
     masks_given: bool = True
     side: SideChoice | None = None
+    separation: NDArray[np.float64] | None = None
     name = "photo"
 
     def record(self) -> dict[str, Any]:
         """Per view: the band's half-width (px), the share of the band's pixels whose colour posterior
-        agrees with the silhouette, the edge contrast across the outline; the rounds, and the side chosen."""
+        agrees with the silhouette, the edge contrast across the outline, the colour models' separation;
+        the rounds, and the side chosen."""
         out = {"band_px": self.band_px, "agreement": self.agreement, "edge_contrast": self.edge_contrast,
                "rounds": self.rounds, "masks_given": self.masks_given}
+        if self.separation is not None:
+            out["separation"] = self.separation
         if self.side is not None:
             out["side"] = self.side.record()
         return out
@@ -128,7 +133,8 @@ def photo_targets(scene: Scene, silhouettes: list[NDArray[np.bool_]],
                 for view, sil in zip(scene.views, silhouettes)]
     return (replace(scene, masks=[rt.target for rt in per_view], photos=None if has_mask else scene.photos),
             PhotoEvidence(np.array([rt.band_px for rt in per_view]), np.array([rt.agreement for rt in per_view]),
-                          np.array([rt.edge_contrast for rt in per_view]), 0, has_mask))
+                          np.array([rt.edge_contrast for rt in per_view]), 0, has_mask,
+                          separation=np.array([rt.separation for rt in per_view])))
 
 
 SCREEN_ROUNDS = 2
@@ -256,7 +262,7 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
         result = refine(targets, pyramid, T, last, progress, anchor=T_seed)
     keep = [k for k, t in enumerate(targets.masks) if np.any(t > 0.5)]  # the views refine used
     evidence = PhotoEvidence(evidence.band_px[keep], evidence.agreement[keep], evidence.edge_contrast[keep], rounds + 1,
-                             has_mask, run.side)
+                             has_mask, run.side, None if evidence.separation is None else evidence.separation[keep])
     # the IoUs the report and the verdict read are with the instance's own masks where it has them
     compared = scene.subset(keep) if has_mask else targets.subset(keep)
     iou_after, unc = result.iou_after, result.uncertainty
