@@ -288,9 +288,11 @@ def _fused(known: NDArray[np.bool_], post: NDArray[np.float64], trust: float, mi
 
 
 def region_target(photo: NDArray[np.uint8], silhouette: NDArray[np.bool_], mask: NDArray[np.float32] | None = None,
-                  exclude: NDArray[np.bool_] | None = None, options: RegionOptions = RegionOptions()) -> RegionTarget:
+                  exclude: NDArray[np.bool_] | None = None, options: RegionOptions = RegionOptions(),
+                  separation: bool = False) -> RegionTarget:
     """The region target of one view (see the module doc). Only the box of the silhouette and its
-    band is worked on: beyond it the target is the mask (or 0).
+    band is worked on: beyond it the target is the mask (or 0). The colour models' separation is
+    measured only when asked (``separation``): the rounds need the target alone.
 
     Args:
         photo: (H, W, 3) uint8, the view's photo at the masks' resolution.
@@ -347,7 +349,8 @@ def region_target(photo: NDArray[np.uint8], silhouette: NDArray[np.bool_], mask:
     agree = np.where(sil_n, post_n > 0.5, post_n < 0.5)[band_n & (post_n != 0.5)]
     return RegionTarget(target, band, float(agree.mean()) if agree.size else float("nan"),
                         edge_contrast(sil, post, excl, (d_in, d_out)),
-                        colour_separation(key_n, inside_n, outside_n, options.bins, options.sectors, options.min_sector_px))
+                        colour_separation(key_n, inside_n, outside_n, options.bins, options.sectors, options.min_sector_px)
+                        if separation else float("nan"))
 
 
 MIN_SEPARATION_PX = 20

@@ -121,20 +121,21 @@ class PhotoEvidence:
         return TermEvidence("photo", stance, contrast, reason, sees_outline=True, reliability=c)
 
 
-def photo_targets(scene: Scene, silhouettes: list[NDArray[np.bool_]],
-                  options: RegionOptions) -> tuple[Scene, PhotoEvidence]:
+def photo_targets(scene: Scene, silhouettes: list[NDArray[np.bool_]], options: RegionOptions,
+                  measure: bool = False) -> tuple[Scene, PhotoEvidence]:
     """``scene`` with each view's region target as its mask (see :mod:`autoalign.losses.region`),
     the views' photos dropped (they are used) unless it has no masks (the edge term reads them then:
-    :mod:`autoalign.losses.edge`), and the per-view evidence."""
+    :mod:`autoalign.losses.edge`), and the per-view evidence (with the colour models' separation
+    when ``measure``: the evidence reported, not the rounds')."""
     if scene.photos is None:
         raise ValueError("the scene has no photos")
     has_mask = scene.has_masks
-    per_view = [region_target(view.photo, sil, view.mask if has_mask else None, view.ignore, options)
+    per_view = [region_target(view.photo, sil, view.mask if has_mask else None, view.ignore, options, measure)
                 for view, sil in zip(scene.views, silhouettes)]
     return (replace(scene, masks=[rt.target for rt in per_view], photos=None if has_mask else scene.photos),
             PhotoEvidence(np.array([rt.band_px for rt in per_view]), np.array([rt.agreement for rt in per_view]),
                           np.array([rt.edge_contrast for rt in per_view]), 0, has_mask,
-                          separation=np.array([rt.separation for rt in per_view])))
+                          separation=np.array([rt.separation for rt in per_view]) if measure else None))
 
 
 SCREEN_ROUNDS = 2
@@ -251,7 +252,7 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
         T_seed, choose_side = np.asarray(seed, dtype=np.float64), False
     run = (best_side if choose_side else photo_rounds)(scene, pyramid, T_seed, masks_only, region, progress)
     T, rounds, iterations, renders = run.T_wm, run.rounds, run.iterations, run.renders
-    targets, evidence = photo_targets(scene, rast.hard_masks(T, scene.cameras), region)
+    targets, evidence = photo_targets(scene, rast.hard_masks(T, scene.cameras), region, measure=True)
     if not targets.has_masks:
         raise AutoalignError("the object is in no view at the given pose: check the --init pose and its obj_id")
     # the rounds converged at the first level: the last one goes on from the second (if the schedule has one)

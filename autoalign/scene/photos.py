@@ -75,7 +75,7 @@ def region_targets(found: InstanceScenes, models: ModelSet, poses: list[NDArray[
             evidence.append(None)
             continue
         rast = models.pyramid(inst.obj_id).fine(detail)
-        targets, ev = photo_targets(sc, rast.hard_masks(T, sc.cameras), options)
+        targets, ev = photo_targets(sc, rast.hard_masks(T, sc.cameras), options, measure=True)
         scenes.append(targets)
         evidence.append(ev)
     return replace(found, scenes=scenes), evidence

@@ -44,7 +44,7 @@ def separations(scene: Path, models: Path, kinds: dict[int, str], source: str) -
             continue
         views = with_photos(views)
         silhouettes = model_set.pyramid(inst.obj_id).fine().hard_masks(poses[inst.index], views.cameras)
-        sep = np.array([region_target(v.photo, s, v.mask, v.ignore, RegionOptions()).separation
+        sep = np.array([region_target(v.photo, s, v.mask, v.ignore, RegionOptions(), separation=True).separation
                         for v, s in zip(views.views, silhouettes)])
         sep = sep[np.isfinite(sep)]
         if len(sep):
