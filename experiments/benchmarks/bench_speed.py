@@ -21,6 +21,7 @@ timed by ``bench_label_page``.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import shutil
@@ -111,29 +112,45 @@ def measure(before: Path, after: Path, work: Path, repeats: int) -> list[Case]:
     return todo
 
 
+def speed_table(payload: dict, node: str) -> list[str]:
+    """The results' table from their JSON ``payload`` (``rows`` as :func:`main` writes them): per command
+    the first runs, the median walls and their ratio, and the median (smallest-largest) of each run's
+    peak resident memory: one run's peak can stray by a few percent (a 988 MB run among 941-949 MB ones)."""
+    med = statistics.median
+    table = ["# Speed before and after", "",
+             f"`{payload['before']}` against `{payload['after']}` on {node} ({os.cpu_count()} cores): whole commands, "
+             f"median wall of {payload['repeats']} runs each after one untimed run (its wall is the first-run column), "
+             "the checkouts alternating run by run; peak memory: the median (smallest-largest) over the runs of "
+             "the process's largest resident set.", "",
+             "| command | first run before s | first run after s | wall before s | wall after s | ratio | "
+             "peak before MB | peak after MB |", "|---|---|---|---|---|---|---|---|"]
+    for r in payload["rows"]:
+        b, a = med(r["walls"]["before"]), med(r["walls"]["after"])
+        peaks = {t: f"{med(r['peaks_mb'][t]):.0f} ({min(r['peaks_mb'][t]):.0f}-{max(r['peaks_mb'][t]):.0f})"
+                 for t in ("before", "after")}
+        table.append(f"| {r['case']} | {r['first']['before']:.2f} | {r['first']['after']:.2f} | {b:.2f} | {a:.2f} | "
+                     f"{a / b:.2f} | {peaks['before']} | {peaks['after']} |")
+    return table
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--before", type=Path, required=True, help="a checkout of the older code")
+    ap.add_argument("--before", type=Path, help="a checkout of the older code (needed unless --table-from)")
     ap.add_argument("--after", type=Path, default=Path(__file__).resolve().parents[2], help="default: this checkout")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--table-from", type=Path, help="write the table again from this results JSON, measuring nothing")
     args = ap.parse_args(argv)
-    with tempfile.TemporaryDirectory() as tmp:
-        done = measure(args.before.resolve(), args.after.resolve(), Path(tmp), args.repeats)
-    med = statistics.median
-    table = ["# Speed before and after", "",
-             f"`{args.before}` against `{args.after}` on {platform.node()} ({os.cpu_count()} cores): whole commands, "
-             f"median wall of {args.repeats} runs each after one untimed run (its wall is the first-run column), "
-             "the checkouts alternating run by run; peak memory is the largest resident set of the process.", "",
-             "| command | first run before s | first run after s | wall before s | wall after s | ratio | "
-             "peak before MB | peak after MB |", "|---|---|---|---|---|---|---|---|"]
-    for c in done:
-        b, a = med(c.walls["before"]), med(c.walls["after"])
-        table.append(f"| {c.name} | {c.first['before']:.2f} | {c.first['after']:.2f} | {b:.2f} | {a:.2f} | "
-                     f"{a / b:.2f} | {max(c.peaks_mb['before']):.0f} | {max(c.peaks_mb['after']):.0f} |")
-    rows = [{"case": c.name, "first": c.first, "walls": c.walls, "peaks_mb": c.peaks_mb} for c in done]
-    write_results("bench_speed", {"before": str(args.before), "after": str(args.after), "repeats": args.repeats,
-                                  "rows": rows}, table, args.out)
+    if args.table_from is not None:
+        payload = json.loads(args.table_from.read_text())
+    elif args.before is None:
+        ap.error("--before DIR: a checkout of the older code to compare with")
+    else:
+        with tempfile.TemporaryDirectory() as tmp:
+            done = measure(args.before.resolve(), args.after.resolve(), Path(tmp), args.repeats)
+        payload = {"before": str(args.before), "after": str(args.after), "repeats": args.repeats, "node": platform.node(),
+                   "rows": [{"case": c.name, "first": c.first, "walls": c.walls, "peaks_mb": c.peaks_mb} for c in done]}
+    write_results("bench_speed", payload, speed_table(payload, payload.get("node", "the machine measured")), args.out)
 
 
 if __name__ == "__main__":
