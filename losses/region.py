@@ -349,8 +349,8 @@ def region_target(photo: NDArray[np.uint8], silhouette: NDArray[np.bool_], mask:
     agree = np.where(sil_n, post_n > 0.5, post_n < 0.5)[band_n & (post_n != 0.5)]
     return RegionTarget(target, band, float(agree.mean()) if agree.size else float("nan"),
                         edge_contrast(sil, post, excl, (d_in, d_out)),
-                        colour_separation(key_n, inside_n, outside_n, options.bins, options.sectors, options.min_sector_px)
-                        if separation else float("nan"))
+                        colour_separation(key_n, inside_n, outside_n, options.bins, options.sectors,
+                                          options.min_sector_px) if separation else float("nan"))
 
 
 MIN_SEPARATION_PX = 20

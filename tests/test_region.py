@@ -129,7 +129,8 @@ def test_colour_separation_is_the_leave_one_out_posteriors_contrast():
     distinct = texture.copy()
     distinct[sil] = (180, 40, 160)
     distinct[~sil] = (40, 160, 40)
-    assert abs(glassy) < 0.1 and region_target(distinct, sil, None, None, RegionOptions(), separation=True).separation > 0.95
+    assert abs(glassy) < 0.1
+    assert region_target(distinct, sil, None, None, RegionOptions(), separation=True).separation > 0.95
     assert np.isnan(region_target(distinct, sil, None, None, RegionOptions()).separation)  # not asked: not measured
     assert np.isnan(colour_separation(key, inside & (np.arange(300) < 30), outside, bins, groups))
 

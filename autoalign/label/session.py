@@ -73,7 +73,8 @@ __all__ = ["LabelSession", "Progress"]  # Progress: for the server's jobs
 def click_previews(store: Callable[[NDArray[np.float64], str], None]) -> PosePreview:
     """The engine's previews of a click (:data:`~autoalign.engine.refine.PosePreview`) given to ``store``
     with their source: the first is the orientation search's pose (:data:`SEARCHED`), the others
-    refined poses before their uncertainty and verdict (:data:`REFINING`)."""
+    refined poses before their uncertainty and verdict (:data:`REFINING`; where depth that sees through
+    the object is set aside and the search runs again, its second search's pose is shown as one too)."""
     shown: list[str] = []
 
     def show(T_wm: NDArray[np.float64]) -> None:
@@ -230,8 +231,9 @@ class LabelSession(SessionScene):
         the click's ray and the other views' masks, orientation searched, then refined (``engine.refine``,
         with the photos where the scene has them); returns the instance. The search's first pose is shown at
         once (:data:`~autoalign.label.records.SEARCHED`), each refined pose before its uncertainty and
-        verdict (:data:`~autoalign.label.records.REFINING`), and the judged pose last. A click next to a mask that missed
-        the part clicked means that mask's instance (:meth:`~autoalign.label.scene.SessionScene.click_target`)."""
+        verdict (:data:`~autoalign.label.records.REFINING`), and the judged pose last. A click next to a
+        mask that missed the part clicked means that mask's instance
+        (:meth:`~autoalign.label.scene.SessionScene.click_target`)."""
         self.check_object(obj_id)
         index, *near = self.click_target(image_id, u, v)  # off a mask but next to one: seeded from its mask
         iu, iv = uv_from_opencv(np.array(near, dtype=np.float64))

@@ -69,8 +69,8 @@ def measure(root: Path, n_obj: int, n_views: int, open_3d: bool, truth: list[np.
                              f"new Set([...document.querySelectorAll('polyline[data-instance=\"{k}\"]')]"
                              ".map(p => p.closest('.view').dataset.imageId)).size")})
             print(f"{code}, {'3D open' if open_3d else '3D closed'}: object {k + 1}: first outlines "
-                  f"{rows[-1]['click_to_first_outlines_s']:.2f} s, refined pose {rows[-1]['click_to_refined_pose_s']:.2f}"
-                  f" s, judged {rows[-1]['click_to_outlines_s']:.2f} s "
+                  f"{rows[-1]['click_to_first_outlines_s']:.2f} s, refined pose "
+                  f"{rows[-1]['click_to_refined_pose_s']:.2f} s, judged {rows[-1]['click_to_outlines_s']:.2f} s "
                   f"(server {rows[-1]['server_job_s']:.2f} s), {rows[-1]['error_mm']:.2f} mm / "
                   f"{rows[-1]['error_deg']:.2f} deg", flush=True)
         browser.close()

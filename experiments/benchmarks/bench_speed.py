@@ -148,7 +148,8 @@ def main(argv: list[str] | None = None) -> None:
     else:
         with tempfile.TemporaryDirectory() as tmp:
             done = measure(args.before.resolve(), args.after.resolve(), Path(tmp), args.repeats)
-        payload = {"before": str(args.before), "after": str(args.after), "repeats": args.repeats, "node": platform.node(),
+        payload = {"before": str(args.before), "after": str(args.after), "repeats": args.repeats,
+                   "node": platform.node(),
                    "rows": [{"case": c.name, "first": c.first, "walls": c.walls, "peaks_mb": c.peaks_mb} for c in done]}
     write_results("bench_speed", payload, speed_table(payload, payload.get("node", "the machine measured")), args.out)
 

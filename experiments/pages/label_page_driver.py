@@ -187,7 +187,8 @@ def place_in_largest_view(page: Any, scene: Path, index: int, obj_id: int) -> Pl
     w, h = sizes[im]  # the masks may have been downscaled on reading: click in the views' resolution
     mask = cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
     page.select_option("#object", str(obj_id))
-    page.evaluate("delete document.body.dataset.clickToContoursMs; delete document.body.dataset.clickToFirstOutlinesMs; "
+    page.evaluate("delete document.body.dataset.clickToContoursMs; "
+                  "delete document.body.dataset.clickToFirstOutlinesMs; "
                   "delete document.body.dataset.clickToRefinedPoseMs")
     col, row = mask_pixel(mask)
     click_view(page, im, col, row, w, h)

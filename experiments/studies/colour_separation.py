@@ -102,8 +102,9 @@ def main(argv: list[str] | None = None) -> int:
 
     for source, kind in kinds:
         mine = [r for r in rows if (r["source"], r["kind"]) == (source, kind)]
-        lines.append(f"| {source} | {kind} | {len(mine)} | {spread(mine, 'median')} | {min(r['min'] for r in mine):.2f} "
-                     f"| {spread(mine, 'median_no_mask')} | {spread(mine, 'median_no_mask_off')} |")
+        lines.append(f"| {source} | {kind} | {len(mine)} | {spread(mine, 'median')} | "
+                     f"{min(r['min'] for r in mine):.2f} | {spread(mine, 'median_no_mask')} | "
+                     f"{spread(mine, 'median_no_mask_off')} |")
     lines += ["", "| source | scene | obj | kind | views | median | smallest | without the mask | without, off |",
               "|---|---|---|---|---|---|---|---|---|"]
     lines += [f"| {r['source']} | {r['scene']} | {r['obj_id']} | {r['kind']} | {r['views']} | {r['median']:.2f} | "
