@@ -269,12 +269,21 @@ def test_a_click_shows_the_searched_pose_first_and_keeps_only_the_refined_one(la
     assert [s[:3] for s in shown] == [("search", [BEING_REFINED], True), refining, refining, ("click", "ok", False)], \
         [s[:3] for s in shown]
     assert np.array_equal(shown[2][3], shown[3][3])  # nothing moves the photos' pose after its preview
+    shown_click = shown[3][3]
     placed = session_instance(tmp_path / "out", 0)
     assert placed["source"] == "click" and placed["verdict"] == "ok"
     mm, deg = pose_error(np.array(placed["T_wm"]), labelled.truth[0], models.mesh(1).centre)
     assert mm < 1.0 and deg < 1.0
     with pytest.raises(AutoalignError, match="nothing to undo"):  # the shown poses are no step back
         session.undo(0)
+    # refined from where it is: the refined pose shown before its verdict, the person's decision kept
+    session.decide(0, "accepted")
+    shown.clear()
+    session.refine_from_here(0)
+    assert [s[:3] for s in shown] == [refining, ("refine", "ok", False)], [s[:3] for s in shown]
+    assert session_instance(tmp_path / "out", 0)["decision"] == "accepted"
+    session.undo(0)  # one step back: the click's pose, not the one shown meanwhile
+    assert np.array_equal(session.instances[0].T_wm, shown_click) and session.instances[0].source == "click"
 
     class Stop(Exception):
         pass

@@ -26,14 +26,15 @@ MOVED_BY_HAND = "moved by hand since the last refinement: refine from here to ju
 SEARCHED = "search"
 """The source of a click's first pose, the orientation search's best, shown while it is refined (not saved)."""
 REFINING = "refining"
-"""The source of a click's pose refined so far, shown while the refinement ends and its uncertainty and
-verdict are worked out (not saved)."""
+"""The source of a pose refined so far (a click's, or a refinement's from where a person left it), shown
+while the refinement ends and its uncertainty and verdict are worked out (not saved)."""
 SHOWN_ONLY = (SEARCHED, REFINING)
-"""Sources of the poses a click shows before its result: neither saved nor kept for undo."""
+"""Sources of the poses shown before a refinement's result: neither saved nor kept for undo."""
 BEING_REFINED = "the orientation search's best pose, shown while it is refined and judged"
 BEING_JUDGED = "refined so far, shown while the refinement ends and its uncertainty and verdict are worked out"
-NEW_PLACEMENT = ("click",) + SHOWN_ONLY
-"""Sources that place an object anew: its decision starts over."""
+NEW_PLACEMENT = ("click", SEARCHED)
+"""Sources that place an object anew: its decision starts over (a refined pose shown meanwhile keeps
+the decision it finds: a click's is open already, a refinement from here keeps the person's)."""
 MAX_POSITION_MM = 1e6
 """A pose farther than this (1 km) from the world's origin is refused: nothing a scene shows is there,
 and a pose pushed there (a nudge of 1e308 mm) ends in inf and NaN."""

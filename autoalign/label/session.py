@@ -251,12 +251,19 @@ class LabelSession(SessionScene):
         return index
 
     def refine_from_here(self, index: int, progress: Progress | None = None) -> None:
-        """Refine instance ``index`` from its current pose (after a nudge or a drag)."""
+        """Refine instance ``index`` from its current pose (after a nudge or a drag); the refined pose is
+        shown before its uncertainty and verdict (:data:`~autoalign.label.records.REFINING`), then judged."""
         with self._render:
             inst = self._placed(index)
-            result = refine(self.scene_of(index), self.models.pyramid(inst.obj_id), inst.T_wm.copy(), self.options,
-                            progress=progress)
-            self._store_pose(index, inst.obj_id, result.T_wm, "refine", self._judged(index, inst.obj_id, result))
+            try:
+                result = refine(self.scene_of(index), self.models.pyramid(inst.obj_id), inst.T_wm.copy(),
+                                self.options, progress=progress,
+                                preview=lambda T_wm: self._store_pose(index, inst.obj_id, T_wm, REFINING))
+                self._store_pose(index, inst.obj_id, result.T_wm, "refine", self._judged(index, inst.obj_id, result))
+            except BaseException:
+                if self.state.put_back(index):  # the pose shown meanwhile was no label
+                    self._contours.pop(index, None)
+                raise
 
     def refine_together(self, progress: Progress | None = None) -> None:
         """Refine every placed instance that is not rejected together, as ``autoalign refine --models``
