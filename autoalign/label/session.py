@@ -24,9 +24,10 @@ masks' resolution (the views' ``width`` x ``height``).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -82,6 +83,18 @@ def click_previews(store: Callable[[NDArray[np.float64], str], None]) -> PosePre
         store(T_wm, shown[-1])
 
     return show
+
+
+@contextlib.contextmanager
+def shown_until_judged(state: SessionState, contours: dict[int, Any], index: int) -> Iterator[None]:
+    """Instance ``index`` put back as saved (and its outlines in ``contours`` dropped) if the work within
+    fails: the poses shown meanwhile (:data:`~autoalign.label.records.SHOWN_ONLY`) were no label."""
+    try:
+        yield
+    except BaseException:
+        if state.put_back(index):
+            contours.pop(index, None)
+        raise
 
 
 def judged_refinement(result: RefineResult, scene: Scene, models: ModelSet, obj_id: int) -> Judgement:
@@ -238,32 +251,22 @@ class LabelSession(SessionScene):
         index, *near = self.click_target(image_id, u, v)  # off a mask but next to one: seeded from its mask
         iu, iv = uv_from_opencv(np.array(near, dtype=np.float64))
         show = click_previews(lambda T_wm, source: self._store_pose(index, obj_id, T_wm, source))
-        with self._render:
-            try:
-                result = refine(self.scene_of(index), self.models.pyramid(obj_id),
-                                Click(image_id, float(iu), float(iv)), self.options, progress=progress, preview=show)
-                self._store_pose(index, obj_id, result.T_wm, "click", self._judged(index, obj_id, result),
-                                 (image_id, float(u), float(v)))  # the person's own click, for the distance
-            except BaseException:
-                if self.state.put_back(index):  # the poses shown meanwhile were no label
-                    self._contours.pop(index, None)
-                raise
+        with self._render, shown_until_judged(self.state, self._contours, index):
+            result = refine(self.scene_of(index), self.models.pyramid(obj_id),
+                            Click(image_id, float(iu), float(iv)), self.options, progress=progress, preview=show)
+            self._store_pose(index, obj_id, result.T_wm, "click", self._judged(index, obj_id, result),
+                             (image_id, float(u), float(v)))  # the person's own click, for the distance
         return index
 
     def refine_from_here(self, index: int, progress: Progress | None = None) -> None:
         """Refine instance ``index`` from its current pose (after a nudge or a drag); the refined pose is
         shown before its uncertainty and verdict (:data:`~autoalign.label.records.REFINING`), then judged."""
-        with self._render:
+        with self._render, shown_until_judged(self.state, self._contours, index):
             inst = self._placed(index)
-            try:
-                result = refine(self.scene_of(index), self.models.pyramid(inst.obj_id), inst.T_wm.copy(),
-                                self.options, progress=progress,
-                                preview=lambda T_wm: self._store_pose(index, inst.obj_id, T_wm, REFINING))
-                self._store_pose(index, inst.obj_id, result.T_wm, "refine", self._judged(index, inst.obj_id, result))
-            except BaseException:
-                if self.state.put_back(index):  # the pose shown meanwhile was no label
-                    self._contours.pop(index, None)
-                raise
+            shown = lambda T_wm: self._store_pose(index, inst.obj_id, T_wm, REFINING)  # noqa: E731
+            result = refine(self.scene_of(index), self.models.pyramid(inst.obj_id), inst.T_wm.copy(), self.options,
+                            progress=progress, preview=shown)
+            self._store_pose(index, inst.obj_id, result.T_wm, "refine", self._judged(index, inst.obj_id, result))
 
     def refine_together(self, progress: Progress | None = None) -> None:
         """Refine every placed instance that is not rejected together, as ``autoalign refine --models``
