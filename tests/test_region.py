@@ -316,7 +316,18 @@ def test_without_a_pose_masks_that_fit_are_not_second_guessed(photo_scene, monke
     monkeypatch.setattr(photo_evidence, "best_side", lambda *args, **kwargs: tried.append(args))
     k = 2
     mesh, T_true = photo_scene.meshes[k], photo_scene.poses[k]
+    rounds_alone, counted = photo_evidence.photo_rounds, []
+
+    def counting(*args, **kwargs):  # the photo rounds, as they run
+        counted.append(rounds_alone(*args, **kwargs))
+        return counted[-1]
+
+    monkeypatch.setattr(photo_evidence, "photo_rounds", counting)
     result = refine(with_photos(read_scene(photo_scene.folder, k)), mesh, None)
     assert not tried
     mm, deg = _errors(result.T_wm, T_true, mesh.centre)
     assert mm < 1.0 and deg < 1.0, (mm, deg)
+    # every render counted: the masks' placement (its orientation search, dozens) besides the rounds and
+    # the last refinement (a few)
+    (rounds,) = counted
+    assert result.renders > rounds.renders + 20 and result.iterations > 0, (result.renders, rounds.renders)

@@ -245,13 +245,13 @@ def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.floa
         if not has_mask:
             raise AutoalignError("without masks the photos refine a coarse pose: give --init (a coarse scene_gt.json)")
         placed = refine(replace(scene, photos=None), pyramid, seed, masks_only, progress, pose_only=True)
-        T_seed = placed.T_wm
+        T_seed, placing = placed.T_wm, (placed.iterations, placed.renders)  # the path starts there
         # masks that miss much of it and find another pose nearly as good: the photos choose its side
         choose_side = placed.ambiguous and np.median(placed.iou_after) < LOOSE_FIT_IOU
     else:
-        T_seed, choose_side = np.asarray(seed, dtype=np.float64), False
+        T_seed, choose_side, placing = np.asarray(seed, dtype=np.float64), False, (0, 0)
     run = (best_side if choose_side else photo_rounds)(scene, pyramid, T_seed, masks_only, region, progress)
-    T, rounds, iterations, renders = run.T_wm, run.rounds, run.iterations, run.renders
+    T, rounds, iterations, renders = run.T_wm, run.rounds, run.iterations + placing[0], run.renders + placing[1]
     targets, evidence = photo_targets(scene, rast.hard_masks(T, scene.cameras), region, measure=True)
     if not targets.has_masks:
         raise AutoalignError("the object is in no view at the given pose: check the --init pose and its obj_id")

@@ -146,8 +146,8 @@ class RefineResult:
             (:func:`~autoalign.losses.overlap.view_ious`; with measured depth, ``iou_after`` also
             leaves out the pixels the depth shows hidden behind an unmodelled occluder).
         iterations: optimiser iterations of the winner from its start, every level it went through
-            (the hypothesis search's included).
-        renders: soft renders used in total.
+            (the hypothesis search's included; with photos, the masks' placement and the photo rounds too).
+        renders: soft renders used in total (with photos, the masks' placement's too).
         timings: seconds per stage.
         hypotheses: every start tried, best first.
         ambiguous: a clearly different pose fits almost as well (symmetric or ambiguous object).
