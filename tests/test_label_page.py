@@ -518,7 +518,9 @@ def test_3d_view_draws_the_session_and_its_gizmo_moves_the_object(labelled, tmp_
 @pytest.mark.slow
 def test_refine_together_puts_moved_instances_back_and_keeps_decisions(labelled, tmp_path):
     """In-process: two placed instances, one moved 3 mm and turned 3 degrees by hand; refining them
-    together (occlusion-aware) brings both within 1 mm / 1 degree, judged, their decisions kept."""
+    together (occlusion-aware) brings both within 1 mm / 1 degree, judged, their decisions kept. Each
+    instance's alone pose is shown as it comes, before any verdict, and saved only when judged."""
+    from autoalign.label.records import BEING_JUDGED
     from autoalign.label.session import LabelSession
 
     models = ModelSet.read(labelled.models)
@@ -530,7 +532,18 @@ def test_refine_together_puts_moved_instances_back_and_keeps_decisions(labelled,
     session.nudge(0, 0, [3.0, 0.0, 0.0], [0.0, 3.0, 0.0])
     mm, deg = pose_error(session.instances[0].T_wm, labelled.truth[0], models.mesh(1).centre)
     assert mm > 2.5 and deg > 2.5
+    shown, put = [], session.state.put
+
+    def put_watched(inst, shown_only: bool = False) -> None:
+        shown.append((inst.index, inst.source, tuple(inst.reasons[:1]), shown_only))
+        put(inst, shown_only)
+
+    session.state.put = put_watched
     session.refine_together()
+    first_judged = next(j for j, s in enumerate(shown) if s[1] == "together")
+    assert {s[0] for s in shown[:first_judged]} == {0, 1}  # both shown before either is judged
+    assert {s[1:] for s in shown[:first_judged]} == {("refining", (BEING_JUDGED,), True)}, shown[:first_judged]
+    assert [s[:2] for s in shown[first_judged:]] == [(0, "together"), (1, "together")]
     for k in (0, 1):
         inst = session.instances[k]
         mm, deg = pose_error(inst.T_wm, labelled.truth[k], models.mesh(k + 1).centre)

@@ -86,14 +86,15 @@ def click_previews(store: Callable[[NDArray[np.float64], str], None]) -> PosePre
 
 
 @contextlib.contextmanager
-def shown_until_judged(state: SessionState, contours: dict[int, Any], index: int) -> Iterator[None]:
-    """Instance ``index`` put back as saved (and its outlines in ``contours`` dropped) if the work within
-    fails: the poses shown meanwhile (:data:`~autoalign.label.records.SHOWN_ONLY`) were no label."""
+def shown_until_judged(state: SessionState, contours: dict[int, Any], *indices: int) -> Iterator[None]:
+    """The instances ``indices`` put back as saved (and their outlines in ``contours`` dropped) if the work
+    within fails: the poses shown meanwhile (:data:`~autoalign.label.records.SHOWN_ONLY`) were no label."""
     try:
         yield
     except BaseException:
-        if state.put_back(index):
-            contours.pop(index, None)
+        for index in indices:
+            if state.put_back(index):
+                contours.pop(index, None)
         raise
 
 
@@ -283,8 +284,11 @@ class LabelSession(SessionScene):
                                      "place more, or refine the one from where it is")
             together = replace(self.found, instances=[Instance(i.index, i.obj_id) for i in chosen],
                                scenes=[self.scene_of(i.index) for i in chosen])
-            refined = refine_scene(together, self.models, {i.index: i.T_wm.copy() for i in chosen}, self.options,
-                                   progress=progress)
+            obj_of = {i.index: i.obj_id for i in chosen}
+            shown = lambda k, T_wm: self._store_pose(k, obj_of[k], T_wm, REFINING)  # noqa: E731
+            with shown_until_judged(self.state, self._contours, *obj_of):  # each alone pose shown as it comes
+                refined = refine_scene(together, self.models, {i.index: i.T_wm.copy() for i in chosen}, self.options,
+                                       progress=progress, preview=shown)
             for r in refined.results:
                 self._store_pose(r.instance.index, r.instance.obj_id, r.result.T_wm, "together",
                                  Judgement(r.verdict, r.result.uncertainty,

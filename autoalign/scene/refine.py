@@ -27,6 +27,7 @@ the scale settles 1.4% too large.
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, replace
 from typing import Callable
@@ -58,6 +59,10 @@ from autoalign.scene.photos import others_left_out, region_targets
 from autoalign.scene.scale import grown_pose, rescaled, scale_from_masks, scaled_cameras
 
 Progress = Callable[[str, int, int], None]
+InstancePreview = Callable[[int, NDArray[np.float64]], None]
+"""``preview(index, T_wm)``: instance ``index``'s pose as its alone stage refines it (world-from-model,
+4x4, mm), before its uncertainty and verdict (:data:`~autoalign.engine.refine.PosePreview`), in the
+scene's cameras as they stand in that stage."""
 
 SCALE_SETTLED = 0.005
 """A joint stage that moves the scene's scale by less than this fraction ends the rounds: at the
@@ -91,9 +96,11 @@ def verdict_of(result: RefineResult, empty: tuple[int, ...], models: ModelSet, o
 
 def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArray[np.float64]],
                      options: RefineOptions | None = None, progress: Progress | None = None,
-                     seed_radius: tuple[float, float] = SEED_RADIUS, judge_seeds: bool = True) -> list[InstanceResult]:
+                     seed_radius: tuple[float, float] = SEED_RADIUS, judge_seeds: bool = True,
+                     preview: InstancePreview | None = None) -> list[InstanceResult]:
     """Refine every instance of ``found`` from its seed (``seeds[index]``: 4x4 world-from-model, mm;
-    an instance without one is searched from the visual hull of its masks)."""
+    an instance without one is searched from the visual hull of its masks), each showing its poses to
+    ``preview`` on the way."""
     out = []
     n = len(found.instances)
     # the engine holds a result within the seed's radius unless it fits clearly better outside
@@ -106,7 +113,9 @@ def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, N
             if progress is not None:
                 progress(f"{label}: {stage}", done, total)
 
-        result = refine(scene, models.pyramid(inst.obj_id), seeds.get(inst.index), options, progress=step)
+        shown = None if preview is None else functools.partial(preview, inst.index)
+        result = refine(scene, models.pyramid(inst.obj_id), seeds.get(inst.index), options, progress=step,
+                        preview=shown)
         seed = seeds.get(inst.index) if judge_seeds else None
         out.append(InstanceResult(inst, result, verdict_of(result, scene.empty, models, inst.obj_id, seed, seed_radius),
                                   time.perf_counter() - t0))
@@ -230,7 +239,8 @@ def joint_rule(opts: RefineOptions) -> StepRule | None:
 
 def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArray[np.float64]],
                  options: RefineOptions | None = None, refine_cameras: bool = False, solve_scale: bool = False,
-                 progress: Progress | None = None, seed_radius: tuple[float, float] = SEED_RADIUS) -> SceneRefinement:
+                 progress: Progress | None = None, seed_radius: tuple[float, float] = SEED_RADIUS,
+                 preview: InstancePreview | None = None) -> SceneRefinement:
     """Every instance alone (seed, search, polish: :func:`refine_instances`), then all of them
     together, occlusion-aware (:func:`~autoalign.scene.joint.refine_jointly`), with a correction
     of every camera if ``refine_cameras``. Corrections that explain too little of the misfit to be
@@ -241,14 +251,14 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
 
     With ``solve_scale`` the cameras' translations are taken to be in an unknown unit, already
     scaled by a first guess (:func:`~autoalign.scene.scale.scale_from_masks`); the scale is solved
-    with the poses (see module doc)."""
+    with the poses (see module doc). Each instance's alone poses go to ``preview`` as they come."""
     opts = options or RefineOptions()
     rule = joint_rule(opts) if len(found.instances) > 1 or refine_cameras or solve_scale else None
     given_seeds = dict(seeds)  # a result farther than seed_radius from its seed is flagged (not with a scale to solve)
     scale, scale_sigma, settled = 1.0, 0.0, not solve_scale
     rounds = SCALE_ROUNDS if solve_scale else 1
     for round_ in range(rounds):
-        alone = refine_instances(found, models, seeds, opts, progress, seed_radius, judge_seeds=not solve_scale)
+        alone = refine_instances(found, models, seeds, opts, progress, seed_radius, not solve_scale, preview)
         if len(alone) == 1 and not refine_cameras and not solve_scale:
             return SceneRefinement(alone, None, None, found)
         fits = [r.verdict.status == "ok" for r in alone]
@@ -261,8 +271,7 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
                 seeds = {r.instance.index: grown_pose(r.result.T_wm, models.mesh(r.instance.obj_id).centre, guess.factor)
                          for r in alone}
                 continue
-        pyramids = [models.pyramid(r.instance.obj_id) for r in alone]
-        start = [r.result.T_wm for r in alone]
+        pyramids, start = [models.pyramid(r.instance.obj_id) for r in alone], [r.result.T_wm for r in alone]
         holds = [r.result.holds for r in alone]  # the terms on the pose that held each alone, kept jointly
         t0 = time.perf_counter()
         given = found  # the instances as read: their own masks and photos
