@@ -289,10 +289,10 @@ class LabelSession(SessionScene):
             with shown_until_judged(self.state, self._contours, *obj_of):  # each alone pose shown as it comes
                 refined = refine_scene(together, self.models, {i.index: i.T_wm.copy() for i in chosen}, self.options,
                                        progress=progress, preview=shown)
-            for r in refined.results:
-                self._store_pose(r.instance.index, r.instance.obj_id, r.result.T_wm, "together",
-                                 Judgement(r.verdict, r.result.uncertainty,
-                                           self.models.continuous_axes(r.instance.obj_id)))
+                for r in refined.results:
+                    self._store_pose(r.instance.index, r.instance.obj_id, r.result.T_wm, "together",
+                                     Judgement(r.verdict, r.result.uncertainty,
+                                               self.models.continuous_axes(r.instance.obj_id)))
 
     def nudge(self, index: int, image_id: int, move_mm: list[float], turn_deg: list[float]) -> None:
         """Move instance ``index`` by ``move_mm`` and turn it by ``turn_deg`` (rotation vector) about
