@@ -105,11 +105,7 @@ class ColourModel:
                    groups: int = 1, min_px: int = 0) -> "ColourModel":
         """:meth:`learn` from each pixel's ``key``, ``group * bins^3 + code`` (its bin in the flattened
         ``(groups, bins^3)`` histograms), for a caller that has the keys already."""
-        n = bins ** 3
-        fg = np.bincount(key[inside], minlength=groups * n).astype(np.float64).reshape(groups, n)
-        bg = np.bincount(key[outside], minlength=groups * n).astype(np.float64).reshape(groups, n)
-        weak = np.minimum(fg.sum(1), bg.sum(1)) < min_px
-        fg[weak], bg[weak] = fg.sum(0), bg.sum(0)
+        fg, bg = colour_counts(key, inside, outside, bins, groups, min_px)
         fg /= np.maximum(fg.sum(1, keepdims=True), 1.0)  # in place: no fresh (groups, bins^3) arrays
         bg /= np.maximum(bg.sum(1, keepdims=True), 1.0)
         return ColourModel(fg, bg, bins)
@@ -132,6 +128,19 @@ class ColourModel:
         pb += pf  # pf + pb, in place: a fresh array costs more (page faults) than the arithmetic
         pf /= pb
         return pf
+
+
+def colour_counts(key: NDArray[np.int64], inside: NDArray[np.bool_], outside: NDArray[np.bool_], bins: int,
+                  groups: int = 1, min_px: int = 0) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Pixel counts per bin ``(groups, bins^3)`` of the ``inside`` and ``outside`` pixels by their
+    ``key`` (:meth:`ColourModel.learn_keys`); a group with fewer than ``min_px`` pixels inside or
+    outside gets the counts of all."""
+    n = bins ** 3
+    fg = np.bincount(key[inside], minlength=groups * n).astype(np.float64).reshape(groups, n)
+    bg = np.bincount(key[outside], minlength=groups * n).astype(np.float64).reshape(groups, n)
+    weak = np.minimum(fg.sum(1), bg.sum(1)) < min_px
+    fg[weak], bg[weak] = fg.sum(0), bg.sum(0)
+    return fg, bg
 
 
 def _code_bits(bins: int) -> int:
@@ -368,10 +377,7 @@ def colour_separation(key: NDArray[np.int64], inside: NDArray[np.bool_], outside
     if np.count_nonzero(inside) < MIN_SEPARATION_PX or np.count_nonzero(outside) < MIN_SEPARATION_PX:
         return float("nan")
     n = bins ** 3
-    fg = np.bincount(key[inside], minlength=groups * n).astype(np.float64).reshape(groups, n)
-    bg = np.bincount(key[outside], minlength=groups * n).astype(np.float64).reshape(groups, n)
-    weak = np.minimum(fg.sum(1), bg.sum(1)) < min_px
-    fg[weak], bg[weak] = fg.sum(0), bg.sum(0)
+    fg, bg = colour_counts(key, inside, outside, bins, groups, min_px)
     n_fg, n_bg = fg.sum(1), bg.sum(1)
     eps = 0.5 / n  # as :meth:`ColourModel.posterior`
 
