@@ -49,19 +49,19 @@ def separations(scene: Path, models: Path, kinds: dict[int, str], source: str) -
         views, pyramid, T = with_photos(views), model_set.pyramid(inst.obj_id), poses[inst.index]
         off = perturb_pose(T, 10.0, 10.0, rng, pyramid.mesh.centre)
 
-        def median_over_views(T_wm: np.ndarray, with_mask: bool) -> np.ndarray:
+        def per_view(T_wm: np.ndarray, with_mask: bool) -> np.ndarray:
             sep = np.array([region_target(v.photo, s, v.mask if with_mask else None, v.ignore, RegionOptions(),
                                           separation=True).separation
                             for v, s in zip(views.views, pyramid.fine().hard_masks(T_wm, views.cameras))])
             return sep[np.isfinite(sep)]
 
-        sep = median_over_views(T, True)
+        sep = per_view(T, True)
         if len(sep):
             rows.append({"source": source, "scene": scene.parent.name if scene.name == "scene" else scene.name,
                          "obj_id": inst.obj_id, "kind": kinds.get(inst.obj_id, "opaque"), "views": len(sep),
                          "median": float(np.median(sep)), "min": float(sep.min()),
-                         "median_no_mask": float(np.median(median_over_views(T, False))),
-                         "median_no_mask_off": float(np.median(median_over_views(off, False)))})
+                         "median_no_mask": float(np.median(per_view(T, False))),
+                         "median_no_mask_off": float(np.median(per_view(off, False)))})
             print(rows[-1], flush=True)
     return rows
 
