@@ -9,6 +9,9 @@ measured. :func:`evaluate_terms` runs them and :func:`sum_terms` is the one plac
 
 A term may find pixels that something no model holds hides from the camera (the depth term's
 unmodelled occluders, :attr:`TermValues.hidden`): the terms after it see the fragments without them.
+A term may hold state learned at a pose (the region term's colour models,
+:meth:`~autoalign.losses.region_term.RegionTerm.learned_at`), fixed while a pose is descended on it
+and learned again at the pose reached between rounds (:mod:`autoalign.engine.photo_evidence`).
 Twists are ``(v [mm], w [rad])`` in the world frame about ``Fragments.centre_w``.
 """
 

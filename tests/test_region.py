@@ -13,7 +13,7 @@ import pytest
 
 import autoalign
 from autoalign.engine.hypotheses import flips
-from autoalign.engine.photo_evidence import PhotoEvidence, best_side, photo_rounds, photo_targets, photo_value
+from autoalign.engine.photo_evidence import PhotoEvidence, best_side, photo_rounds, photo_value
 from autoalign.engine.refine import RefineOptions, refine
 from autoalign.experiments.scenes.photo_scene import PhotoScene, write_photo_scene
 from autoalign.experiments.scenes.procedural_models import procedural_models
@@ -30,6 +30,7 @@ from autoalign.losses.region import (
     colour_separation,
     region_target,
 )
+from autoalign.losses.region_term import RegionTerm
 from autoalign.rasterizers.pyramid import MeshPyramid
 
 NAMES = ("box_knob", "mug", "l_bracket")
@@ -135,6 +136,53 @@ def test_colour_separation_is_the_leave_one_out_posteriors_contrast():
     assert np.isnan(colour_separation(key, inside & (np.arange(300) < 30), outside, bins, groups))
 
 
+def test_the_region_term_takes_the_mask_terms_place_and_leaves_the_scene_as_given():
+    """The region term, learned at a pose from half masks and two-coloured photos, completes the masks
+    in its targets; the objective of a photo run has it in the mask term's place and compares the views
+    with its targets, leaves out the view whose target does not show the object, keeps it on a subset
+    of the views, fits the true pose better than the half masks alone do; and the caller's scene keeps
+    its masks and photos."""
+    from autoalign.engine.schedule import compared_objective
+    from autoalign.experiments.scenes.synthetic import default_K, ring_cameras
+    from autoalign.io.bop import Scene
+    from autoalign.losses.mask_term import MaskTerm
+
+    mesh = mesh_from_trimesh(next(p for p in procedural_models() if p.name == "box_knob").mesh, "box_knob")
+    cams = ring_cameras(3, np.random.default_rng(5), dist_range=(380.0, 420.0), K=default_K(160, 120, 190.0),
+                        width=160, height=120)
+    T = np.eye(4)
+    T[:3, 3] = -mesh.centre  # the object at the cameras' target
+    pyramid = MeshPyramid(mesh)
+    sils = pyramid.fine().hard_masks(T, cams)
+    sils[2][:] = False  # the third view does not see it (as if out of frame): its photo is all surroundings
+    photos, masks = [], []
+    for sil in sils:
+        photo = np.full(sil.shape + (3,), (40, 160, 40), np.uint8)
+        photo[sil] = (180, 40, 160)
+        photos.append(photo)
+        half = sil.copy()
+        cols = np.nonzero(sil.any(axis=0))[0]
+        if len(cols):
+            half[:, (cols.min() + cols.max()) // 2:] = False  # the mask misses the right half
+        masks.append(half.astype(np.float32))
+    scene = Scene(cams, [m.copy() for m in masks], [1, 2, 3], photos=photos)
+    term = RegionTerm.learned_at(scene, sils, RegionOptions())
+    assert term.covered() == [0, 1]
+    for k in (0, 1):
+        assert np.mean(term.targets[k][sils[k]] > 0.5) > 0.95  # the right half completed
+    opts = RefineOptions()
+    obj = compared_objective(pyramid, scene, opts, term)
+    assert [t for t in obj.terms if type(t) is MaskTerm] == [] and term.subset([0, 1]).learned == obj.region.learned
+    assert obj.scene.image_ids == [1, 2] and obj.scene.photos is None  # with masks the photos are the term's alone
+    assert all(np.array_equal(a, b) for a, b in zip(obj.scene.masks, term.targets[:2]))
+    sub = obj.subset([1])
+    assert sub.region is not None and sub.region.learned == (term.learned[1],)
+    masks_alone = compared_objective(pyramid, scene, opts)
+    level = opts.schedule[-1]
+    assert obj.evaluate(T, level).value < 0.1 * masks_alone.evaluate(T, level).value  # measured 0.010 against 1.08
+    assert scene.photos is photos and all(np.array_equal(a, b) for a, b in zip(scene.masks, masks))
+
+
 @pytest.mark.slow
 def test_photos_alone_refine_every_object(photo_scene, starts):
     """No masks at all: from 10 mm / 15 deg off, each object ends within 1 mm / 1 deg, and more of
@@ -145,10 +193,24 @@ def test_photos_alone_refine_every_object(photo_scene, starts):
         res = refine(scene, mesh, T0)
         mm, deg = _errors(res.T_wm, T_true, mesh.centre)
         assert mm < 1.0 and deg < 1.0, (mesh.name, mm, deg)
-        _, at_start = photo_targets(scene, MeshPyramid(mesh).fine().hard_masks(T0, scene.cameras), RegionOptions())
+        at_start = RegionTerm.learned_at(scene, MeshPyramid(mesh).fine().hard_masks(T0, scene.cameras), RegionOptions())
         photo = res.measurement(PhotoEvidence)
         assert photo is not None and len(photo.agreement) == len(scene)
-        assert np.median(photo.agreement) > np.median(at_start.agreement) + 0.02
+        assert np.median(photo.agreement) > np.median([rt.agreement for rt in at_start.learned]) + 0.02
+
+
+@pytest.mark.slow
+def test_with_photos_the_seed_radius_is_measured_from_the_anchor(photo_scene):
+    """``refine(..., anchor=A)`` with photos holds the result near ``A``, as without them: seeded at the
+    truth with an anchor 20 mm away, the result (at the truth) is 20 mm beyond the anchor's radius."""
+    k = 1
+    mesh, T_true = photo_scene.meshes[k], photo_scene.poses[k]
+    A = T_true.copy()
+    A[:3, 3] += [20.0, 0.0, 0.0]
+    scene = with_photos(read_scene(photo_scene.folder, k))
+    res = refine(scene, mesh, T_true, RefineOptions(seed_radius=(5.0, 5.0)), anchor=A)
+    assert res.seed_hold is not None and abs(res.seed_hold.far_move[0] - 20.0) < 2.0, res.seed_hold
+    assert res.seed_hold.kept_far and _errors(res.T_wm, T_true, mesh.centre)[0] < 1.0
 
 
 def _left_halves(scene):
@@ -310,19 +372,19 @@ def test_without_a_pose_the_photos_choose_the_side_the_masks_cannot(photo_scene)
 def test_without_a_pose_masks_that_fit_are_not_second_guessed(photo_scene, monkeypatch):
     """No seed and the scene's own masks, which fit: the object is placed as before, the photos'
     half turns (:func:`~autoalign.engine.photo_evidence.best_side`) are not tried."""
-    import autoalign.engine.photo_evidence as photo_evidence
+    import autoalign.engine.refine as engine  # the engine runs the rounds
 
     tried = []
-    monkeypatch.setattr(photo_evidence, "best_side", lambda *args, **kwargs: tried.append(args))
+    monkeypatch.setattr(engine, "best_side", lambda *args, **kwargs: tried.append(args))
     k = 2
     mesh, T_true = photo_scene.meshes[k], photo_scene.poses[k]
-    rounds_alone, counted = photo_evidence.photo_rounds, []
+    rounds_alone, counted = engine.photo_rounds, []
 
     def counting(*args, **kwargs):  # the photo rounds, as they run
         counted.append(rounds_alone(*args, **kwargs))
         return counted[-1]
 
-    monkeypatch.setattr(photo_evidence, "photo_rounds", counting)
+    monkeypatch.setattr(engine, "photo_rounds", counting)
     result = refine(with_photos(read_scene(photo_scene.folder, k)), mesh, None)
     assert not tried
     mm, deg = _errors(result.T_wm, T_true, mesh.centre)

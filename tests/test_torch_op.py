@@ -150,12 +150,12 @@ def test_region_loss_fits_a_pose_from_photos_alone(tmp_path):
     """RegionLoss (the photos as evidence, no masks): its targets are autoalign's own region
     targets (same function, same pose), and torch.optim (Adam on a twist, the targets learned
     again every 15 steps) brings a pose 6 mm / 8 deg off to within 1 mm / 1 deg."""
-    from autoalign.engine.photo_evidence import photo_targets
     from autoalign.experiments.scenes.photo_scene import write_photo_scene
     from autoalign.experiments.scenes.synthetic import perturb_pose
     from autoalign.geometry.se3 import rotation_angle_deg
     from autoalign.io.evidence import read_evidence
     from autoalign.losses.region import RegionOptions
+    from autoalign.losses.region_term import RegionTerm
     from autoalign.torch import RegionLoss
 
     m = mesh("box_knob")
@@ -166,8 +166,8 @@ def test_region_loss_fits_a_pose_from_photos_alone(tmp_path):
     rast = SoftSilhouetteRasterizer(m)
     loss_fn = RegionLoss(rast, scene.cameras, scene.photos, sigma=1.0)
     loss_fn.learn(torch.tensor(T0))
-    ours, _ = photo_targets(scene, rast.hard_masks(T0, scene.cameras), RegionOptions())
-    assert np.array_equal(loss_fn.targets.numpy(), np.stack(ours.masks).astype(np.float64))
+    ours = RegionTerm.learned_at(scene, rast.hard_masks(T0, scene.cameras), RegionOptions())
+    assert np.array_equal(loss_fn.targets.numpy(), np.stack(ours.targets).astype(np.float64))
     xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
     base = torch.tensor(T0)
     centre = torch.tensor(T0[:3, :3] @ m.centre + T0[:3, 3])

@@ -16,6 +16,7 @@ from autoalign.losses import ViewTerms, robust_view_weights
 from autoalign.losses.depth import DepthNoise, DepthTerm
 from autoalign.losses.edge import EdgeTerm
 from autoalign.losses.mask_term import MaskTerm
+from autoalign.losses.region_term import RegionTerm
 from autoalign.losses.term import (
     Fragments,
     LevelViews,
@@ -77,15 +78,17 @@ class Evaluation:
         return ViewTermsRecord.of(self.values, self.weights)
 
 
-def view_terms(loss: str, depth: DepthNoise | None, scene: Scene, edges: float | None = None) -> tuple[Term, ...]:
-    """The evidence terms every view of ``scene`` is compared with, in order: the depth term (with a
-    sensor's ``depth`` noise and measured depth) before the mask term (``loss``), which does not
-    compare the pixels the depth shows hidden, and the edge term (with weight ``edges`` and the
-    scene's photos). The one list of per-view terms."""
+def view_terms(loss: str, depth: DepthNoise | None, scene: Scene, edges: float | None = None,
+               region: RegionTerm | None = None) -> tuple[Term, ...]:
+    """The evidence terms every view of ``scene`` (as compared: :meth:`SilhouetteObjective.__init__`)
+    is compared with, in order: the depth term (with a sensor's ``depth`` noise and measured depth)
+    before the mask term (``loss``), or in its place the ``region`` term (the masks fused with the
+    photos' colours), which do not compare the pixels the depth shows hidden, and the edge term (with
+    weight ``edges`` and the scene's photos). The one list of per-view terms."""
     terms: list[Term] = []
     if depth is not None and scene.depths is not None:
         terms.append(DepthTerm(depth))
-    terms.append(MaskTerm(loss))
+    terms.append(MaskTerm(loss) if region is None else region)
     if edges is not None and scene.photos is not None:
         terms.append(EdgeTerm(edges))
     return tuple(terms)
@@ -105,22 +108,28 @@ class SilhouetteObjective:
             (:mod:`autoalign.losses.depth`) to the mask term; ``None``: masks only.
         edges: the edge term's weight: with it, and the scene's photos, each view's term adds the
             photo's edges under the outline (:mod:`autoalign.losses.edge`); ``None``: no edge term.
+        region: the region term learned on the scene's views (:mod:`autoalign.losses.region_term`),
+            which takes the mask term's place: the views' targets are then its, and ``scene`` holds
+            the views as it compares them (:meth:`~autoalign.losses.region_term.RegionTerm.targets_in`).
 
     The terms are :func:`view_terms`, plus those on the pose alone given to :meth:`with_pose_term`.
     """
 
     def __init__(self, pyramid: MeshPyramid, scene: Scene, loss: str = "l2", robust: bool = True,
                  detail: MeshDetail = MeshDetail(), depth: DepthNoise | None = None,
-                 edges: float | None = None) -> None:
+                 edges: float | None = None, region: RegionTerm | None = None) -> None:
+        if region is not None and region.loss != loss:
+            raise ValueError(f"the region term compares with the {region.loss} loss, the objective with {loss}")
         self.pyramid = pyramid
         self.detail = detail
         self.depth = depth
         self.centre_m = pyramid.mesh.centre  # the point twists turn about, model frame (mm)
-        self.scene = scene
+        self.scene = scene if region is None else region.targets_in(scene)
         self.loss_name = loss
         self.robust = robust
         self.edges = edges
-        self.terms: tuple[Term, ...] = view_terms(loss, depth, scene, edges)
+        self.region = region
+        self.terms: tuple[Term, ...] = view_terms(loss, depth, self.scene, edges, region)
         self._levels: dict[tuple[float, int | None], LevelViews] = {}
         self._renders = [0]  # shared with the objectives made by with_pose_term
 
@@ -168,7 +177,7 @@ class SilhouetteObjective:
         resampled targets of every view at each scale already computed taken from this one."""
         idx = [int(i) for i in idx]
         sub = SilhouetteObjective(self.pyramid, self.scene.subset(idx), self.loss_name, self.robust, self.detail,
-                                  self.depth, self.edges)
+                                  self.depth, self.edges, None if self.region is None else self.region.subset(idx))
         for (scale, max_views), lv in self._levels.items():
             if max_views is None:
                 sub._levels[(scale, None)] = LevelViews(

@@ -1,40 +1,38 @@
-"""The photo as evidence: refinement on region targets learned again from the pose reached.
+"""The photo as evidence: the rounds that learn the region term again at the pose reached.
 
-Each round renders the object's hard silhouettes at the current pose, learns each view's colour
-models in a band around them and makes the view's target from the pixel-wise posteriors, fused
-with the instance's mask where it has one (:func:`~autoalign.losses.region.region_target`); the
-pose is then descended on those targets by the mask engine (:func:`~autoalign.engine.refine.polish`,
-depth included) at the schedule's first level; once a round moves the pose less than the options'
-tolerance (or after ``rounds``), a last round on targets learned at the pose reached runs the rest
-of the schedule with the disambiguation and the report (:func:`~autoalign.engine.refine.refine`).
-The histograms stay fixed within a round, so the solver compares its steps on one objective;
-learning them again between rounds is the alternation PWP3D and RBOT use per frame. Without a given
-pose, where the masks alone fit loosely and find another pose almost as good, the rounds also start
-from the half turns of theirs, and the photos choose (:func:`best_side`).
+Each round renders the object's hard silhouettes at the current pose and learns the region term
+there (:class:`~autoalign.losses.region_term.RegionTerm`: each view's colour models in a band around
+the silhouette, their posteriors fused with the instance's mask where it has one); the pose is then
+descended with it in the mask term's place (:func:`~autoalign.engine.schedule.polish`, depth included)
+at the schedule's first level. The term's state stays fixed within a round, so the solver compares
+its steps on one objective; learning it again between rounds is the alternation PWP3D and RBOT use
+per frame. Once a round moves the pose less than the options' tolerance (or after ``rounds``), the
+engine runs the rest of the schedule, the disambiguation and the report with the term learned at the
+pose reached (:func:`~autoalign.engine.refine.refine`), and :func:`photo_result` reports it. Without
+a given pose, where the masks alone fit loosely and find another pose almost as good, the rounds
+also start from the half turns of theirs, and the photos choose (:func:`best_side`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Any, Callable, TypeVar
+from typing import Any, Callable, Sequence, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.engine.hypotheses import flips
-from autoalign.engine.objective import SilhouetteObjective
 from autoalign.engine.options import RefineOptions
-from autoalign.engine.schedule import polish
-from autoalign.engine.seeding import Click
+from autoalign.engine.schedule import compared_objective, polish
 from autoalign.engine.uncertainty import with_outline_disagreement
-from autoalign.errors import AutoalignError
 from autoalign.geometry.se3 import pose_change
 from autoalign.io.bop import Scene
-from autoalign.losses.region import EDGE_SUPPORTS, RegionOptions, region_target
+from autoalign.losses.region import EDGE_SUPPORTS, RegionOptions, RegionTarget
+from autoalign.losses.region_term import RegionTerm
 from autoalign.losses.term import Stance, TermEvidence
 from autoalign.losses.outline_offset import shared_outline_offset
-from autoalign.losses.overlap import LOOSE_FIT_IOU, view_ious
-from autoalign.rasterizers.pyramid import MeshPyramid
+from autoalign.losses.overlap import view_ious
+from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 
 SUPPORTS = EDGE_SUPPORTS
 """Median edge contrast (over the views) at or above which the photo supports the pose
@@ -121,21 +119,21 @@ class PhotoEvidence:
         return TermEvidence("photo", stance, contrast, reason, sees_outline=True, reliability=c)
 
 
-def photo_targets(scene: Scene, silhouettes: list[NDArray[np.bool_]], options: RegionOptions,
-                  measure: bool = False) -> tuple[Scene, PhotoEvidence]:
-    """``scene`` with each view's region target as its mask (see :mod:`autoalign.losses.region`),
-    the views' photos dropped (they are used) unless it has no masks (the edge term reads them then:
-    :mod:`autoalign.losses.edge`), and the per-view evidence (with the colour models' separation
-    when ``measure``: the evidence reported, not the rounds')."""
-    if scene.photos is None:
-        raise ValueError("the scene has no photos")
-    has_mask = scene.has_masks
-    per_view = [region_target(view.photo, sil, view.mask if has_mask else None, view.ignore, options, measure)
-                for view, sil in zip(scene.views, silhouettes)]
-    return (replace(scene, masks=[rt.target for rt in per_view], photos=None if has_mask else scene.photos),
-            PhotoEvidence(np.array([rt.band_px for rt in per_view]), np.array([rt.agreement for rt in per_view]),
-                          np.array([rt.edge_contrast for rt in per_view]), 0, has_mask,
-                          separation=np.array([rt.separation for rt in per_view]) if measure else None))
+    @classmethod
+    def of(cls, learned: Sequence[RegionTarget], rounds: int, masks_given: bool,
+           side: SideChoice | None = None) -> "PhotoEvidence":
+        """The evidence of the region targets ``learned`` (one per view, their separation measured)."""
+        return cls(np.array([rt.band_px for rt in learned]), np.array([rt.agreement for rt in learned]),
+                   np.array([rt.edge_contrast for rt in learned]), rounds, masks_given, side,
+                   np.array([rt.separation for rt in learned]))
+
+
+def region_term_at(scene: Scene, pyramid: MeshPyramid, T_wm: NDArray[np.float64], options: RefineOptions,
+                   region: RegionOptions, measure: bool = False) -> RegionTerm:
+    """The region term of ``scene``'s views learned around the object's hard silhouettes at ``T_wm``
+    (with ``options``' loss, and the colour models' separation when ``measure``)."""
+    silhouettes = pyramid.fine(options.detail).hard_masks(T_wm, scene.cameras)
+    return RegionTerm.learned_at(scene, silhouettes, region, options.loss, measure)
 
 
 SCREEN_ROUNDS = 2
@@ -163,14 +161,13 @@ def photo_rounds(scene: Scene, pyramid: MeshPyramid, T_wm: NDArray[np.float64], 
     descended on their targets at the schedule's first level by the masks' engine (``options``), until a
     round moves it less than ``region``'s tolerance (or after ``max_rounds``, by default the region's
     ``rounds``); ``progress`` is told each round as ``stage`` and its number."""
-    rast = pyramid.fine(options.detail)
     first_level = (replace(options.schedule[0], ftol=region.round_ftol),)
     T, iterations, renders, rounds, settled = T_wm, 0, 0, 0, False
     for r in range(region.rounds if max_rounds is None else max_rounds):
-        targets, _ = photo_targets(scene, rast.hard_masks(T, scene.cameras), region)
-        if not targets.has_masks:
+        term = region_term_at(scene, pyramid, T, options, region)
+        if not term.covered():
             break
-        T_new, its, n = polish(targets, pyramid, T, first_level, options, progress, f"{stage} {r + 1}")
+        T_new, its, n = polish(scene, pyramid, T, first_level, options, progress, f"{stage} {r + 1}", term)
         iterations, renders, rounds = iterations + its, renders + n, rounds + 1
         mm, deg = pose_change(T, T_new, pyramid.mesh.centre)
         T = T_new
@@ -185,11 +182,10 @@ def photo_value(scene: Scene, pyramid: MeshPyramid, T_wm: NDArray[np.float64], o
     """The objective at ``T_wm`` and the schedule's first level on the region targets learned at that
     pose (NaN: the object is in no view), which is comparable between poses: each is judged by the
     colours its own outline separates; and the renders it took."""
-    targets, _ = photo_targets(scene, pyramid.fine(options.detail).hard_masks(T_wm, scene.cameras), region)
-    if not targets.has_masks:
+    term = region_term_at(scene, pyramid, T_wm, options, region)
+    if not term.covered():
         return float("nan"), 0
-    obj = SilhouetteObjective(pyramid, targets.without_empty_masks(), options.loss, options.robust, options.detail,
-                              options.depth, options.edges)
+    obj = compared_objective(pyramid, scene, options, term)
     return obj.evaluate(T_wm, options.schedule[0], with_derivatives=False).value, obj.renders
 
 
@@ -224,55 +220,23 @@ def best_side(scene: Scene, pyramid: MeshPyramid, T_masks: NDArray[np.float64], 
     return replace(best, iterations=iterations, renders=renders, side=side)
 
 
-def refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.float64] | Click | None,
-                       options: RefineOptions, refine: Callable[..., R],
-                       progress: Callable[[str, int, int], None] | None = None) -> R:
-    """Refine with the photos of ``scene`` as evidence (module doc); ``refine`` is the mask engine.
-
-    A seed without a pose (a click, or none) is first placed from the masks alone; where they fit that
-    pose loosely (median IoU below :data:`~autoalign.losses.overlap.LOOSE_FIT_IOU`) and find a clearly
-    different pose that fits almost as well (``ambiguous``), the rounds run from it and from its half
-    turns (:func:`best_side`). With no mask either, there is nothing to place it from and an error says
-    what to give."""
-
-    region = options.region
-    assert region is not None
-    has_mask = scene.has_masks
-    # the edge term joins where the targets keep the photos, which they do without masks (photo_targets)
-    masks_only = replace(options, region=None, edges=region.edge_weight, masks_withheld=not has_mask)
-    rast = pyramid.fine(options.detail)
-    if seed is None or isinstance(seed, Click):
-        if not has_mask:
-            raise AutoalignError("without masks the photos refine a coarse pose: give --init (a coarse scene_gt.json)")
-        placed = refine(replace(scene, photos=None), pyramid, seed, masks_only, progress, pose_only=True)
-        T_seed, placing = placed.T_wm, (placed.iterations, placed.renders)  # the path starts there
-        # masks that miss much of it and find another pose nearly as good: the photos choose its side
-        choose_side = placed.ambiguous and np.median(placed.iou_after) < LOOSE_FIT_IOU
-    else:
-        T_seed, choose_side, placing = np.asarray(seed, dtype=np.float64), False, (0, 0)
-    run = (best_side if choose_side else photo_rounds)(scene, pyramid, T_seed, masks_only, region, progress)
-    T, rounds, iterations, renders = run.T_wm, run.rounds, run.iterations + placing[0], run.renders + placing[1]
-    targets, evidence = photo_targets(scene, rast.hard_masks(T, scene.cameras), region, measure=True)
-    if not targets.has_masks:
-        raise AutoalignError("the object is in no view at the given pose: check the --init pose and its obj_id")
-    # the rounds converged at the first level: the last one goes on from the second (if the schedule has one)
-    last = replace(masks_only, schedule=options.schedule[1:]) if rounds and len(options.schedule) > 1 else masks_only
-    if seed is None or isinstance(seed, Click):  # no pose was given: nothing to hold the result near
-        result = refine(targets, pyramid, T, replace(last, seed_radius=None), progress)
-    else:  # held near the person's seed, not near the rounds' last pose
-        result = refine(targets, pyramid, T, last, progress, anchor=T_seed)
-    keep = [k for k, t in enumerate(targets.masks) if np.any(t > 0.5)]  # the views refine used
-    evidence = PhotoEvidence(evidence.band_px[keep], evidence.agreement[keep], evidence.edge_contrast[keep], rounds + 1,
-                             has_mask, run.side, None if evidence.separation is None else evidence.separation[keep])
-    # the IoUs the report and the verdict read are with the instance's own masks where it has them
-    compared = scene.subset(keep) if has_mask else targets.subset(keep)
+def photo_result(result: R, scene: Scene, pyramid: MeshPyramid, term: RegionTerm, T_seed: NDArray[np.float64],
+                 run: Rounds, detail: MeshDetail) -> R:
+    """The engine's ``result`` on ``term`` (learned on ``scene``'s views at the rounds' last pose, ``run``,
+    from ``T_seed``) as a photo run reports it: with the photo's evidence (:class:`PhotoEvidence`) on the views
+    it refined with, the IoUs with the instance's own masks where it has them (else with the targets) and
+    the masks' disagreement with the colours on where the outline lies in its uncertainty."""
+    keep = term.covered()  # the views refine used
+    used = term.subset(keep)
+    evidence = PhotoEvidence.of(used.learned, run.rounds + 1, term.masks_given, run.side)
+    compared = scene.subset(keep) if term.masks_given else used.targets_in(scene.subset(keep))
+    rast = pyramid.fine(detail)
     iou_after, unc = result.iou_after, result.uncertainty
-    if has_mask:
+    if term.masks_given:
         silhouettes = rast.hard_masks(result.T_wm, compared.cameras)
         iou_after = view_ious(silhouettes, compared)
         if unc is not None:  # the masks against the colours: how far apart they put the outline
             unc = with_outline_disagreement(unc, shared_outline_offset(silhouettes, compared))
     return replace(result, T_init=T_seed, iou_before=view_ious(rast.hard_masks(T_seed, compared.cameras), compared),
-                   iou_after=iou_after, uncertainty=unc,
-                   iterations=result.iterations + iterations, renders=result.renders + renders,
-                   measured=result.measured + (evidence,))
+                   iou_after=iou_after, uncertainty=unc, iterations=result.iterations + run.iterations,
+                   renders=result.renders + run.renders, measured=result.measured + (evidence,))

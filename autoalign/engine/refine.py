@@ -31,9 +31,10 @@ from autoalign.engine.options import (  # noqa: F401 - the engine's settings, im
     RefineOptions,
     SearchOptions,
 )
-from autoalign.engine.photo_evidence import refine_with_photos
+from autoalign.engine.photo_evidence import best_side, photo_result, photo_rounds, region_term_at
 from autoalign.engine.refit_spread import refit_ratio, spread_factor
-from autoalign.engine.schedule import Progress, polish, run_schedule  # noqa: F401 - polish: one pose, no search
+from autoalign.engine.schedule import (  # noqa: F401 - polish: one pose, no search
+    Progress, compared_objective, polish, run_schedule)
 from autoalign.engine.see_through import refine_minding_see_through
 from autoalign.engine.seed_region import CLEARLY_BETTER, STIFFNESS, SeedHold, SeedRegion
 from autoalign.engine.seeding import Click, click_centre, hull_centre, rotation_grid
@@ -50,7 +51,8 @@ from autoalign.losses.silhouette import boundary_bias_grads
 from autoalign.losses.contact import (CONTACT_MAX_LEAN_DEG, CONTACT_STIFFNESS, OFFERED_GAP_MM, Contact, RestingContact,
                                       TablePlane)
 from autoalign.losses.term import Measured, PoseTerm, TermEvidence, ViewTermsRecord
-from autoalign.losses.overlap import iou_from_counts, view_ious
+from autoalign.losses.overlap import LOOSE_FIT_IOU, iou_from_counts, view_ious
+from autoalign.losses.region_term import RegionTerm
 from autoalign.rasterizers.pyramid import MeshPyramid
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
@@ -738,8 +740,7 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
             Without a pose the orientation is searched with ``options.n_rotations`` hypotheses.
         options: see :class:`RefineOptions`.
         progress: called as ``progress(stage, done, total)`` while it works.
-        anchor: the pose ``options.seed_radius`` is measured from (default: a seed pose; the photo
-            rounds pass the person's seed while refining from their own last pose).
+        anchor: the pose ``options.seed_radius`` is measured from (default: a seed pose).
         preview: called with the poses to show before the result is ready (:data:`PosePreview`):
             the best-scoring orientation of the search's grid at the seed's centre when a search
             starts (a click or no seed), before any descent; then each refinement's pose before its
@@ -756,33 +757,33 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
 
 
 def _evidence_engine(preview: PosePreview | None) -> Callable[..., RefineResult]:
-    """:func:`_refine_evidence` passing ``preview`` on, for the stages that call it back (photos, see-through)."""
+    """:func:`_refine_evidence` passing ``preview`` on, for the stage that calls it back (see-through depth)."""
     return _refine_evidence if preview is None else functools.partial(_refine_evidence, preview=preview)
 
 
 def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,
                      progress: Progress | None = None, anchor: NDArray[np.float64] | None = None,
-                     preview: PosePreview | None = None, pose_only: bool = False) -> RefineResult:
-    """:func:`refine` on its evidence as given: with the photos (:mod:`autoalign.engine.photo_evidence`,
-    which calls this on its targets), else the masks (and the depth) alone. ``pose_only``: the
-    caller reads only ``T_wm`` (the photos' start from the masks), so without a given pose the
-    uncertainty, which would change nothing of it, is not computed."""
-    if scene.photos is not None and opts.region is not None:
-        return refine_with_photos(scene, pyramid, seed, opts, _evidence_engine(preview), progress)
-    scene = scene.without_empty_masks()
-    if len(scene) == 0:
-        raise AutoalignError("every mask of the scene is empty; there is nothing to align the object with")
+                     preview: PosePreview | None = None, pose_only: bool = False,
+                     region: RegionTerm | None = None) -> RefineResult:
+    """:func:`refine` on its evidence as given: with the photos (:func:`_refine_with_photos`), else
+    the masks (and the depth) alone, or the ``region`` term learned on the scene's views in the mask
+    term's place. ``pose_only``: the caller reads only ``T_wm`` (the photos' start from the masks), so
+    without a given pose the uncertainty, which would change nothing of it, is not computed."""
+    if region is None and scene.photos is not None and opts.region is not None:
+        return _refine_with_photos(scene, pyramid, seed, opts, progress, anchor, preview)
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
+    obj = compared_objective(pyramid, scene, opts, region)
+    scene = obj.scene  # the views as compared: those whose target shows the object
+    if len(scene) == 0:
+        raise AutoalignError("every mask of the scene is empty; there is nothing to align the object with")
+    timings["setup"] = time.perf_counter() - t_start
+    t0 = time.perf_counter()
     given_pose = seed is not None and not isinstance(seed, Click)
     mesh = pyramid.mesh
     levels = opts.schedule
-    starts = _seed(scene, pyramid, seed, opts, progress, preview)  # first: a click's preview needs no objective
-    timings["seed"] = time.perf_counter() - t_start
-
-    t0 = time.perf_counter()
-    obj = SilhouetteObjective(pyramid, scene, opts.loss, opts.robust, opts.detail, opts.depth, opts.edges)
-    timings["setup"] = time.perf_counter() - t0
+    starts = _seed(scene, pyramid, seed, opts, progress, preview)
+    timings["seed"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     if len(starts) > 1:
@@ -840,3 +841,46 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
         turn_gap=turn.gap, turn_rise=turn.rise, turn_rise_axis_m=turn.rise_axis_m, terms=final_ev.record(),
         measured=final_ev.measured + ((contact,) if contact else ()),
         seed_hold=hold, holds=tuple(holds))
+
+
+def _refine_with_photos(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions, progress: Progress | None,
+                        anchor: NDArray[np.float64] | None, preview: PosePreview | None) -> RefineResult:
+    """:func:`refine` with the photos of ``scene`` as evidence: the rounds of
+    :mod:`autoalign.engine.photo_evidence`, then the rest of the schedule, the disambiguation and the
+    report with the region term learned at the pose they reached, held near ``anchor`` or else a seed
+    pose (not near the rounds' last pose).
+
+    A seed without a pose (a click, or none) is first placed from the masks alone; where they fit that
+    pose loosely (median IoU below :data:`~autoalign.losses.overlap.LOOSE_FIT_IOU`) and find a clearly
+    different pose that fits almost as well (``ambiguous``), the rounds run from it and from its half
+    turns (:func:`~autoalign.engine.photo_evidence.best_side`). With no mask either, there is nothing to
+    place it from and an error says what to give."""
+    region = opts.region
+    assert region is not None
+    has_mask = scene.has_masks
+    # the edge term joins where the region term keeps the photos, which it does without masks
+    masks_only = replace(opts, region=None, edges=region.edge_weight, masks_withheld=not has_mask)
+    pose_given = seed is not None and not isinstance(seed, Click)
+    if not pose_given:
+        if not has_mask:
+            raise AutoalignError("without masks the photos refine a coarse pose: give --init (a coarse scene_gt.json)")
+        placed = _refine_evidence(replace(scene, photos=None), pyramid, seed, masks_only, progress, preview=preview,
+                                  pose_only=True)
+        T_seed = placed.T_wm  # the path starts there
+        # masks that miss much of it and find another pose nearly as good: the photos choose its side
+        choose_side = placed.ambiguous and np.median(placed.iou_after) < LOOSE_FIT_IOU
+    else:
+        T_seed, choose_side = np.asarray(seed, dtype=np.float64), False
+    run = (best_side if choose_side else photo_rounds)(scene, pyramid, T_seed, masks_only, region, progress)
+    if not pose_given:
+        run = replace(run, iterations=run.iterations + placed.iterations, renders=run.renders + placed.renders)
+    term = region_term_at(scene, pyramid, run.T_wm, masks_only, region, measure=True)
+    if not term.covered():
+        raise AutoalignError("the object is in no view at the given pose: check the --init pose and its obj_id")
+    # the rounds converged at the first level: the last one goes on from the second (if the schedule has one)
+    last = replace(masks_only, schedule=opts.schedule[1:]) if run.rounds and len(opts.schedule) > 1 else masks_only
+    held_near = anchor if anchor is not None else T_seed if pose_given else None
+    if held_near is None:  # no pose was given: nothing to hold the result near
+        last = replace(last, seed_radius=None)
+    result = _refine_evidence(scene, pyramid, run.T_wm, last, progress, held_near, preview, region=term)
+    return photo_result(result, scene, pyramid, term, T_seed, run, opts.detail)

@@ -30,6 +30,7 @@ from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import apply_twist, transform_points
 from autoalign.io.instances import InstanceScenes
 from autoalign.losses.depth import DepthNoise
+from autoalign.losses.region_term import RegionTerm
 from autoalign.losses.term import PoseTerm, PoseTerms
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.scene.cameras import CameraPrior, camera_block
@@ -277,7 +278,8 @@ def refine_jointly(found: InstanceScenes, pyramids: list[MeshPyramid], poses: li
                    detail: MeshDetail = MeshDetail(), robust: bool = True, with_scale: bool = False,
                    depth: DepthNoise | None = None, edges: float | None = None,
                    scale_from: list[bool] | None = None, progress: Progress | None = None,
-                   rule: StepRule | None = None, holds: list[tuple[PoseTerm, ...]] | None = None) -> JointRefinement:
+                   rule: StepRule | None = None, holds: list[tuple[PoseTerm, ...]] | None = None,
+                   regions: list[RegionTerm | None] | None = None) -> JointRefinement:
     """Refine the poses of all instances of ``found`` (their meshes: ``pyramids``, drawn at
     ``detail.fine``) together from ``poses`` (world from model, mm), occlusion-aware, with
     ``with_cameras`` a correction of every camera and with ``with_scale`` the scene's scale
@@ -289,8 +291,9 @@ def refine_jointly(found: InstanceScenes, pyramids: list[MeshPyramid], poses: li
     IRLS view weights. ``holds``: per instance, the terms on its pose alone that held it when it was
     refined alone (the seed region, :class:`~autoalign.engine.seed_region.SeedRegion`; the resting
     contact, :class:`~autoalign.losses.contact.RestingContact`; none: free), which join the solve
-    (not the covariance, as alone)."""
-    objective = OcclusionObjective(found, pyramids, robust, detail, depth, edges)
+    (not the covariance, as alone). ``regions``: per instance the region term learned on its views,
+    compared in its masks' place (:mod:`autoalign.losses.region_term`; ``None``: the masks)."""
+    objective = OcclusionObjective(found, pyramids, robust, detail, depth, edges, regions)
     centres_m = objective.centres_m
     p = np.mean([transform_points(T, c[None])[0] for T, c in zip(poses, centres_m)], axis=0)
     problem = JointProblem(objective, level, centres_m, p, prior or CameraPrior(), with_cameras, with_scale, scale_from,

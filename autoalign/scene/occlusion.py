@@ -35,6 +35,7 @@ from autoalign.losses import robust_view_weights
 from autoalign.losses.depth import DepthNoise
 from autoalign.losses.mask_term import MaskTerm
 from autoalign.losses.overlap import iou_from_counts
+from autoalign.losses.region_term import RegionTerm
 from autoalign.losses.term import Fragments, LevelViews, Measured, TermValues, ViewTermsRecord
 from autoalign.rasterizers.camera_batch import CameraBatch
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
@@ -151,6 +152,8 @@ class OcclusionObjective:
             the depth term (:mod:`autoalign.losses.depth`) to its own twist in each of its views.
         edges: the edge term's weight; with it, an instance whose scene carries photos (its masks
             withheld) adds the edge term (:mod:`autoalign.losses.edge`) the same way.
+        regions: per instance its region term learned on its views (:mod:`autoalign.losses.region_term`),
+            whose targets its silhouettes are compared with in its masks' place; ``None``: the masks.
 
     Each instance's own per-view terms are its objective's (:func:`~autoalign.engine.objective.view_terms`,
     the one list), but for the mask term, whose place the occlusion-aware fit takes: a term added
@@ -159,12 +162,12 @@ class OcclusionObjective:
 
     def __init__(self, found: InstanceScenes, pyramids: list[MeshPyramid], robust: bool = True,
                  detail: MeshDetail = MeshDetail(), depth: DepthNoise | None = None,
-                 edges: float | None = None) -> None:
+                 edges: float | None = None, regions: list[RegionTerm | None] | None = None) -> None:
         self.rasterizers = [p.fine(detail) for p in pyramids]
         self.robust = robust
-        self.scenes = found.scenes
-        self.objectives = [SilhouetteObjective(p, s, detail=detail, depth=depth, edges=edges)
-                           for p, s in zip(pyramids, found.scenes)]
+        self.objectives = [SilhouetteObjective(p, s, detail=detail, depth=depth, edges=edges, region=r)
+                           for p, s, r in zip(pyramids, found.scenes, regions or [None] * len(pyramids))]
+        self.scenes = [o.scene for o in self.objectives]  # as compared: a region term's targets in the masks' place
         used = sorted({im for s in found.scenes for im in s.image_ids})
         by_id = dict(zip(found.image_ids, found.cameras))
         self.image_ids = used

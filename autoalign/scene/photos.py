@@ -3,8 +3,8 @@ another modelled object, at its pose, covers left out (occlusion-aware colour mo
 
 The alone stage (:func:`~autoalign.scene.refine.refine_instances`) refines each instance on its
 photos with the others at their seeds left out (:func:`others_left_out`); the joint stage then
-compares every instance with its region targets learned at the alone stage's poses
-(:func:`region_targets`), the others at theirs left out.
+compares every instance with its region term learned at the alone stage's poses (:func:`region_terms`),
+the others at theirs left out.
 """
 
 from __future__ import annotations
@@ -14,10 +14,11 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.engine.photo_evidence import PhotoEvidence, photo_targets
+from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.io.instances import InstanceScenes
 from autoalign.io.models import ModelSet
 from autoalign.losses.region import RegionOptions
+from autoalign.losses.region_term import RegionTerm
 from autoalign.rasterizers.label_rendering import PlacedMesh, cast_labels
 from autoalign.rasterizers.pyramid import MeshDetail
 
@@ -56,26 +57,22 @@ def others_left_out(found: InstanceScenes, models: ModelSet, poses: dict[int, ND
     return replace(found, scenes=scenes)
 
 
-def region_targets(found: InstanceScenes, models: ModelSet, poses: list[NDArray[np.float64]],
-                   options: RegionOptions, detail: MeshDetail = MeshDetail(), leave_out: bool = True
-                   ) -> tuple[InstanceScenes, list[PhotoEvidence | None]]:
-    """Every instance's scene whose masks are its region targets at ``poses`` (one per instance,
-    in order; :func:`~autoalign.engine.photo_evidence.photo_targets`), the other instances at
-    theirs left out (``leave_out=False``: ``found`` has them left out already, by
-    :func:`others_left_out`), and each one's photo evidence there; scenes without photos are
-    returned as they are (evidence ``None``)."""
-    if all(sc.photos is None for sc in found.scenes):
-        return found, [None] * len(found.scenes)
-    by_index = {inst.index: T for inst, T in zip(found.instances, poses)}
-    posed = others_left_out(found, models, by_index) if leave_out else found
-    scenes, evidence = [], []
-    for inst, sc, T in zip(found.instances, posed.scenes, poses):
+def region_terms(found: InstanceScenes, models: ModelSet, poses: list[NDArray[np.float64]], options: RegionOptions,
+                 detail: MeshDetail = MeshDetail(), loss: str = "l2"
+                 ) -> tuple[list[RegionTerm | None], list[PhotoEvidence | None]]:
+    """Every instance's region term learned at its pose of ``poses`` (one per instance, in order) on its
+    views in ``found``, which has the other instances left out already (:func:`others_left_out`), and
+    each one's photo evidence there (its colour models' separation measured); ``None`` for the
+    instances without photos."""
+    terms: list[RegionTerm | None] = []
+    evidence: list[PhotoEvidence | None] = []
+    for inst, sc, T in zip(found.instances, found.scenes, poses):
         if sc.photos is None:
-            scenes.append(sc)
+            terms.append(None)
             evidence.append(None)
             continue
-        rast = models.pyramid(inst.obj_id).fine(detail)
-        targets, ev = photo_targets(sc, rast.hard_masks(T, sc.cameras), options, measure=True)
-        scenes.append(targets)
-        evidence.append(ev)
-    return replace(found, scenes=scenes), evidence
+        silhouettes = models.pyramid(inst.obj_id).fine(detail).hard_masks(T, sc.cameras)
+        term = RegionTerm.learned_at(sc, silhouettes, options, loss, measure=True)
+        terms.append(term)
+        evidence.append(PhotoEvidence.of(term.learned, 0, term.masks_given))
+    return terms, evidence

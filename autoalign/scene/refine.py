@@ -48,6 +48,7 @@ from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
 from autoalign.losses.contact import Contact, RestingContact
 from autoalign.losses.region import RegionOptions
+from autoalign.losses.region_term import RegionTerm
 from autoalign.losses.see_through import SeeThrough
 from autoalign.losses.outline_offset import shared_outline_offset
 from autoalign.losses.overlap import view_ious
@@ -55,7 +56,7 @@ from autoalign.quality.verdict import PoseEvidence, Verdict, judge
 from autoalign.rasterizers.pyramid import MeshPyramid
 from autoalign.scene.cameras import corrections_accepted
 from autoalign.scene.joint import JointRefinement, refine_jointly
-from autoalign.scene.photos import others_left_out, region_targets
+from autoalign.scene.photos import others_left_out, region_terms
 from autoalign.scene.scale import grown_pose, rescaled, scale_from_masks, scaled_cameras
 
 Progress = Callable[[str, int, int], None]
@@ -150,20 +151,21 @@ def _within(change: tuple[float, float], region: RegionOptions) -> bool:
 
 def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: InstanceScenes, found: InstanceScenes,
                  pyramids: list[MeshPyramid], models: ModelSet, opts: RefineOptions,
-                 photo_alone: list[PhotoEvidence | None]) -> list[RefineResult]:
+                 photo_alone: list[PhotoEvidence | None], regions: list[RegionTerm | None]) -> list[RefineResult]:
     """Each instance's result at the joint stage's pose: its per-view fit, uncertainty, weak turns
     and depth there; with photos, their evidence there (``photo_alone``, at the alone poses, where
     the joint stage moved an instance less than the photo rounds' tolerance) and the IoUs with its
-    own masks (``given``: the instances as read; ``found``: as the joint stage compared them)."""
+    own masks (``given``: the instances as the joint stage saw them; ``found``: the same through its
+    cameras, compared with their ``regions``' targets where they have one)."""
     photo = list(photo_alone)
     region = opts.region
     moved = [k for k, r in enumerate(alone) if photo[k] is not None and region is not None
              and not _within(pose_change(r.result.T_wm, joint.poses[k], pyramids[k].mesh.centre), region)]
     if moved and region is not None:  # the photo's evidence again at those joint poses, the others as left out before
-        _, again = region_targets(given.through(found.camera_by_id), models, joint.poses, region, opts.detail,
-                                  leave_out=False)
+        _, again = region_terms(given.through(found.camera_by_id), models, joint.poses, region, opts.detail, opts.loss)
         for k in moved:
             photo[k] = again[k]
+    compared = [sc if term is None else term.targets_in(sc) for sc, term in zip(found.scenes, regions)]
     after = []
     for k, r in enumerate(alone):
         alone_unc = r.result.uncertainty
@@ -172,14 +174,14 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
             turn_floors=tuple(alone_unc.turn_floors))
         gap = None
         if unc.weak_turn_axes and opts.disambiguation.weak_turns:  # the joint system's weak turns, tried at its pose
-            own, scores, _ = turn_scores(pyramids[k].with_faces(opts.detail.coarse), found.scenes[k],
+            own, scores, _ = turn_scores(pyramids[k].with_faces(opts.detail.coarse), compared[k],
                                          joint.poses[k], unc.weak_turn_axes, pyramids[k].mesh.centre,
                                          opts.disambiguation.weak_turns)
             gap = own - float(scores.max())
         by_terms = joint.evaluation.measured(k)  # its own terms' records beside the masks (the depth's)
         seen = r.result.measurement(SeeThrough)
         if seen is not None:  # the depth sees through it: the joint stage did not use it either
-            by_terms += (measured_see_through(found.scenes[k], pyramids[k], joint.poses[k], opts, seen.declared),)
+            by_terms += (measured_see_through(compared[k], pyramids[k], joint.poses[k], opts, seen.declared),)
         had_photo = r.result.measurement(PhotoEvidence)
         iou = joint.evaluation.hard_iou(k)
         own_scene = given.scenes[k]
@@ -274,24 +276,24 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
         pyramids, start = [models.pyramid(r.instance.obj_id) for r in alone], [r.result.T_wm for r in alone]
         holds = [r.result.holds for r in alone]  # the terms on the pose that held each alone, kept jointly
         t0 = time.perf_counter()
-        given = found  # the instances as read: their own masks and photos
         photo_alone: list[PhotoEvidence | None] = [None] * len(alone)
+        regions: list[RegionTerm | None] = [None] * len(alone)
+        given = found  # the instances as read; with photos, their region terms at the alone poses, the others left out
         if opts.region is not None and any(sc.photos is not None for sc in found.scenes):
-            # the photos' evidence as targets learned at the alone poses, the others left out
-            given = others_left_out(found, models, {r.instance.index: r.result.T_wm for r in alone})
-            found, photo_alone = region_targets(given, models, start, opts.region, opts.detail, leave_out=False)
+            found = given = others_left_out(found, models, {r.instance.index: r.result.T_wm for r in alone})
+            regions, photo_alone = region_terms(given, models, start, opts.region, opts.detail, opts.loss)
         opaque = without_see_through_depth(found, alone)
         edges = opts.region.edge_weight if opts.region is not None else None  # on the instances without masks
         attempt = (refine_jointly(opaque, pyramids, start, with_cameras=True, detail=opts.detail, robust=opts.robust,
                                   with_scale=solve_scale, depth=opts.depth, edges=edges, scale_from=scale_from,
-                                  progress=progress, rule=rule, holds=holds)
+                                  progress=progress, rule=rule, holds=holds, regions=regions)
                    if refine_cameras else None)
         if attempt is not None and corrections_accepted(attempt.view_misfit_before, attempt.view_misfit_after):
             joint = attempt
         else:
             joint = refine_jointly(opaque, pyramids, start, detail=opts.detail, robust=opts.robust, with_scale=solve_scale,
                                    depth=opts.depth, edges=edges, scale_from=scale_from, progress=progress, rule=rule,
-                                   holds=holds)
+                                   holds=holds, regions=regions)
         if solve_scale:
             found = found.through({**scaled_cameras(found.camera_by_id, joint.scale), **joint.cameras})
             scale, scale_sigma = scale * joint.scale, joint.scale_sigma
@@ -301,7 +303,7 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
                 break
         elif joint is attempt:
             found = found.through(joint.cameras)
-    after = _after_joint(alone, joint, given, found, pyramids, models, opts, photo_alone)
+    after = _after_joint(alone, joint, given, found, pyramids, models, opts, photo_alone, regions)
     seconds = (time.perf_counter() - t0) / max(len(alone), 1)
     results = [InstanceResult(r.instance, replace(res, timings={**res.timings, "joint": seconds}),
                               verdict_of(res, found.scenes[k].empty, models, r.instance.obj_id,
@@ -315,6 +317,6 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
     if not settled:  # every label's depth in its camera follows the scale: none can be trusted
         results = _all_flagged(results, f"the scene's scale did not settle in {rounds} rounds: the objects' masks and "
                                         "their fit disagree on it")
-    # the instances' own masks (with photos, found's are the colour targets) through the final cameras
+    # the instances' own masks through the final cameras
     return SceneRefinement(results, joint, attempt, given.through(found.camera_by_id), scale, scale_sigma, settled)
 
