@@ -225,7 +225,9 @@ def test_the_bundled_example_gives_its_scale_with_photos_on_and_off(tmp_path, tr
     """The bundled example (masks and photos) with its cameras' translations written in a unit of
     ``true_scale`` mm: ``--solve-scale`` gives that scale within 0.002, and every label within 1 mm /
     1 deg of the truth. With the photos the scale came out 0.9879 +- 0.0005 for 1, every label 6.5 mm
-    off and ``ok``: the fused targets grew every outline (tests/test_photo_fusion.py)."""
+    off and ``ok``: the fused targets grew every outline (tests/test_photo_fusion.py). With the photos
+    the result reports their evidence: a second round of the scale once took the first one's colour
+    targets for the masks, and the photos were then neither used nor reported."""
     scene = tmp_path / "scene"
     shutil.copytree(EXAMPLE / "scene", scene)
     cams = json.loads((scene / "scene_camera.json").read_text())
@@ -240,6 +242,7 @@ def test_the_bundled_example_gives_its_scale_with_photos_on_and_off(tmp_path, tr
     rec = json.loads((out / "refine.json").read_text())
     assert abs(rec["scale"]["mm_per_unit"] - true_scale) < 0.002, rec["scale"]
     assert rec["instances"][0]["verdict"] == "ok"
+    assert ("photo" in rec["instances"][0]) == (photos == "on"), sorted(rec["instances"][0])
     models = ModelSet.read(EXAMPLE / "models")
     truth = json.loads((EXAMPLE / "scene" / "scene_gt.json").read_text())
     for im, entries in json.loads((out / "scene_gt.json").read_text()).items():
