@@ -14,13 +14,13 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.engine.photo_evidence import PhotoEvidence
+from autoalign.engine.options import RefineOptions
+from autoalign.engine.photo_evidence import PhotoEvidence, region_term_at
 from autoalign.io.instances import InstanceScenes
 from autoalign.io.models import ModelSet
 from autoalign.losses.region import RegionOptions
 from autoalign.losses.region_term import RegionTerm
 from autoalign.rasterizers.label_rendering import PlacedMesh, cast_labels
-from autoalign.rasterizers.pyramid import MeshDetail
 
 
 def nearest_instance(found: InstanceScenes, models: ModelSet, poses: dict[int, NDArray[np.float64]]
@@ -57,13 +57,12 @@ def others_left_out(found: InstanceScenes, models: ModelSet, poses: dict[int, ND
     return replace(found, scenes=scenes)
 
 
-def region_terms(found: InstanceScenes, models: ModelSet, poses: list[NDArray[np.float64]], options: RegionOptions,
-                 detail: MeshDetail = MeshDetail(), loss: str = "l2"
-                 ) -> tuple[list[RegionTerm | None], list[PhotoEvidence | None]]:
-    """Every instance's region term learned at its pose of ``poses`` (one per instance, in order) on its
-    views in ``found``, which has the other instances left out already (:func:`others_left_out`), and
-    each one's photo evidence there (its colour models' separation measured); ``None`` for the
-    instances without photos."""
+def region_terms(found: InstanceScenes, models: ModelSet, poses: list[NDArray[np.float64]], options: RefineOptions,
+                 region: RegionOptions) -> tuple[list[RegionTerm | None], list[PhotoEvidence | None]]:
+    """Every instance's region term (``region``, with ``options``' loss and detail) learned at its pose of
+    ``poses`` (one per instance, in order) on its views in ``found``, which has the other instances left
+    out already (:func:`others_left_out`), and each one's photo evidence there (its colour models'
+    separation measured); ``None`` for the instances without photos."""
     terms: list[RegionTerm | None] = []
     evidence: list[PhotoEvidence | None] = []
     for inst, sc, T in zip(found.instances, found.scenes, poses):
@@ -71,8 +70,7 @@ def region_terms(found: InstanceScenes, models: ModelSet, poses: list[NDArray[np
             terms.append(None)
             evidence.append(None)
             continue
-        silhouettes = models.pyramid(inst.obj_id).fine(detail).hard_masks(T, sc.cameras)
-        term = RegionTerm.learned_at(sc, silhouettes, options, loss, measure=True)
+        term = region_term_at(sc, models.pyramid(inst.obj_id), T, options, region, measure=True)
         terms.append(term)
         evidence.append(PhotoEvidence.of(term.learned, 0, term.masks_given))
     return terms, evidence

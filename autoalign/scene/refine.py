@@ -162,7 +162,7 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
     moved = [k for k, r in enumerate(alone) if photo[k] is not None and region is not None
              and not _within(pose_change(r.result.T_wm, joint.poses[k], pyramids[k].mesh.centre), region)]
     if moved and region is not None:  # the photo's evidence again at those joint poses, the others as left out before
-        _, again = region_terms(given.through(found.camera_by_id), models, joint.poses, region, opts.detail, opts.loss)
+        _, again = region_terms(given.through(found.camera_by_id), models, joint.poses, opts, region)
         for k in moved:
             photo[k] = again[k]
     compared = [sc if term is None else term.targets_in(sc) for sc, term in zip(found.scenes, regions)]
@@ -310,7 +310,7 @@ def refine_scene(found: InstanceScenes, models: ModelSet, seeds: dict[int, NDArr
         given = found  # the instances as read; with photos, their region terms at the alone poses, the others left out
         if opts.region is not None and any(sc.photos is not None for sc in found.scenes):
             found = given = others_left_out(found, models, {r.instance.index: r.result.T_wm for r in alone})
-            regions, photo_alone = region_terms(given, models, start, opts.region, opts.detail, opts.loss)
+            regions, photo_alone = region_terms(given, models, start, opts, opts.region)
         opaque = without_see_through_depth(found, alone)
         edges = opts.region.edge_weight if opts.region is not None else None  # on the instances without masks
         attempt = (refine_jointly(opaque, pyramids, start, with_cameras=True, detail=opts.detail, robust=opts.robust,
