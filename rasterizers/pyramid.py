@@ -10,6 +10,7 @@ agree with the originals' at IoU >= 0.999 in every view (quadric decimation,
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 from autoalign.geometry.mesh import Mesh
@@ -46,7 +47,8 @@ AS_GIVEN = MeshDetail(None, None, None)
 class MeshPyramid:
     """``mesh`` (model frame, mm) and its simplified versions, each with its rasterizer, made on
     first use and kept: one per model (:meth:`~autoalign.io.models.ModelSet.pyramid`), shared by
-    every stage that renders it. Not thread-safe (drjit renders one thread at a time).
+    every stage that renders it, also from several threads (the instances of a scene refined side by
+    side, :mod:`autoalign.runtime.parallel`).
     ``symmetries``: the model's (:class:`~autoalign.geometry.se3.Symmetries`), for what measures
     how far a pose moved (a turn about an axis of continuous symmetry is no move); ``material``:
     what the model is declared to be to the sensors (``"opaque"``, ``"transparent"``, ``"reflective"``;
@@ -57,6 +59,7 @@ class MeshPyramid:
         self.symmetries = symmetries
         self.material = material
         self._rasterizers: dict[int | None, SoftSilhouetteRasterizer] = {}
+        self._making = threading.Lock()  # each level made once, by the first thread to ask
 
     @property
     def transparent(self) -> bool:
@@ -67,10 +70,11 @@ class MeshPyramid:
         """The rasterizer of the mesh simplified to at most ``max_faces`` triangles (``None``: as given)."""
         if max_faces is not None and len(self.mesh.faces) <= max_faces:
             max_faces = None  # already small enough: share the mesh as given
-        if max_faces not in self._rasterizers:
-            mesh = self.mesh if max_faces is None else self.mesh.simplified(max_faces)
-            self._rasterizers[max_faces] = SoftSilhouetteRasterizer(mesh)
-        return self._rasterizers[max_faces]
+        with self._making:
+            if max_faces not in self._rasterizers:
+                mesh = self.mesh if max_faces is None else self.mesh.simplified(max_faces)
+                self._rasterizers[max_faces] = SoftSilhouetteRasterizer(mesh)
+            return self._rasterizers[max_faces]
 
     def at(self, scale: float, detail: MeshDetail = MeshDetail()) -> SoftSilhouetteRasterizer:
         """The rasterizer for images at ``scale`` of the full size, at ``detail``."""

@@ -9,6 +9,7 @@ nearest surface), written as a BOP folder with a models folder beside it.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -187,6 +188,30 @@ def test_refine_models_from_init_labels_every_instance(multi, tmp_path):
     assert len(gt) == N_VIEWS and all([e["obj_id"] for e in v] == multi.obj_ids for v in gt.values())
     overlay = cv2.imread(str(out / "overlay.png"))
     assert overlay is not None and overlay.shape[0] > 300
+
+
+@pytest.mark.slow
+def test_instances_refined_side_by_side_end_as_refined_one_after_the_other(multi, tmp_path):
+    """With two render threads the instances are refined two at a time (each on one,
+    :mod:`autoalign.runtime.parallel`), with one one after the other: the same labels, sigmas,
+    verdicts and reasons to the bit, the same joint stage."""
+    def run(threads: str) -> tuple[dict, str]:
+        out = tmp_path / f"out_{threads}"
+        p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", str(multi.scene), "--models",
+                            str(multi.models), "--init", str(multi.init), "--out", str(out), "--quiet"],
+                           capture_output=True, text=True, timeout=600, env={**os.environ, "AUTOALIGN_THREADS": threads})
+        assert p.returncode == 0, p.stderr
+        rec = json.loads((out / "refine.json").read_text())
+        for r in rec["instances"]:
+            r.pop("timings")
+        rec.pop("timings")
+        return rec, (out / "scene_gt.json").read_text()
+
+    (two, gt_two), (one, gt_one) = run("2"), run("1")
+    assert two["instances"] == one["instances"]
+    assert two["joint"] == one["joint"] and two["joint"]["iterations"] >= 1
+    assert gt_two == gt_one
+    assert len(two["instances"]) == N_OBJ
 
 
 @pytest.mark.slow

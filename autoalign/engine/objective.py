@@ -166,8 +166,13 @@ class SilhouetteObjective:
                     return np.asarray(m, dtype=np.float32)  # no copy: targets are only read
                 return cv2.resize(np.asarray(m, dtype=np.float32), (c.width, c.height), interpolation=cv2.INTER_AREA)
 
+            def ignored(g: NDArray, c: Camera) -> NDArray[np.bool_]:
+                if scale == 1.0 and g.dtype == np.bool_:
+                    return g  # no copy: read only, and at full size as many bytes as the image has pixels
+                return resampled(g, c) > 0.5
+
             tg = [resampled(m, c) for m, c in zip(scene.masks, cams)]
-            ignore = None if scene.ignore is None else [resampled(g, c) > 0.5 for g, c in zip(scene.ignore, cams)]
+            ignore = None if scene.ignore is None else [ignored(g, c) for g, c in zip(scene.ignore, cams)]
             self._levels[key] = LevelViews(cams, tg, np.array([float(t.sum()) for t in tg]), ignore, scene.cameras,
                                            scene.masks, scene.depths, scene.photos)
         return self._levels[key]

@@ -40,6 +40,7 @@ from autoalign.losses.term import Fragments, LevelViews, Measured, TermValues, V
 from autoalign.rasterizers.camera_batch import CameraBatch
 from autoalign.rasterizers.pyramid import MeshDetail, MeshPyramid
 from autoalign.rasterizers.soft_silhouette import Silhouettes
+from autoalign.runtime.parallel import side_by_side
 
 V = TypeVar("V")
 
@@ -195,8 +196,9 @@ class OcclusionObjective:
         cams = [c.scaled(level.scale) for c in self.cameras]
         batch = CameraBatch.of(cams)
         keys = [(level.scale, level.sigma, np.asarray(T, dtype=np.float64).tobytes()) for T in poses]
-        sils = [self._last.get(("render", i), keys[i], lambda: r.render(T, cams, level.sigma))
-                for i, (r, T) in enumerate(zip(self.rasterizers, poses))]
+        sils = side_by_side(lambda i: self._last.get(("render", i), keys[i],
+                                                     lambda: self.rasterizers[i].render(poses[i], cams, level.sigma)),
+                            range(len(poses)))
         views = [o.at_scale(level.scale) for o in self.objectives]
         pairs = self._overlaps(sils, keys, poses, batch)
         by_view: dict[tuple[int, int], list[_Pair]] = {}

@@ -27,7 +27,7 @@ the scale settles 1.4% too large.
 
 from __future__ import annotations
 
-import functools
+import threading
 import time
 from dataclasses import dataclass, replace
 from typing import Callable
@@ -54,6 +54,7 @@ from autoalign.losses.outline_offset import shared_outline_offset
 from autoalign.losses.overlap import view_ious
 from autoalign.quality.verdict import LARGE_SIGMA_MM, PoseEvidence, Verdict, judge
 from autoalign.rasterizers.pyramid import MeshPyramid
+from autoalign.runtime.parallel import side_by_side
 from autoalign.scene.cameras import corrections_accepted
 from autoalign.scene.joint import JointRefinement, refine_jointly
 from autoalign.scene.photos import others_left_out, region_terms
@@ -102,25 +103,34 @@ def refine_instances(found: InstanceScenes, models: ModelSet, seeds: dict[int, N
     """Refine every instance of ``found`` from its seed (``seeds[index]``: 4x4 world-from-model, mm;
     an instance without one is searched from the visual hull of its masks), each showing its poses to
     ``preview`` on the way."""
-    out = []
     n = len(found.instances)
     # the engine holds a result within the seed's radius unless it fits clearly better outside
     options = replace(options or RefineOptions(), seed_radius=seed_radius if judge_seeds else None)
-    for k, (inst, scene) in enumerate(zip(found.instances, found.scenes)):
+    for inst in found.instances:  # each model made once, before the instances share it
+        models.pyramid(inst.obj_id)
+    shown_lock = threading.Lock()  # the instances run side by side: one progress line or preview at a time
+
+    def one(k: int) -> InstanceResult:
+        inst, scene = found.instances[k], found.scenes[k]
         t0 = time.perf_counter()
         label = f"obj {inst.obj_id} (instance {inst.index}, {k + 1}/{n})"
 
-        def step(stage: str, done: int, total: int, label: str = label) -> None:
+        def step(stage: str, done: int, total: int) -> None:
             if progress is not None:
-                progress(f"{label}: {stage}", done, total)
+                with shown_lock:
+                    progress(f"{label}: {stage}", done, total)
 
-        shown = None if preview is None else functools.partial(preview, inst.index)
+        def shown(T_wm: NDArray[np.float64]) -> None:
+            with shown_lock:
+                preview(inst.index, T_wm)
+
         result = refine(scene, models.pyramid(inst.obj_id), seeds.get(inst.index), options, progress=step,
-                        preview=shown)
+                        preview=None if preview is None else shown)
         seed = seeds.get(inst.index) if judge_seeds else None
-        out.append(InstanceResult(inst, result, verdict_of(result, scene.empty, models, inst.obj_id, seed, seed_radius),
-                                  time.perf_counter() - t0))
-    return out
+        return InstanceResult(inst, result, verdict_of(result, scene.empty, models, inst.obj_id, seed, seed_radius),
+                              time.perf_counter() - t0)
+
+    return side_by_side(one, range(n))
 
 
 @dataclass
