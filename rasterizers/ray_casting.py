@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from autoalign.geometry.mesh import Mesh
 from autoalign.geometry.se3 import invert
 from autoalign.rasterizers.camera_batch import CameraBatch
-from autoalign.runtime.backend import drjit, jit_array, mitsuba
+from autoalign.runtime.backend import drjit, jit_array, mitsuba, numpy_of
 
 
 class TriangleMesh(Protocol):
@@ -78,7 +78,7 @@ class RayCaster:
         convention, pixel centres at +0.5) of views ``view`` (N,)."""
         if len(view) == 0:
             return np.zeros(0, dtype=bool)
-        return np.array(self._scene.ray_test(self._pixel_rays(T_wm, cams, view, uv)), dtype=bool)
+        return numpy_of(self._scene.ray_test(self._pixel_rays(T_wm, cams, view, uv)), dtype=bool)[0]
 
     def pixel_depths(self, T_wm: NDArray[np.float64], cams: CameraBatch, view: NDArray[np.int64],
                      uv: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -86,7 +86,7 @@ class RayCaster:
         (N, 2) of views ``view`` (N,); ``inf`` where the ray misses the object."""
         if len(view) == 0:
             return np.zeros(0)
-        t = np.array(self._scene.ray_intersect_preliminary(self._pixel_rays(T_wm, cams, view, uv)).t, dtype=np.float64)
+        t = numpy_of(self._scene.ray_intersect_preliminary(self._pixel_rays(T_wm, cams, view, uv)).t, dtype=np.float64)[0]
         t[~np.isfinite(t)] = np.inf
         return t
 
@@ -104,10 +104,11 @@ class RayCaster:
         o = [self._dr.opaque(mi.Float, float(x)) for x in o_m.astype(np.float32)]  # opaque: one kernel for all origins
         ray = mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*(jit_array(mi.Float, d_m[:, i], np.float32) for i in range(3))))
         pi = self._scene.ray_intersect_preliminary(ray)
-        t = np.array(pi.t, dtype=np.float32)
+        self._dr.eval(pi.t, pi.prim_index, pi.prim_uv)  # one kernel, run without the GIL (numpy_of)
+        t = numpy_of(pi.t, dtype=np.float32)[0]
         hit = np.isfinite(t)
-        return RayHits(np.where(hit, t, np.float32(np.inf)), np.where(hit, np.array(pi.prim_index, dtype=np.int64), 0),
-                       np.where(hit[:, None], np.array(pi.prim_uv, dtype=np.float32).T, np.float32(0.0)))
+        return RayHits(np.where(hit, t, np.float32(np.inf)), np.where(hit, numpy_of(pi.prim_index, dtype=np.int64)[0], 0),
+                       np.where(hit[:, None], numpy_of(pi.prim_uv, dtype=np.float32)[0].T, np.float32(0.0)))
 
     def _pixel_rays(self, T_wm: NDArray[np.float64], cams: CameraBatch, view: NDArray[np.int64],
                     uv: NDArray[np.float64]) -> Any:
@@ -167,4 +168,4 @@ class RayCaster:
         for c in range(C):
             w = dr.gather(mi.Float64, jit_array(mi.Float64, weights[:, c], np.float64), r)
             dr.scatter_reduce(dr.ReduceOp.Add, sums, w, kv * dr.opaque(UInt, C) + c, active=hit)
-        return np.array(sums, dtype=np.float64).reshape(K, V, C).transpose(0, 2, 1)
+        return numpy_of(sums, dtype=np.float64)[0].reshape(K, V, C).transpose(0, 2, 1)

@@ -122,3 +122,25 @@ def test_backend_started_by_two_threads_at_once_starts_once() -> None:
             "print(len(got), len({id(m) for m in got}), got[0].variant())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["4", "1", "llvm_ad_rgb"]
+
+
+def test_numpy_of_runs_the_kernel_once_for_all_and_keeps_the_values() -> None:
+    """The arrays of one computation come back from one kernel (run by ``drjit.eval``, without the
+    GIL), with the values and dtypes the plain conversion gives."""
+    dr, mi = backend.drjit(), backend.mitsuba()
+    x = backend.jit_array(mi.Float, np.linspace(0.0, 3.0, 1000), np.float32)
+    a, b = dr.sin(x) * 2.0, dr.cos(x) + x
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history_clear()
+        got_a, got_b = backend.numpy_of(a, b, dtype=np.float64)
+        launched = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert len(launched) == 1
+    assert got_a.dtype == np.float64 and got_b.dtype == np.float64
+    np.testing.assert_array_equal(got_a, np.array(a, dtype=np.float64))
+    np.testing.assert_array_equal(got_b, np.array(b, dtype=np.float64))
+    t = np.linspace(0.0, 3.0, 1000).astype(np.float32)
+    np.testing.assert_allclose(got_a, 2.0 * np.sin(t), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(got_b, np.cos(t) + t, rtol=1e-5, atol=1e-6)

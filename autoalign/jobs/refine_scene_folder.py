@@ -235,10 +235,11 @@ def scene_overlay(refined: SceneRefinement, models: ModelSet, scene_dir: Path, d
     n = len(found.image_ids)
     views = sorted(set(np.linspace(0, n - 1, min(9, n)).round().astype(int).tolist()))
     cams = [found.cameras[i] for i in views]
+    drawn = {found.image_ids[i] for i in views}
     layers = []
     for r, scene in zip(refined.results, found.scenes):
         rast = models.pyramid(r.instance.obj_id).fine(detail)
-        masks = {v.image_id: np.asarray(v.mask) > 0.5 for v in scene.views}
+        masks = {v.image_id: np.asarray(v.mask) > 0.5 for v in scene.views if v.image_id in drawn}
         layers.append((instance_label(r.instance.obj_id, r.verdict.status), masks,
                        np.stack(rast.hard_masks(r.result.T_wm, cams))))
     return render_instances_overlay(found.cameras, found.image_ids, scene_dir, layers, views)

@@ -136,6 +136,15 @@ def aligned_copy(a: ArrayLike, dtype: DTypeLike) -> NDArray[Any]:
     return out
 
 
+def numpy_of(*arrays: Any, dtype: DTypeLike) -> list[NDArray[Any]]:
+    """The drjit ``arrays`` as numpy arrays of ``dtype``, their kernel run first by ``drjit.eval``
+    (one kernel for all of them). ``drjit.eval`` lets go of the GIL while the kernel runs; a
+    conversion that evaluates by itself holds it, and another thread's Python (an instance refined
+    side by side, :mod:`autoalign.runtime.parallel`) then waits for the kernel too."""
+    drjit().eval(*arrays)
+    return [np.array(a, dtype=dtype) for a in arrays]
+
+
 def jit_array(array_type: Any, a: ArrayLike, dtype: DTypeLike) -> Any:
     """``array_type(a)`` for a drjit array type (``mi.Float``, ``mi.UInt32``, ...), built from an aligned copy.
 
