@@ -86,7 +86,8 @@ class RayCaster:
         (N, 2) of views ``view`` (N,); ``inf`` where the ray misses the object."""
         if len(view) == 0:
             return np.zeros(0)
-        t = numpy_of(self._scene.ray_intersect_preliminary(self._pixel_rays(T_wm, cams, view, uv)).t, dtype=np.float64)[0]
+        hits = self._scene.ray_intersect_preliminary(self._pixel_rays(T_wm, cams, view, uv))
+        t = numpy_of(hits.t, dtype=np.float64)[0]
         t[~np.isfinite(t)] = np.inf
         return t
 
@@ -105,10 +106,11 @@ class RayCaster:
         ray = mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*(jit_array(mi.Float, d_m[:, i], np.float32) for i in range(3))))
         pi = self._scene.ray_intersect_preliminary(ray)
         self._dr.eval(pi.t, pi.prim_index, pi.prim_uv)  # one kernel, run without the GIL (numpy_of)
-        t = numpy_of(pi.t, dtype=np.float32)[0]
+        t, uv = numpy_of(pi.t, pi.prim_uv, dtype=np.float32)
         hit = np.isfinite(t)
-        return RayHits(np.where(hit, t, np.float32(np.inf)), np.where(hit, numpy_of(pi.prim_index, dtype=np.int64)[0], 0),
-                       np.where(hit[:, None], numpy_of(pi.prim_uv, dtype=np.float32)[0].T, np.float32(0.0)))
+        face = numpy_of(pi.prim_index, dtype=np.int64)[0]
+        return RayHits(np.where(hit, t, np.float32(np.inf)), np.where(hit, face, 0),
+                       np.where(hit[:, None], uv.T, np.float32(0.0)))
 
     def _pixel_rays(self, T_wm: NDArray[np.float64], cams: CameraBatch, view: NDArray[np.int64],
                     uv: NDArray[np.float64]) -> Any:

@@ -199,7 +199,8 @@ def test_instances_refined_side_by_side_end_as_refined_one_after_the_other(multi
         out = tmp_path / f"out_{threads}"
         p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", str(multi.scene), "--models",
                             str(multi.models), "--init", str(multi.init), "--out", str(out), "--quiet"],
-                           capture_output=True, text=True, timeout=600, env={**os.environ, "AUTOALIGN_THREADS": threads})
+                           capture_output=True, text=True, timeout=600,
+                           env={**os.environ, "AUTOALIGN_THREADS": threads})
         assert p.returncode == 0, p.stderr
         rec = json.loads((out / "refine.json").read_text())
         for r in rec["instances"]:

@@ -535,9 +535,10 @@ def _with_alike_turn(obj: SilhouetteObjective, scene: Scene, final: list[Finalis
                      others: list[Hypothesis], opts: RefineOptions, progress: Progress | None
                      ) -> tuple[list[Finalist], Standing]:
     """The best's turns that look alike (:func:`_alike_turns`) scored by hard IoU at
-    :data:`ALIKE_SCORE_SCALE`, and the best of them, if it beats the best by ``opts.disambiguation.margin``, polished and added:
-    descent from a seed half a tooth off can end a tooth off, and the turn that shows a gear's key
-    is not among the small ones tried (:data:`~autoalign.engine.options.DisambiguationOptions`)."""
+    :data:`ALIKE_SCORE_SCALE`, and the best of them, if it beats the best by
+    ``opts.disambiguation.margin``, polished and added: descent from a seed half a tooth off can end a
+    tooth off, and the turn that shows a gear's key is not among the small ones tried
+    (:class:`~autoalign.engine.options.DisambiguationOptions`)."""
     if not opts.disambiguation.orbits or not len(mesh.round_axes):
         return final, standing
     best = standing.ranked[0]

@@ -19,11 +19,11 @@ each instance in cameras of the wrong scale, so a round first re-guesses the sca
 orientations it found (:data:`SCALE_REGUESS`), until a joint stage has solved it from instances
 whose alone stage ended ``ok``: the guess is a few percent off where the joint stage is a fraction
 of a percent, and re-guessed after it, it undid the joint stage's scale in every round (3 of 6
-3- and 4-object scenes never settled, the guess 3.3-4.2% above the truth; one object started 10% off,
-whose alone stage ended ``failed``, still needs the guess: its joint stage drifts from it). Only the
-instances whose alone stage ended ``ok``
-decide the scale, in the joint stage and in that guess (all, if none did): a mask that misses parts
-of its object asks for a larger scene, one on another object for anything. On the real LM-O scene
+3- and 4-object scenes never settled, the guess 3.3-4.2% above the truth; one object started 10%
+off, whose alone stage ended ``failed``, still needs the guess: its joint stage drifts from it).
+Only the instances whose alone stage ended ``ok`` decide the scale, in the joint stage and in that
+guess (all, if none did): a mask that misses parts of its object asks for a larger scene, one on
+another object for anything. On the real LM-O scene
 ``lmo_im0115_0389`` (the driller's SAM masks miss its dark handle, the egg box's and glue's are
 mostly another object's), with the scene's own metric cameras taken as unscaled, the guesses from
 all four instances kept the rounds from settling, at 5.2% too large; from the ``ok`` ones (the cat)
