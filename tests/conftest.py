@@ -113,3 +113,18 @@ def box_with_depth() -> tuple[Any, np.ndarray, list, list[np.ndarray]]:
                         width=320, height=240)
     T = make_pose(so3_exp(np.array([0.3, -0.2, 0.5])), -mesh.centre)
     return mesh, T, cams, [open3d_depth(mesh, T, c) for c in cams]
+
+
+@pytest.fixture
+def pool_of_two() -> Any:
+    """drjit's pool at two threads (the test workers run with one each), as on a 2-core machine: work
+    run side by side (:mod:`autoalign.runtime.parallel`) then runs on two threads."""
+    from autoalign.runtime.backend import drjit
+
+    dr = drjit()
+    before = dr.thread_count()
+    dr.set_thread_count(2)
+    try:
+        yield
+    finally:
+        dr.set_thread_count(before)

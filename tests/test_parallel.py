@@ -5,24 +5,10 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
-
 import pytest
 
 from autoalign.runtime.backend import drjit
 from autoalign.runtime.parallel import side_by_side
-
-
-@pytest.fixture
-def pool_of_two() -> Iterator[None]:
-    """drjit's pool at two threads (the test workers run with one each), as on a 2-core machine."""
-    dr = drjit()
-    before = dr.thread_count()
-    dr.set_thread_count(2)
-    try:
-        yield
-    finally:
-        dr.set_thread_count(before)
 
 
 def test_items_run_two_at_once_and_come_back_in_order(pool_of_two):

@@ -13,6 +13,8 @@ import os
 import shutil
 import subprocess
 import sys
+import threading
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -213,6 +215,35 @@ def test_instances_refined_side_by_side_end_as_refined_one_after_the_other(multi
     assert two["joint"] == one["joint"] and two["joint"]["iterations"] >= 1
     assert gt_two == gt_one
     assert len(two["instances"]) == N_OBJ
+
+
+@pytest.mark.slow
+def test_previews_of_instances_refined_side_by_side_come_one_at_a_time(multi, pool_of_two):
+    """The label page shows each instance's poses as they come (``refine_scene``'s preview) while the
+    instances are refined two at a time: the calls come from both threads but never overlap, and
+    every instance shows its poses."""
+    from autoalign.io.models import ModelSet
+    from autoalign.scene.refine import refine_scene
+
+    found = read_instance_scenes(multi.scene, read_instances(multi.scene))
+    seeds = read_init_poses(multi.init, found)
+    busy, overlapped, shown, threads = threading.Lock(), [], {}, set()
+
+    def preview(index: int, T_wm: np.ndarray) -> None:
+        if not busy.acquire(blocking=False):
+            overlapped.append(index)
+            return
+        try:
+            shown.setdefault(index, []).append(T_wm.copy())
+            threads.add(threading.get_ident())
+            time.sleep(0.01)  # a page's drawing takes a while: another preview would overlap it
+        finally:
+            busy.release()
+
+    done = refine_scene(found, ModelSet.read(multi.models), seeds, preview=preview)
+    assert not overlapped
+    assert sorted(shown) == list(range(N_OBJ)) and len(done.results) == N_OBJ
+    assert len(threads) == 2  # shown from both threads: the instances ran side by side
 
 
 @pytest.mark.slow
