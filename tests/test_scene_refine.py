@@ -247,6 +247,34 @@ def test_previews_of_instances_refined_side_by_side_come_one_at_a_time(multi, po
 
 
 @pytest.mark.slow
+def test_ctrl_c_while_instances_are_refined_side_by_side_exits_130_and_writes_nothing(multi, tmp_path):
+    """SIGINT at 30%, 50% and 70% of a run whose instances are refined two at a time (two render
+    threads): the threads under way stop at their next progress report, and the command exits 130
+    with one line and writes nothing, as it does one instance after the other."""
+    import signal
+
+    env = {**os.environ, "AUTOALIGN_THREADS": "2"}
+
+    def command(out: Path) -> list[str]:
+        return [sys.executable, "-m", "autoalign.cli.main", "refine", str(multi.scene), "--models", str(multi.models),
+                "--init", str(multi.init), "--out", str(out), "--quiet"]
+
+    t0 = time.perf_counter()
+    whole = subprocess.run(command(tmp_path / "whole"), capture_output=True, text=True, timeout=600, env=env)
+    seconds = time.perf_counter() - t0
+    assert whole.returncode == 0, whole.stderr
+    for share in (0.3, 0.5, 0.7):
+        out = tmp_path / f"out{share}"
+        p = subprocess.Popen(command(out), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        time.sleep(share * seconds)
+        p.send_signal(signal.SIGINT)
+        stdout, stderr = p.communicate(timeout=120)
+        assert p.returncode == 130, (share, p.returncode, stderr)
+        assert [x for x in stderr.splitlines() if x.strip()] == ["autoalign: interrupted"], (share, stderr)
+        assert not out.exists() and stdout == "", share
+
+
+@pytest.mark.slow
 def test_instance_with_wrong_masks_is_flagged_and_exit_is_3(multi, tmp_path):
     """Instance 3's masks replaced by instance 1's in 60% of the views (a segmenter that labelled
     the wrong object): whatever pose it ends at, it is not 'ok', and the command exits 3."""
