@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 import time
+
 import pytest
 
 from autoalign.runtime.backend import drjit
@@ -37,7 +38,7 @@ def test_the_first_error_is_raised_and_no_item_after_it_starts(pool_of_two):
         if k == 1:
             release.set()
             raise ValueError("item 1 failed")
-        time.sleep(0.2)  # an item takes a while, as an instance's refinement does
+        time.sleep(0.5)  # an item takes a while, as an instance's refinement does
         return k
 
     with pytest.raises(ValueError, match="item 1 failed"):
@@ -48,17 +49,19 @@ def test_the_first_error_is_raised_and_no_item_after_it_starts(pool_of_two):
 
 
 def test_called_from_an_item_it_runs_one_after_the_other(pool_of_two):
-    threads = []
+    def inner(k: int) -> tuple[int, int]:
+        return k, threading.get_ident()
 
-    def inner(k: int) -> int:
-        threads.append(threading.get_ident())
-        return k
+    both = threading.Barrier(2, timeout=10)  # broken unless the two items run at the same time
 
-    def outer(k: int) -> list[int]:
-        return side_by_side(inner, [k, k + 1])
+    def outer(k: int) -> tuple[int, list[tuple[int, int]]]:
+        both.wait()
+        return threading.get_ident(), side_by_side(inner, [k, k + 1])
 
-    assert side_by_side(outer, [0, 10]) == [[0, 1], [10, 11]]
-    assert len(threads) == 4
+    done = side_by_side(outer, [0, 10])
+    assert [[k for k, _ in ran] for _, ran in done] == [[0, 1], [10, 11]]
+    assert all(t == mine for mine, ran in done for _, t in ran)  # in the item's own thread
+    assert done[0][0] != done[1][0]
 
 
 def test_with_a_pool_of_one_the_items_run_in_the_calling_thread():
