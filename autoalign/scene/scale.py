@@ -78,8 +78,8 @@ def scale_from_masks(found: InstanceScenes, models: ModelSet,
             continue
         ratios: list[float] = []
         mesh = models.mesh(inst.obj_id)
-        seen = [v for v in scene.views if (v.mask > 0.5).any()]
-        views = [(v.camera, v.mask > 0.5) for v in seen]
+        seen = [(v, m) for v in scene.views if (m := v.mask > 0.5).any()]  # each mask thresholded once
+        views = [(v.camera, m) for v, m in seen]
         if len(views) < 2:
             continue
         centroids = [np.argwhere(m).mean(0) for _, m in views]  # (row, column)
@@ -97,7 +97,7 @@ def scale_from_masks(found: InstanceScenes, models: ModelSet,
         else:
             T = make_pose(R, X - R @ mesh.centre)
             drawn = models.pyramid(inst.obj_id).with_faces(AREA_DETAIL).hard_masks(T, [cam for cam, _ in views])
-            drawn = [d if v.ignore is None else d & ~v.ignore for d, v in zip(drawn, seen)]  # where not hidden
+            drawn = [d if v.ignore is None else d & ~v.ignore for d, (v, _) in zip(drawn, seen)]  # where not hidden
             ratios += [float(np.sqrt(d.sum() / a)) for d, a in zip(drawn, areas) if d.any()]
         if ratios:
             per_instance.append(_robust(np.asarray(ratios)))
