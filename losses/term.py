@@ -18,6 +18,7 @@ Twists are ``(v [mm], w [rad])`` in the world frame about ``Fragments.centre_w``
 from __future__ import annotations
 
 import enum
+import functools
 from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
@@ -44,6 +45,11 @@ class LevelViews:
     full_masks: list[NDArray[np.float32]]
     depths: list[NDArray[np.float32]] | None = None
     photos: list[NDArray[np.uint8]] | None = None
+
+    @functools.cached_property
+    def hard_totals(self) -> NDArray[np.int64]:
+        """Per view, the target's pixels above a half (a hard mask's area), counted once."""
+        return np.array([np.count_nonzero(t > 0.5) for t in self.targets], dtype=np.int64)
 
 
 @dataclass(frozen=True)

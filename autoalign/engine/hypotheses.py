@@ -113,7 +113,7 @@ class _LowResViews:
         centres, dirs, pix, tgt, view, J, g_cent, t_tot, care = [], [], [], [], [], [], [], [], []
         for k in idx:
             cam = scene.cameras[k].scaled(scale)
-            mask = cv2.resize(scene.masks[k].astype(np.float32), (cam.width, cam.height),
+            mask = cv2.resize(scene.masks[k].astype(np.float32, copy=False), (cam.width, cam.height),
                               interpolation=cv2.INTER_AREA) > 0.5
             Xc = cam.to_camera(centre_w[None])[0]
             if Xc[2] <= reach or not mask.any():

@@ -274,13 +274,14 @@ class OcclusionObjective:
             x1, y1 = min(xi + wi, xj + wj), min(yi + hi, yj + hj)
             if x1 <= x0 or y1 <= y0:
                 continue
-            yy, xx = np.mgrid[y0:y1, x0:x1]
-            pi = ((yy - yi) * wi + (xx - xi)).ravel()
-            pj = ((yy - yj) * wj + (xx - xj)).ravel()
-            both = (si.soft[si.offsets[g] + pi] > 0) & (sj.soft[sj.offsets[g] + pj] > 0)
-            if both.any():
-                uv = pixel_centres(xx.ravel()[both], yy.ravel()[both])
-                out.append(_Pair(i, j, int(g), pi[both], pj[both], uv))
+            # the shared rectangle as views of both crops (row-major, as the band's pixels)
+            ci = si.soft[si.offsets[g]:si.offsets[g] + wi * hi].reshape(hi, wi)[y0 - yi:y1 - yi, x0 - xi:x1 - xi]
+            cj = sj.soft[sj.offsets[g]:sj.offsets[g] + wj * hj].reshape(hj, wj)[y0 - yj:y1 - yj, x0 - xj:x1 - xj]
+            yy, xx = np.nonzero((ci > 0) & (cj > 0))
+            if len(yy):
+                yy, xx = yy + y0, xx + x0
+                out.append(_Pair(i, j, int(g), (yy - yi) * wi + (xx - xi), (yy - yj) * wj + (xx - xj),
+                                 pixel_centres(xx, yy)))
         return out
 
     def _order(self, pairs: list[_Pair], poses: list[NDArray[np.float64]], batch: CameraBatch,
@@ -369,7 +370,7 @@ class OcclusionObjective:
         if level.scale == 1.0:
             hv = sil.hard[o:o + w * h] & ~hidden_hard & ~ignored
             hard_iou = float(iou_from_counts(np.count_nonzero(hv & (t > 0.5)), np.count_nonzero(hv),
-                                             np.count_nonzero(lv.targets[k] > 0.5)))
+                                             lv.hard_totals[k]))
         return ViewFit(np.array(involved, dtype=np.int64), loss, grad, gn, iou, hard_iou, len(pix))
 
 
