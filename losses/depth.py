@@ -172,6 +172,9 @@ class DepthTerms:
         its occluders hide: each hidden sample stands for its ``stride``-wide cell."""
         h, w = shape
         rows, cols = self.occluders[k]
+        hidden = np.zeros((h, w), dtype=bool)
+        if len(rows) == 0:
+            return hidden
         half = self.stride[k] / 2.0
         # each cell's edges in continuous coordinates, at the level's resolution, clipped to the image
         y0 = np.clip(np.floor(uv_from_opencv(rows - half) * scale).astype(np.int64), 0, h)
@@ -179,13 +182,19 @@ class DepthTerms:
         x0 = np.clip(np.floor(uv_from_opencv(cols - half) * scale).astype(np.int64), 0, w)
         x1 = np.clip(np.ceil(uv_from_opencv(cols + half) * scale).astype(np.int64), 0, w)
         keep = (y1 > y0) & (x1 > x0)
-        y0, y1, x0, x1 = y0[keep], y1[keep], x0[keep], x1[keep]
-        corners = np.zeros((h + 1, w + 1), dtype=np.int64)  # the cells painted at once: a 2D difference image
+        if not keep.any():
+            return hidden
+        # the cells painted at once, on their box (beyond it nothing is painted): a 2D difference image
+        top, left = int(y0[keep].min()), int(x0[keep].min())
+        y0, y1, x0, x1 = y0[keep] - top, y1[keep] - top, x0[keep] - left, x1[keep] - left
+        bh, bw = int(y1.max()), int(x1.max())
+        corners = np.zeros((bh + 1, bw + 1), dtype=np.int64)
         np.add.at(corners, (y0, x0), 1)
         np.add.at(corners, (y0, x1), -1)
         np.add.at(corners, (y1, x0), -1)
         np.add.at(corners, (y1, x1), 1)
-        return np.cumsum(np.cumsum(corners, axis=0), axis=1)[:h, :w] > 0
+        hidden[top:top + bh, left:left + bw] = np.cumsum(np.cumsum(corners, axis=0), axis=1)[:bh, :bw] > 0
+        return hidden
 
 
 def sample_pixels(camera: Camera, mesh: Mesh, T_wm: NDArray[np.float64], measured: NDArray[np.float32],
@@ -227,12 +236,13 @@ def depth_terms(caster: RayCaster, mesh: Mesh, T_wm: NDArray[np.float64], camera
                      np.zeros(n, np.int64), np.full(n, np.nan), np.full(n, np.nan), [(none, none)] * n,
                      np.ones(n, np.int64), np.zeros((n, n_parts), np.int64), np.zeros((n, n_parts), np.int64))
     normals_m = mesh.face_normals
-    for k, (cam, measured) in enumerate(zip(cameras, depths)):
-        rows, cols, out.stride[k] = sample_pixels(cam, mesh, T_wm, measured, max_samples)
+    samples = [sample_pixels(cam, mesh, T_wm, measured, max_samples) for cam, measured in zip(cameras, depths)]
+    rays = [cam.depth_rays(cols, rows) for cam, (rows, cols, _) in zip(cameras, samples)]  # unit z: t is depth
+    cast = caster.first_hits_from(T_wm, [c.centre for c in cameras], [d.astype(np.float32) for d in rays])
+    for k, (cam, measured, (rows, cols, stride), d_w, hits) in enumerate(zip(cameras, depths, samples, rays, cast)):
+        out.stride[k] = stride
         if len(rows) == 0:
             continue
-        d_w = cam.depth_rays(cols, rows)  # unit z in the camera: t is depth
-        hits = caster.first_hits(T_wm, cam.centre, d_w.astype(np.float32))
         z_r = hits.t.astype(np.float64)
         z_m = measured[rows, cols].astype(np.float64)
         hit = np.isfinite(z_r)

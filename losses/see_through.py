@@ -78,14 +78,17 @@ def see_through_shares(caster: RayCaster, mesh: Mesh, T_wm: NDArray[np.float64],
     behind the rendered surface by more than the occluder margin or is missing (module doc); NaN
     where fewer than ``MIN_SAMPLES_TO_JUDGE`` such pixels are sampled (a grid of about ``max_samples``)."""
     out = np.full(len(cameras), np.nan)
-    for k, (cam, measured, mask) in enumerate(zip(cameras, depths, masks)):
+    samples = []
+    for mask in masks:
         rows, cols = np.nonzero(np.asarray(mask) > 0.5)
-        if len(rows) < MIN_SAMPLES_TO_JUDGE:
-            continue
         step = max(1, int(np.ceil(len(rows) / max_samples)))
-        rows, cols = rows[::step], cols[::step]
-        d_w = cam.depth_rays(cols, rows)  # unit z in the camera: t is depth
-        z_r = caster.first_hits(T_wm, cam.centre, d_w.astype(np.float32)).t.astype(np.float64)
+        samples.append((rows[::step], cols[::step]) if len(rows) >= MIN_SAMPLES_TO_JUDGE else (rows[:0], cols[:0]))
+    rays = [cam.depth_rays(cols, rows).astype(np.float32) for cam, (rows, cols) in zip(cameras, samples)]  # unit z
+    cast = caster.first_hits_from(T_wm, [c.centre for c in cameras], rays)  # t is depth
+    for k, (measured, (rows, cols), hits) in enumerate(zip(depths, samples, cast)):
+        if len(rows) == 0:
+            continue
+        z_r = hits.t.astype(np.float64)
         hit = np.isfinite(z_r)
         if hit.sum() < MIN_SAMPLES_TO_JUDGE:
             continue

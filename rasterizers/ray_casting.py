@@ -12,6 +12,8 @@ and where on it (barycentric coordinates): the check's colour rendering of sever
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -94,23 +96,34 @@ class RayCaster:
     def first_hits(self, T_wm: NDArray[np.float64], origin: NDArray[np.float64],
                    directions: NDArray[np.float32]) -> RayHits:
         """The first hits of the world rays ``origin + t * directions[i]`` (origin (3,), mm;
-        directions (n, 3), any length) at the mesh placed by ``T_wm``. The rays are moved into the
-        model frame (double precision, then single): ``t`` is the same in both frames."""
-        mi, n = self._mi, len(directions)
-        if n == 0:
-            return RayHits(np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros((0, 2), np.float32))
+        directions (n, 3), any length) at the mesh placed by ``T_wm`` (:meth:`first_hits_from`)."""
+        return self.first_hits_from(T_wm, [origin], [directions])[0]
+
+    def first_hits_from(self, T_wm: NDArray[np.float64], origins: Sequence[NDArray[np.float64]],
+                        directions: Sequence[NDArray[np.float32]]) -> list[RayHits]:
+        """:meth:`first_hits` of several bundles of rays (e.g. one per camera: ``origins[k]`` (3,), mm,
+        and ``directions[k]`` (n_k, 3)) in one kernel. The rays are moved into the model frame
+        (double precision, then single; each bundle as if cast alone): ``t`` is the same in both frames."""
+        mi = self._mi
+        counts = [len(d) for d in directions]
+        if sum(counts) == 0:
+            return [RayHits(np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros((0, 2), np.float32))
+                    for _ in counts]
         R, p = np.asarray(T_wm, dtype=np.float64)[:3, :3], np.asarray(T_wm, dtype=np.float64)[:3, 3]
-        d_m = np.asarray(directions, dtype=np.float64) @ R  # rows R^T d
-        o_m = R.T @ (np.asarray(origin, dtype=np.float64) - p)
-        o = [self._dr.opaque(mi.Float, float(x)) for x in o_m.astype(np.float32)]  # opaque: one kernel for all origins
-        ray = mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*(jit_array(mi.Float, d_m[:, i], np.float32) for i in range(3))))
+        d_m = np.concatenate([np.asarray(d, dtype=np.float64).reshape(-1, 3) @ R for d in directions])  # rows R^T d
+        o_m = np.repeat([(R.T @ (np.asarray(o, dtype=np.float64) - p)).astype(np.float32) for o in origins], counts,
+                        axis=0)
+        ray = mi.Ray3f(mi.Point3f(*(jit_array(mi.Float, o_m[:, i], np.float32) for i in range(3))),
+                       mi.Vector3f(*(jit_array(mi.Float, d_m[:, i], np.float32) for i in range(3))))
         pi = self._scene.ray_intersect_preliminary(ray)
         self._dr.eval(pi.t, pi.prim_index, pi.prim_uv)  # one kernel, run without the GIL (numpy_of)
         t, uv = numpy_of(pi.t, pi.prim_uv, dtype=np.float32)
         hit = np.isfinite(t)
         face = numpy_of(pi.prim_index, dtype=np.int64)[0]
-        return RayHits(np.where(hit, t, np.float32(np.inf)), np.where(hit, face, 0),
-                       np.where(hit[:, None], uv.T, np.float32(0.0)))
+        t, face, uv = np.where(hit, t, np.float32(np.inf)), np.where(hit, face, 0), np.where(hit[:, None], uv.T,
+                                                                                              np.float32(0.0))
+        ends = np.cumsum(counts)[:-1]
+        return [RayHits(*parts) for parts in zip(np.split(t, ends), np.split(face, ends), np.split(uv, ends))]
 
     def _pixel_rays(self, T_wm: NDArray[np.float64], cams: CameraBatch, view: NDArray[np.int64],
                     uv: NDArray[np.float64]) -> Any:

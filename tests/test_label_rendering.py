@@ -140,3 +140,37 @@ def test_first_hits_give_triangle_barycentrics_and_ray_parameter() -> None:
     w = np.column_stack([1.0 - h.bary[:3].sum(1), h.bary[:3]])
     assert np.allclose(w @ (V @ T[:3, :3].T + T[:3, 3]), h.t[:3, None] * d[:3], atol=1e-4)
     assert np.all(h.bary[3] == 0)
+
+
+def test_bundles_of_rays_cast_in_one_kernel_hit_what_open3d_hits() -> None:
+    """``first_hits_from``: three cameras' rays (one camera with none) cast together give, bundle by
+    bundle, the hits each bundle gets cast alone, to the bit, and the depths and triangles open3d's
+    caster finds for the same world rays."""
+    rng = np.random.default_rng(5)
+    box = trimesh.creation.box(extents=(60.0, 40.0, 30.0))
+    mesh = ColouredMesh(np.asarray(box.vertices, float), np.asarray(box.faces, np.int64),
+                        np.zeros((len(box.vertices), 3), np.float32), False)
+    caster = RayCaster(mesh)
+    T = make_pose(random_rotation(rng), np.array([5.0, -3.0, 2.0]))
+    origins = [np.array([0.0, 0.0, -300.0]), np.array([250.0, 40.0, -120.0]), np.array([-200.0, 150.0, 90.0])]
+    bundles = []
+    for o, n in zip(origins, (500, 0, 700)):  # aimed at the box's middle, some rays past its edges
+        aim = rng.normal(scale=25.0, size=(n, 3)) - o
+        bundles.append((aim / np.linalg.norm(aim, axis=1, keepdims=True)).astype(np.float32))
+    together = caster.first_hits_from(T, origins, bundles)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor((mesh.vertices @ T[:3, :3].T + T[:3, 3]).astype(np.float32)),
+                        o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+    for o, d, h in zip(origins, bundles, together, strict=True):
+        alone = caster.first_hits(T, o, d)
+        assert np.array_equal(h.t, alone.t) and np.array_equal(h.prim, alone.prim) and np.array_equal(h.bary, alone.bary)
+        if len(d) == 0:
+            assert len(h.t) == 0
+            continue
+        ref = scene.cast_rays(o3d.core.Tensor(np.hstack([np.tile(o, (len(d), 1)), d]).astype(np.float32)))
+        t_ref = ref["t_hit"].numpy()
+        hit = np.isfinite(t_ref)
+        assert 0.2 < hit.mean() < 1.0  # some rays hit, some pass the box
+        assert np.array_equal(np.isfinite(h.t), hit)
+        assert np.allclose(h.t[hit], t_ref[hit], atol=1e-3)
+        assert np.mean(h.prim[hit] == ref["primitive_ids"].numpy()[hit].astype(np.int64)) > 0.99  # edges may differ
