@@ -13,7 +13,6 @@ and where on it (barycentric coordinates): the check's colour rendering of sever
 from __future__ import annotations
 
 from collections.abc import Sequence
-
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -120,8 +119,9 @@ class RayCaster:
         t, uv = numpy_of(pi.t, pi.prim_uv, dtype=np.float32)
         hit = np.isfinite(t)
         face = numpy_of(pi.prim_index, dtype=np.int64)[0]
-        t, face, uv = np.where(hit, t, np.float32(np.inf)), np.where(hit, face, 0), np.where(hit[:, None], uv.T,
-                                                                                              np.float32(0.0))
+        t = np.where(hit, t, np.float32(np.inf))
+        face = np.where(hit, face, 0)
+        uv = np.where(hit[:, None], uv.T, np.float32(0.0))
         ends = np.cumsum(counts)[:-1]
         return [RayHits(*parts) for parts in zip(np.split(t, ends), np.split(face, ends), np.split(uv, ends))]
 
