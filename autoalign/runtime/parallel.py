@@ -26,8 +26,7 @@ Result = TypeVar("Result")
 
 def side_by_side(work: Callable[[Item], Result], items: Sequence[Item]) -> list[Result]:
     """``[work(item) for item in items]``, run on as many threads at once as drjit's pool has (at most
-    one per item), drjit's pool shared out among them while they run: once no item is left to start,
-    the share of a thread with nothing more to do goes to the items still running. Called from one of those
+    one per item), drjit's pool shared out among them while they run. Called from one of those
     threads, it runs the items one after the other. Once an item fails, no more are started; when the
     items under way have ended, the error of the first in their order that failed is raised. Ctrl-C
     waits for the items under way too (each stops at its next progress report)."""
@@ -37,19 +36,9 @@ def side_by_side(work: Callable[[Item], Result], items: Sequence[Item]) -> list[
     if workers <= 1 or getattr(_here, "inside", False):
         return [work(item) for item in items]
 
-    unfinished = [len(items)]
-    lock = threading.Lock()
-
     def one(item: Item) -> Result:
         _here.inside = True  # the pool is shared out once, by the outermost call
-        try:
-            return work(item)
-        finally:
-            with lock:
-                unfinished[0] -= 1
-                left = unfinished[0]
-            if 0 < left < workers:  # a thread is idle from now on: its share goes to the items still running
-                dr.set_thread_count(max(1, cores // left))
+        return work(item)
 
     dr.set_thread_count(max(1, cores // workers))
     pool = ThreadPoolExecutor(workers, thread_name_prefix="autoalign")
