@@ -163,7 +163,8 @@ def test_bundles_of_rays_cast_in_one_kernel_hit_what_open3d_hits() -> None:
                         o3d.core.Tensor(mesh.faces.astype(np.uint32)))
     for o, d, h in zip(origins, bundles, together, strict=True):
         alone = caster.first_hits(T, o, d)
-        assert np.array_equal(h.t, alone.t) and np.array_equal(h.prim, alone.prim) and np.array_equal(h.bary, alone.bary)
+        assert np.array_equal(h.t, alone.t) and np.array_equal(h.prim, alone.prim)
+        assert np.array_equal(h.bary, alone.bary)
         if len(d) == 0:
             assert len(h.t) == 0
             continue
