@@ -79,12 +79,13 @@ def find_band(outline: Outline, crops: NDArray[np.int64], offsets: NDArray[np.in
     else:
         in_band = np.zeros(atlas.shape, dtype=bool)
     region, samples = _off_band_regions(atlas, in_band)
-    rr, cc = np.nonzero(in_band)
-    if len(rr) == 0:
+    at = np.flatnonzero(in_band)  # atlas index of each band pixel
+    if len(at) == 0:
         empty = np.zeros(0, np.int64)
         return Band(empty, empty, region, samples, empty, np.zeros(0), np.zeros(0))
     W = atlas.shape[1]
-    at = rr * W + cc  # atlas index of each band pixel
+    rr = at // W
+    cc = at - rr * W
     band = atlas.flat_index(rr, cc)
     view = atlas.view_of_row[rr]
     px, py = uv_from_opencv(atlas.x0_of_row[rr] + cc), uv_from_opencv(atlas.y0_of_row[rr] + rr)  # centres
@@ -120,10 +121,13 @@ def _outline_cells(outline: Outline, seg: _Segments, crops: NDArray[np.int64],
     ay = atlas.row0[sv] + cy
     d_cell = seg.dist2(uv_from_opencv(crops[sv, 0] + cx), uv_from_opencv(crops[sv, 1] + cy), np.arange(len(sv)))
     cell = ay * atlas.shape[1] + cx
-    order = np.lexsort((-d_cell, cell))  # by cell, and within a cell nearest last
-    sorted_cells = cell[order]
-    last = np.flatnonzero(np.append(sorted_cells[1:] != sorted_cells[:-1], True))  # each cell's nearest
-    return sorted_cells[last], order[last]
+    order = np.argsort(cell, kind="stable")  # by cell, and within a cell by segment
+    by_cell = cell[order]
+    first = np.flatnonzero(np.concatenate([[True], by_cell[1:] != by_cell[:-1]]))  # each cell's first segment
+    d = d_cell[order]
+    nearest = np.repeat(np.minimum.reduceat(d, first), np.diff(np.append(first, len(d))))
+    last_nearest = np.maximum.reduceat(np.where(d == nearest, np.arange(len(d)), -1), first)
+    return by_cell[first], order[last_nearest]
 
 
 def _off_band_regions(atlas: _Atlas, in_band: NDArray[np.bool_]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
