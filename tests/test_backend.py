@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -47,6 +48,35 @@ def test_no_llvm_anywhere_names_the_fix(monkeypatch: pytest.MonkeyPatch) -> None
     monkeypatch.setattr(backend, "_SEARCH_DIRS", ("/nonexistent",))
     with pytest.raises(BackendError, match="libllvm19"):
         backend.configure_libllvm()
+
+
+def test_the_device_is_the_cpu_unless_asked_and_a_wrong_one_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("AUTOALIGN_DEVICE", raising=False)
+    assert backend.device() == "cpu" and backend.VARIANTS["cpu"] == "llvm_ad_rgb"
+    monkeypatch.setenv("AUTOALIGN_DEVICE", " CUDA ")
+    assert backend.device() == "cuda"
+    monkeypatch.setenv("AUTOALIGN_DEVICE", "gpu")
+    with pytest.raises(BackendError, match="AUTOALIGN_DEVICE=gpu: not a device; set it to cpu or cuda"):
+        backend.device()
+
+
+def test_rendering_on_cuda_without_a_gpu_is_one_line_and_writes_nothing(tmp_path: Path) -> None:
+    """``AUTOALIGN_DEVICE=cuda`` renders on an NVIDIA GPU (measured in ``bench_device``); on a machine
+    without one the command says so in one line and writes nothing, and with one it refines."""
+    ex = Path(__file__).resolve().parents[1] / "autoalign" / "data" / "example"
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "refine", str(ex / "scene"), "--model",
+                        str(ex / "model.ply"), "--init", str(ex / "init_gt.json"), "--quiet", "--out", str(out)],
+                       env={**os.environ, "AUTOALIGN_DEVICE": "cuda"}, capture_output=True, text=True)
+    if shutil.which("nvidia-smi") is None:
+        assert p.returncode == 2, p.stderr
+        lines = p.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("autoalign: error: mitsuba cannot start its CUDA backend")
+        assert "unset AUTOALIGN_DEVICE to render on the CPU" in lines[0]
+        assert not out.exists()
+    else:
+        assert p.returncode == 0, p.stderr
+        assert (out / "refine.json").is_file()
 
 
 def test_fresh_process_finds_llvm_without_env() -> None:

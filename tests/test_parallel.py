@@ -74,3 +74,14 @@ def test_with_a_pool_of_one_the_items_run_in_the_calling_thread():
         assert side_by_side(lambda k: (k, threading.get_ident() == me), range(3)) == [(0, True), (1, True), (2, True)]
     finally:
         dr.set_thread_count(before)
+
+
+def test_rendering_on_the_gpu_the_items_run_in_the_calling_thread(pool_of_two, monkeypatch):
+    # drjit's CUDA backend refuses a variable made on one thread and used on another (seen on an H200:
+    # the joint stage's depth casts failed with "jitc_assemble(): ... split across a parent/child thread")
+    me = threading.get_ident()
+    monkeypatch.setenv("AUTOALIGN_DEVICE", "cuda")
+    assert side_by_side(lambda k: (k, threading.get_ident() == me), range(3)) == [(0, True), (1, True), (2, True)]
+    monkeypatch.setenv("AUTOALIGN_DEVICE", "cpu")
+    both = threading.Barrier(2, timeout=10)  # on the CPU, two at once again
+    assert side_by_side(lambda k: both.wait() if k < 2 else k, range(3))[2] == 2

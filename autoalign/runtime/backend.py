@@ -5,6 +5,10 @@ When ``DRJIT_LIBLLVM_PATH`` is unset we look for the newest ``libLLVM*.so*`` in 
 library folders and set it before drjit is imported. Import this module (never ``drjit``
 directly) from the rest of the package.
 
+``AUTOALIGN_DEVICE`` picks what renders: ``cpu`` (the default: drjit's LLVM backend) or ``cuda``
+(mitsuba's ``cuda_ad_rgb`` variant: drjit's CUDA backend, rays traced by OptiX; it needs an NVIDIA
+GPU and driver). Everything else runs on the CPU either way; CI and the tests use the CPU.
+
 ``AUTOALIGN_THREADS`` (a positive integer), if set, is how many threads drjit renders with; by
 default it takes every core. Processes that share the cores (a test runner's workers, jobs on one
 node) should each take their share: two processes with a thread per core each ran the test
@@ -81,8 +85,21 @@ def configure_libllvm() -> str:
     return path
 
 
+VARIANTS = {"cpu": "llvm_ad_rgb", "cuda": "cuda_ad_rgb"}
+"""mitsuba's variant for each ``AUTOALIGN_DEVICE``."""
+
+
+def device() -> str:
+    """What renders, from ``AUTOALIGN_DEVICE`` (``cpu`` when unset): a key of :data:`VARIANTS`."""
+    value = os.environ.get("AUTOALIGN_DEVICE", "").strip().lower() or "cpu"
+    if value not in VARIANTS:
+        raise BackendError(f"AUTOALIGN_DEVICE={value}: not a device; set it to {' or '.join(VARIANTS)}, "
+                           "or unset it to render on the CPU")
+    return value
+
+
 def mitsuba() -> ModuleType:
-    """The ``mitsuba`` module with the ``llvm_ad_rgb`` variant set (imported once)."""
+    """The ``mitsuba`` module with the variant of :func:`device` set (imported once)."""
     global _mi
     with _MI_LOCK:  # two threads starting the backend at once: mitsuba's lazy module races
         if _mi is None:
@@ -91,16 +108,22 @@ def mitsuba() -> ModuleType:
 
 
 def _started_mitsuba() -> ModuleType:
-    """Import mitsuba with drjit's libLLVM found, set its variant and drjit's thread count."""
-    configure_libllvm()
+    """Import mitsuba (on the CPU with drjit's libLLVM found), set its variant and drjit's thread count."""
+    on = device()
+    if on == "cpu":
+        configure_libllvm()
     with Interrupts.deferred():  # Ctrl-C inside drjit's module init aborts the process
         import drjit as dr  # noqa: F401  (imported after the libLLVM path is set)
         import mitsuba as mi
 
         try:
-            mi.set_variant("llvm_ad_rgb")
-        except Exception as exc:  # pragma: no cover - depends on the machine
-            raise BackendError(f"mitsuba cannot start its LLVM backend ({exc}); {_FIX}") from None
+            mi.set_variant(VARIANTS[on])
+            if on == "cuda":
+                dr.eval(mi.Float(0.0))  # drjit finds the GPU (or fails) at its first kernel
+        except Exception as exc:  # depends on the machine
+            fix = _FIX if on == "cpu" else "unset AUTOALIGN_DEVICE to render on the CPU, or install an NVIDIA driver"
+            raise BackendError(f"mitsuba cannot start its {on.upper()} backend "
+                               f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}); {fix}") from None
         threads = thread_count()
         if threads is not None:
             dr.set_thread_count(threads)

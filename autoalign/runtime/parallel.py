@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 from typing import TypeVar
 
-from autoalign.runtime.backend import drjit
+from autoalign.runtime.backend import device, drjit
 
 _here = threading.local()
 
@@ -32,7 +32,9 @@ def side_by_side(work: Callable[[Item], Result], items: Sequence[Item]) -> list[
     waits for the items under way too (each stops at its next progress report)."""
     dr = drjit()
     cores = int(dr.thread_count())
-    workers = min(len(items), cores)
+    # on the GPU one after the other: drjit's CUDA backend refuses a variable made on one thread and
+    # used on another, and one GPU runs the kernels either way
+    workers = min(len(items), cores) if device() == "cpu" else 1
     if workers <= 1 or getattr(_here, "inside", False):
         return [work(item) for item in items]
 
