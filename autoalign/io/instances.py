@@ -21,6 +21,7 @@ strayed onto it. Its silhouette is compared with its own mask everywhere else.
 from __future__ import annotations
 
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -176,19 +177,28 @@ def read_instance_scenes(scene_dir: str | os.PathLike[str], instances: list[Inst
     pos = {im: i for i, im in enumerate(ids)}
     if instances is None:
         instances = [Instance(k, 0) for k in sorted({k for _, k in read.masks})]
-    scenes = []
+    views_of = {inst.index: [im for im in ids if (im, inst.index) in read.masks] for inst in instances}
     for inst in instances:
-        views = [im for im in ids if (im, inst.index) in read.masks]
-        if not views:
+        if not views_of[inst.index]:
             raise AutoalignError(f"{scene_dir / 'mask_visib'}: instance {inst.index} (obj {inst.obj_id}) has no "
                                  f"non-empty mask ..._{inst.index:06d}.png in any image; remove it from the "
                                  "instances or add its masks")
-        own = [read.masks[(im, inst.index)] for im in views]
-        scenes.append(Scene([cameras[pos[im]] for im in views], [m.astype(np.float32) for m in own], views,
+
+    def targets(inst: Instance) -> tuple[list[NDArray[np.float32]], list[NDArray[np.bool_]]]:
+        """The instance's masks as float targets, and the pixels the other instances' masks claim."""
+        own = [read.masks[(im, inst.index)] for im in views_of[inst.index]]
+        return [m.astype(np.float32) for m in own], [claimed[im] & ~m for im, m in zip(views_of[inst.index], own)]
+
+    with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:  # numpy lets go of the GIL here
+        made = list(pool.map(targets, instances))
+    scenes = []
+    for inst, (masks, ignore) in zip(instances, made):
+        views = views_of[inst.index]
+        scenes.append(Scene([cameras[pos[im]] for im in views], masks, views,
                             scene_dir, tuple(im for im in ids if (im, inst.index) not in read.masks and
                                              (im, inst.index) not in read.empty),
                             tuple(im for im, k in read.empty if k == inst.index), 1.0 / read.factor,
-                            ignore=[claimed[im] & ~m for im, m in zip(views, own)]))
+                            ignore=ignore))
     posed = {i.index for i in instances}
     unmodelled = sorted({k for _, k in read.masks} - posed)
     return InstanceScenes(list(instances), scenes, cameras, ids, unmodelled)
