@@ -85,7 +85,11 @@ def run_label(args: argparse.Namespace) -> int:
     from autoalign.io.out_folder import check_outputs_spare_inputs
     from autoalign.jobs.job import OUTPUT_FILES
     from autoalign.label.lock import SessionLock
+    from autoalign.runtime.backend import device
 
+    if device() != "cpu":  # the page renders from its request threads, which drjit's CUDA backend refuses
+        raise AutoalignError(f"AUTOALIGN_DEVICE={device()}: the label page renders on the CPU; unset "
+                             "AUTOALIGN_DEVICE for `autoalign label`")
     scene = check_scene_dir(args.scene)
     out = Path(args.out) if args.out else scene / "label_session"
     check_outputs_spare_inputs(out, scene, [Path(args.instances)] if args.instances else [], OUTPUT_FILES)

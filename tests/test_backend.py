@@ -79,6 +79,19 @@ def test_rendering_on_cuda_without_a_gpu_is_one_line_and_writes_nothing(tmp_path
         assert (out / "refine.json").is_file()
 
 
+def test_the_label_page_on_cuda_is_refused_in_one_line(tmp_path: Path) -> None:
+    """The label page renders from its request threads, which drjit's CUDA backend refuses."""
+    ex = Path(__file__).resolve().parents[1] / "autoalign" / "data" / "example"
+    out = tmp_path / "session"
+    p = subprocess.run([sys.executable, "-m", "autoalign.cli.main", "label", str(ex / "scene"), "--models",
+                        str(tmp_path), "--out", str(out), "--no-browser"],
+                       env={**os.environ, "AUTOALIGN_DEVICE": "cuda"}, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2
+    assert p.stderr.strip() == ("autoalign: error: AUTOALIGN_DEVICE=cuda: the label page renders on the CPU; "
+                                "unset AUTOALIGN_DEVICE for `autoalign label`")
+    assert not out.exists()
+
+
 def test_fresh_process_finds_llvm_without_env() -> None:
     env = {k: v for k, v in os.environ.items() if k != "DRJIT_LIBLLVM_PATH"}
     code = ("from autoalign.runtime.backend import mitsuba; import os; mi = mitsuba(); "
