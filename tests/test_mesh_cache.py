@@ -117,3 +117,30 @@ def test_a_folder_that_cannot_be_written_leaves_the_cache_off(tmp_path, monkeypa
     monkeypatch.setenv(CACHE_ENV, str(blocker / "cache"))
     assert _same(load_mesh(model), made)
     assert blocker.read_text().startswith("a file")
+
+
+def test_meshes_simplified_on_threads_at_once_are_each_their_own(tmp_path, monkeypatch):
+    """fast_simplification keeps the mesh it decimates in global state and lets go of the GIL: two
+    decimations at once (instances refined side by side) mixed their meshes, and a YCB-Video box was
+    refined, and cached on disk, as the mug's simplified silhouette at the coarse levels (7 of 20 such
+    pairs came back wrong before the decimation was serialised)."""
+    import threading
+
+    monkeypatch.setenv(CACHE_ENV, "off")
+    meshes = [Mesh(np.asarray(s.vertices) * scale, np.asarray(s.faces), name=f"m{k}")
+              for k, (s, scale) in enumerate([(trimesh.creation.icosphere(5), (40.0, 30.0, 20.0)),
+                                              (trimesh.creation.capsule(60.0, 15.0, count=[96, 96]), (1.0, 1.0, 1.0)),
+                                              (trimesh.creation.icosphere(5), (10.0, 50.0, 25.0)),
+                                              (trimesh.creation.cylinder(30.0, 80.0, sections=2048), (1.0, 1.0, 1.0))])]
+    assert all(len(m.faces) > 8000 for m in meshes)
+    alone = [m._decimated(2000) for m in meshes]
+    for _ in range(5):
+        got: dict[int, tuple] = {}
+        threads = [threading.Thread(target=lambda k=k: got.__setitem__(k, meshes[k]._decimated(2000)))
+                   for k in range(len(meshes))]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        for k, (v, f) in enumerate(alone):
+            assert np.array_equal(got[k][0], v) and np.array_equal(got[k][1], f), f"mesh {k} came back as another's"

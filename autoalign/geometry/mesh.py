@@ -9,6 +9,7 @@ is imported only to read or process one that is not there.
 from __future__ import annotations
 
 import functools
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import ModuleType
@@ -24,6 +25,9 @@ from autoalign.runtime.interrupts import Interrupts
 if TYPE_CHECKING:
     import trimesh
 
+_DECIMATING = threading.Lock()
+"""One decimation at a time: fast_simplification keeps the mesh it works on in global state and lets go
+of the GIL, so two at once (instances refined side by side) came back with each other's meshes."""
 _CACHED = ("vertices", "faces", "face_normals", "edges", "edge_faces", "hull")
 """What a cache entry of a mesh holds; the mesh as loaded also its :data:`_CACHED_LOADED`."""
 ROUND_MOMENTS = 0.1
@@ -193,7 +197,8 @@ class Mesh:
 
     def _decimated(self, max_faces: int) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         """The vertices and faces of this mesh decimated to at most about ``max_faces`` triangles."""
-        tm = self.trimesh.simplify_quadric_decimation(face_count=int(max_faces))
+        with _DECIMATING:
+            tm = self.trimesh.simplify_quadric_decimation(face_count=int(max_faces))
         # the decimator leaves collapsed triangles behind as duplicates: drop them and unused vertices
         tm.update_faces(tm.unique_faces() & tm.nondegenerate_faces())
         tm.remove_unreferenced_vertices()

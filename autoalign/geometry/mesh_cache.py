@@ -26,8 +26,9 @@ from numpy.typing import NDArray
 
 from autoalign.io.atomic_files import write_bytes_atomic
 
-FORMAT = 1
-"""Bumped whenever what an entry holds, or how it is computed, changes."""
+FORMAT = 2
+"""Bumped whenever what an entry holds, or how it is computed, changes (2: simplified levels made one at
+a time; before, two made at once on threads could hold each other's meshes)."""
 CACHE_ENV = "AUTOALIGN_CACHE_DIR"
 OFF = "off"
 
