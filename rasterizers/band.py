@@ -126,6 +126,7 @@ def _outline_cells(outline: Outline, seg: _Segments, crops: NDArray[np.int64],
     first = np.flatnonzero(np.concatenate([[True], by_cell[1:] != by_cell[:-1]]))  # each cell's first segment
     d = d_cell[order]
     nearest = np.repeat(np.minimum.reduceat(d, first), np.diff(np.append(first, len(d))))
+    # each cell's nearest segment; of equally near ones the last (the cell's segments keep their order)
     last_nearest = np.maximum.reduceat(np.where(d == nearest, np.arange(len(d)), -1), first)
     return by_cell[first], order[last_nearest]
 
