@@ -99,8 +99,9 @@ def labels_of(refine_json: Path) -> list[dict]:
 
 
 def agreement(cpu: Path, cuda: Path) -> dict:
-    """How far the CUDA run's labels (its ``refine.json``) are from the CPU run's: the largest position (mm) and rotation (deg)
-    difference, the largest relative sigma difference, and the instances whose verdicts differ."""
+    """How far the CUDA run's labels (its ``refine.json``) are from the CPU run's: the largest position
+    (mm) and rotation (deg) difference, the largest relative sigma difference, and the instances whose
+    verdicts differ."""
     a, b = labels_of(cpu), labels_of(cuda)
     mm = max(float(np.linalg.norm(x["T"][:3, 3] - y["T"][:3, 3])) for x, y in zip(a, b))
     deg = max(rotation_angle_deg(x["T"][:3, :3], y["T"][:3, :3]) for x, y in zip(a, b))
@@ -138,7 +139,8 @@ def measure(devices: list[str], scenes: Path, work: Path, repeats: int, keep: Pa
                     kept[d] = against / f"{d}-{case.slug}.json"
         rows.append({"case": case.name, "first": case.first, "walls": case.walls,
                      "agreement": agreement(kept["cpu"], kept["cuda"]) if len(kept) == 2 else None})
-        print(f"{case.name}: " + ", ".join(f"{d} {statistics.median(case.walls[d]):.2f} s" for d in devices), flush=True)
+        walls = ", ".join(f"{d} {statistics.median(case.walls[d]):.2f} s" for d in devices)
+        print(f"{case.name}: {walls}", flush=True)
     return rows
 
 
