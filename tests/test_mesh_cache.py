@@ -144,3 +144,33 @@ def test_meshes_simplified_on_threads_at_once_are_each_their_own(tmp_path, monke
             t.join()
         for k, (v, f) in enumerate(alone):
             assert np.array_equal(got[k][0], v) and np.array_equal(got[k][1], f), f"mesh {k} came back as another's"
+
+
+def test_another_meshs_level_in_the_cache_is_made_again(tmp_path, monkeypatch):
+    """A cached level whose box is not its mesh's (another object's, as the race above left them) is
+    never used: the level is decimated again and the entry written over."""
+    from autoalign.geometry import mesh_cache
+
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
+    sphere = _fine_mesh(tmp_path / "sphere.ply")
+    box = tmp_path / "box.ply"
+    trimesh.creation.box((120.0, 40.0, 20.0)).subdivide().subdivide().subdivide().subdivide().subdivide().export(box)
+    right, right_levels = _load_with_levels(sphere)
+    _, box_levels = _load_with_levels(box)
+    assert not np.allclose(box_levels[1].vertices.max(0), right_levels[1].vertices.max(0), atol=1.0)
+    key = mesh_cache.file_key(sphere, None)
+    poisoned = tmp_path / "cache" / f"{mesh_cache.level_key(key, LEVELS[1])}.npz"
+    poisoned.write_bytes((tmp_path / "cache" / f"{mesh_cache.level_key(mesh_cache.file_key(box, None), LEVELS[1])}.npz")
+                         .read_bytes())
+    again = load_mesh(sphere).simplified(LEVELS[1])
+    assert _same(again, right_levels[1])
+    assert np.array_equal(np.load(poisoned)["vertices"], right_levels[1].vertices)  # the entry is the sphere's again
+
+
+def test_a_decimation_that_comes_back_as_another_shape_leaves_the_mesh_as_it_is(tmp_path, monkeypatch):
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
+    m = load_mesh(_fine_mesh(tmp_path / "sphere.ply"))
+    small = trimesh.creation.icosphere(subdivisions=3, radius=20.0)  # half the size: not this mesh simplified
+    monkeypatch.setattr(Mesh, "_decimated", lambda self, n: (np.asarray(small.vertices), np.asarray(small.faces)))
+    assert m.simplified(LEVELS[1]) is m
+    assert len(list((tmp_path / "cache").glob("*-f*.npz"))) == 0  # and nothing wrong is kept
