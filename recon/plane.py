@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,9 +10,6 @@ from numpy.typing import NDArray
 from autoalign.errors import AutoalignError
 from autoalign.geometry.se3 import make_pose
 
-_RANSAC = threading.Lock()
-"""Two fits at once on threads (instances refined side by side) drew from each other's seeded
-sequence: 25 of 40 planes came out up to 0.3 deg from the plane fitted alone."""
 INLIER_FRACTION_OF_EXTENT = 0.01
 """A point is on the plane when it is closer than this fraction of the points' median distance
 from their centroid (a fraction, since without depth the reconstruction has no unit)."""
@@ -38,11 +34,10 @@ def fit_table_plane(points: NDArray[np.float64], camera_centres: NDArray[np.floa
     if len(points) < 50:
         raise AutoalignError(f"only {len(points)} points were reconstructed; too few to find the table plane "
                              "(film the table with more texture)")
+    o3d.utility.random.seed(seed)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
     extent = float(np.median(np.linalg.norm(points - points.mean(0), axis=1)))
-    with _RANSAC:  # open3d's random generator is one for the process: seeded and drawn by one fit at a time
-        o3d.utility.random.seed(seed)
-        (a, b, c, d), inl = pcd.segment_plane(INLIER_FRACTION_OF_EXTENT * extent, 3, 2000)
+    (a, b, c, d), inl = pcd.segment_plane(INLIER_FRACTION_OF_EXTENT * extent, 3, 2000)
     n = np.array([a, b, c], dtype=np.float64)
     norm = float(np.linalg.norm(n))
     n, d = n / norm, d / norm

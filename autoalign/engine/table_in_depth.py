@@ -9,7 +9,6 @@ depth images (the instances of one ``--models`` scene).
 
 from __future__ import annotations
 
-import threading
 from collections import OrderedDict
 
 import numpy as np
@@ -22,7 +21,6 @@ DEPTH_STEP = 4
 KEPT = 4
 """Planes kept, the most recently used: the scenes of one run."""
 _kept: OrderedDict[tuple[int, ...], tuple[list, TablePlane]] = OrderedDict()
-_KEEPING = threading.Lock()
 
 
 def plane_from_depth(scene: Scene) -> TablePlane:
@@ -47,12 +45,11 @@ def table_in_depth(scene: Scene) -> TablePlane:
     """:func:`plane_from_depth` of ``scene``, fitted once for the same depth images and cameras."""
     assert scene.depths is not None
     key = tuple(id(d) for d in scene.depths) + tuple(id(c) for c in scene.cameras)
-    with _KEEPING:  # instances refined side by side: one fits, the other reuses its plane
-        if key in _kept:
-            _kept.move_to_end(key)
-            return _kept[key][1]
-        plane = plane_from_depth(scene)
-        _kept[key] = ([*scene.depths, *scene.cameras], plane)  # the arrays held: their ids stay theirs
-        while len(_kept) > KEPT:
-            _kept.popitem(last=False)
+    if key in _kept:
+        _kept.move_to_end(key)
+        return _kept[key][1]
+    plane = plane_from_depth(scene)
+    _kept[key] = ([*scene.depths, *scene.cameras], plane)  # the arrays held: their ids stay theirs
+    while len(_kept) > KEPT:
+        _kept.popitem(last=False)
     return plane
