@@ -190,10 +190,14 @@ class Mesh:
             stored = None if level is None else mesh_cache.read_entry(level, _CACHED)
             if stored is not None and not self._same_extent(stored["vertices"]):
                 stored = None  # another mesh's level (made before the decimation was serialised): made again
-            out = Mesh._restored(stored, self.name, None) if stored is not None else Mesh(*self._decimated(max_faces))
-            if not self._same_extent(out.vertices):  # a decimation gone wrong: render the mesh as it is
-                cache[max_faces] = self
-                return self
+            if stored is not None:
+                out = Mesh._restored(stored, self.name, None)
+            else:
+                vertices, faces = self._decimated(max_faces)
+                if not self._same_extent(vertices):  # a decimation gone wrong: render the mesh as it is
+                    cache[max_faces] = self
+                    return self
+                out = Mesh(vertices, faces)
             out.name = f"{self.name}@{len(out.faces)}"
             out.centre = self.centre.copy()  # twists turn about the same point at every level
             out.diameter, out.principal_axes = self.diameter, self.principal_axes

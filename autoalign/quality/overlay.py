@@ -68,12 +68,13 @@ def _crop_box(masks: list[NDArray[np.bool_]], width: int, height: int,
     union = np.zeros((height, width), dtype=bool)
     for m in masks:
         union |= m
-    rows, cols = np.flatnonzero(union.any(axis=1)), np.flatnonzero(union.any(axis=0))
-    if rows.size == 0:
+    box = _mask_box(union)
+    if box is None:
         x0, y0, x1, y1 = 0.0, 0.0, float(width), float(height)
     else:
-        x0, x1 = float(cols[0]), float(cols[-1] + 1)
-        y0, y1 = float(rows[0]), float(rows[-1] + 1)
+        rows, cols = box
+        x0, x1 = float(cols.start), float(cols.stop)
+        y0, y1 = float(rows.start), float(rows.stop)
     w, h = x1 - x0, y1 - y0
     margin = max(8.0, 0.15 * max(w, h))
     w, h = w + 2 * margin, h + 2 * margin
