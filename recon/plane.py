@@ -1,4 +1,8 @@
-"""The table plane (RANSAC, open3d) and the world frame it defines: z up, the table at z = 0."""
+"""The table plane (RANSAC) and the world frame it defines: z up, the table at z = 0.
+
+The RANSAC is numpy's, with a generator of its own per fit: open3d's ``segment_plane`` draws from
+one process-wide generator on OpenMP threads, so two fits at once (instances refined side by side)
+gave planes up to 0.3 deg apart, and the same fit differed between threads."""
 
 from __future__ import annotations
 
@@ -13,6 +17,14 @@ from autoalign.geometry.se3 import make_pose
 INLIER_FRACTION_OF_EXTENT = 0.01
 """A point is on the plane when it is closer than this fraction of the points' median distance
 from their centroid (a fraction, since without depth the reconstruction has no unit)."""
+DRAWS = 2000
+"""Planes through three points drawn at random that RANSAC compares."""
+CONFIDENCE = 0.99999999
+"""RANSAC stops drawing once a better plane than its best would have been drawn with this
+probability (open3d's default)."""
+SCORED = 20_000
+"""Points drawn once on which the drawn planes are scored (all of them when there are fewer)."""
+_CHUNK = 128
 
 
 @dataclass(frozen=True)
@@ -27,30 +39,58 @@ class TablePlane:
 
 
 def fit_table_plane(points: NDArray[np.float64], camera_centres: NDArray[np.float64], seed: int = 0) -> TablePlane:
-    """The dominant plane of ``points`` (N, 3) by RANSAC (open3d ``segment_plane``), its normal
-    turned towards the mean of ``camera_centres``."""
-    import open3d as o3d
-
+    """The dominant plane of ``points`` (N, 3) by RANSAC (:func:`ransac_plane`) refined by least
+    squares on its inliers, its normal turned towards the mean of ``camera_centres``. The same
+    points and ``seed`` give the same plane, on any thread."""
     if len(points) < 50:
         raise AutoalignError(f"only {len(points)} points were reconstructed; too few to find the table plane "
                              "(film the table with more texture)")
-    o3d.utility.random.seed(seed)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    points = np.asarray(points, dtype=np.float64)
     extent = float(np.median(np.linalg.norm(points - points.mean(0), axis=1)))
-    (a, b, c, d), inl = pcd.segment_plane(INLIER_FRACTION_OF_EXTENT * extent, 3, 2000)
-    n = np.array([a, b, c], dtype=np.float64)
-    norm = float(np.linalg.norm(n))
-    n, d = n / norm, d / norm
-    inl = np.asarray(inl, dtype=np.int64)
-    P = points[inl]
+    P = points[ransac_plane(points, INLIER_FRACTION_OF_EXTENT * extent, np.random.default_rng(seed))]
     # refine by least squares on the inliers (RANSAC's plane comes from three of them)
     centre = P.mean(0)
-    n_ls = np.linalg.svd(P - centre, full_matrices=False)[2][2]  # not the (N, N) U of a full SVD
-    n = n_ls if n_ls @ n > 0 else -n_ls
+    n = np.linalg.svd(P - centre, full_matrices=False)[2][2]  # not the (N, N) U of a full SVD
     if (camera_centres.mean(0) - centre) @ n < 0:
         n = -n
     rms = float(np.sqrt(np.mean(((P - centre) @ n) ** 2)))
-    return TablePlane(n, centre, len(inl) / len(points), rms)
+    return TablePlane(n, centre, len(P) / len(points), rms)
+
+
+def ransac_plane(points: NDArray[np.float64], threshold: float, rng: np.random.Generator) -> NDArray[np.bool_]:
+    """Which of ``points`` (N, 3) lie within ``threshold`` (their unit) of the plane through three of
+    them that the most of :data:`SCORED` points drawn by ``rng`` lie near, of at most :data:`DRAWS`
+    such planes (the first of equally good ones; fewer when :data:`CONFIDENCE` is reached)."""
+    origin = points.mean(0)  # distances from centred points lose no digits far from the origin
+    centred = points - origin
+    n = len(points)
+    scored = centred[rng.choice(n, SCORED, replace=False)] if n > SCORED else centred
+    triples = centred[rng.integers(0, n, (DRAWS, 3))]
+    normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
+    lengths = np.linalg.norm(normals, axis=1)
+    usable = lengths > 1e-12 * max(float(np.abs(centred).max()), 1e-300) ** 2  # three distinct points
+    normals[usable] /= lengths[usable, None]
+    offsets = -np.einsum("ij,ij->i", normals, triples[:, 0])
+    counts = np.full(DRAWS, -1, dtype=np.int64)
+    for lo in range(0, DRAWS, _CHUNK):
+        hi = min(lo + _CHUNK, DRAWS)
+        near = np.abs(scored @ normals[lo:hi].T + offsets[lo:hi]) < threshold
+        counts[lo:hi] = np.where(usable[lo:hi], near.sum(0), -1)
+        if hi >= _draws_needed(counts.max() / len(scored)):
+            break
+    best = int(np.argmax(counts))
+    return np.abs(centred @ normals[best] + offsets[best]) < threshold
+
+
+def _draws_needed(inlier_share: float) -> float:
+    """Draws after which a plane through three inliers of a plane holding ``inlier_share`` of the
+    points has been drawn with probability :data:`CONFIDENCE`."""
+    all_three = inlier_share ** 3
+    if all_three <= 0.0:
+        return np.inf
+    if all_three >= 1.0:
+        return 1.0
+    return np.log1p(-CONFIDENCE) / np.log1p(-all_three)
 
 
 def table_frame(plane: TablePlane, x_hint: NDArray[np.float64]) -> NDArray[np.float64]:
