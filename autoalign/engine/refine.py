@@ -6,7 +6,6 @@
 from __future__ import annotations
 
 import enum
-import functools
 import time
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable, TypeVar
@@ -36,7 +35,7 @@ from autoalign.engine.photo_evidence import best_side, photo_result, photo_round
 from autoalign.engine.refit_spread import refit_ratio, spread_factor
 from autoalign.engine.schedule import (  # noqa: F401 - polish: one pose, no search
     Progress, compared_objective, polish, run_schedule)
-from autoalign.engine.see_through import refine_minding_see_through
+from autoalign.engine.see_through import in_doubt, measured_see_through, offering_table, seen_through_at_seed
 from autoalign.engine.seed_region import CLEARLY_BETTER, STIFFNESS, SeedHold, SeedRegion
 from autoalign.engine.seeding import Click, click_centre, hull_centre, rotation_grid
 from autoalign.engine.solver import StepRule, Trace
@@ -54,6 +53,7 @@ from autoalign.losses.contact import (CONTACT_MAX_LEAN_DEG, CONTACT_STIFFNESS, O
 from autoalign.losses.term import Measured, PoseTerm, TermEvidence, ViewTermsRecord
 from autoalign.losses.overlap import LOOSE_FIT_IOU, iou_from_counts, view_ious
 from autoalign.losses.region_term import RegionTerm
+from autoalign.losses.see_through import SeeThrough
 from autoalign.rasterizers.pyramid import MeshPyramid
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
@@ -214,6 +214,11 @@ class RefineResult:
     def measurement(self, kind: type[M]) -> M | None:
         """What the evidence of ``kind`` (e.g. :class:`~autoalign.losses.depth.DepthTerms`) measured, if it did."""
         return next((m for m in self.measured if isinstance(m, kind)), None)
+
+    def with_cost_of(self, other: "RefineResult") -> "RefineResult":
+        """This result with the renders and timings of the ``other`` run, made and set aside, added."""
+        return replace(self, renders=self.renders + other.renders,
+                       timings={k: other.timings.get(k, 0.0) + v for k, v in self.timings.items()})
 
 
 def _final_loss(obj: SilhouetteObjective, T: NDArray[np.float64], level: Level,
@@ -808,15 +813,41 @@ def refine(scene: Scene, mesh: Mesh | MeshPyramid, seed: Seed = None, options: R
     seed, anchor = checked_inputs(scene, mesh, seed, anchor)
     opts = options or RefineOptions()
     pyramid = mesh if isinstance(mesh, MeshPyramid) else MeshPyramid(mesh)
-    evidence = _evidence_engine(preview)
     if scene.depths is not None and opts.depth is not None:
-        return refine_minding_see_through(scene, pyramid, seed, opts, progress, anchor, evidence)
-    return evidence(scene, pyramid, seed, opts, progress, anchor)
+        return _refine_minding_see_through(scene, pyramid, seed, opts, progress, anchor, preview)
+    return _refine_evidence(scene, pyramid, seed, opts, progress, anchor, preview)
 
 
-def _evidence_engine(preview: PosePreview | None) -> Callable[..., RefineResult]:
-    """:func:`_refine_evidence` passing ``preview`` on, for the stage that calls it back (see-through depth)."""
-    return _refine_evidence if preview is None else functools.partial(_refine_evidence, preview=preview)
+def _refine_minding_see_through(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,
+                                progress: Progress | None, anchor: NDArray[np.float64] | None,
+                                preview: PosePreview | None) -> RefineResult:
+    """:func:`_refine_evidence` on ``scene``, which has measured depth, minding depth that sees
+    through the object (the rules of :mod:`autoalign.engine.see_through`)."""
+
+    def without_depth(told: Progress | None) -> tuple[RefineResult, SeeThrough]:
+        """The run without the depth, the table it shows offered, and what the depth says at its pose."""
+        alt = _refine_evidence(replace(scene, depths=None), pyramid, seed, offering_table(scene, opts), told, anchor,
+                               preview)
+        seen = measured_see_through(scene, pyramid, alt.T_wm, opts, declared=pyramid.transparent)
+        return replace(alt, measured=(seen,) + alt.measured), seen
+
+    if pyramid.transparent:
+        return without_depth(progress)[0]
+    if seen_through_at_seed(scene, pyramid, seed, opts):
+        # without the depth first, with it only if that result is not seen through: one run for glass
+        alt, seen = without_depth(progress)
+        return alt if seen.sees_through() else \
+            _refine_evidence(scene, pyramid, seed, opts, progress, anchor, preview).with_cost_of(alt)
+    result = _refine_evidence(scene, pyramid, seed, opts, progress, anchor, preview)
+    if pyramid.material == "opaque" or not in_doubt(result):
+        return result
+
+    def told(stage: str, done: int, total: int) -> None:
+        if progress is not None:
+            progress(f"without the depth: {stage}", done, total)
+
+    alt, seen = without_depth(told)
+    return alt.with_cost_of(result) if seen.sees_through() else result
 
 
 def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,

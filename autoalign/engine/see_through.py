@@ -14,19 +14,19 @@ When a result with the depth is in doubt (the depth contradicts it, or its silho
 masks), it is refined again without the depth, and where the depth at that pose sees through the object
 (:func:`~autoalign.losses.see_through.see_through_shares`: measured behind its surface or missing
 inside its masks) that result is kept, the depth recorded as :class:`~autoalign.losses.see_through.SeeThrough`.
-An opaque object whose depth agrees runs once, exactly as before.
+An opaque object whose depth agrees runs once, exactly as before. The engine's
+:func:`~autoalign.engine.refine.refine` applies these rules with the parts defined here.
 """
 
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any, Callable, TypeVar
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.engine.options import RefineOptions
-from autoalign.engine.schedule import Progress
 from autoalign.engine.seeding import Click
 from autoalign.engine.table_in_depth import table_in_depth
 from autoalign.errors import AutoalignError
@@ -39,10 +39,6 @@ from autoalign.rasterizers.pyramid import MeshPyramid
 LOOSE_IOU = 0.5
 """A result whose median IoU with the masks is below this is in doubt: the verdict's own line for
 silhouettes that do not match the masks (:data:`~autoalign.quality.verdict.FAILED_IOU`, a layer above)."""
-
-R = TypeVar("R")
-"""The engine's result (:class:`~autoalign.engine.refine.RefineResult`): the engine calls this module."""
-
 
 def measured_see_through(scene: Scene, pyramid: MeshPyramid, T_wm: NDArray[np.float64], opts: RefineOptions,
                          declared: bool = False, slack_mm: float = 0.0) -> SeeThrough:
@@ -69,6 +65,15 @@ def offering_table(scene: Scene, opts: RefineOptions) -> RefineOptions:
         return opts
 
 
+def seen_through_at_seed(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.float64] | Click | None,
+                         opts: RefineOptions) -> bool:
+    """Whether the depth of ``scene`` sees through an object not declared opaque already at a given
+    pose ``seed``, beyond how far the seed may be off (``opts.seed_radius``'s millimetres): an opaque
+    object's seed nearer the camera than its surface is not mistaken for it."""
+    return pyramid.material != "opaque" and isinstance(seed, np.ndarray) and opts.seed_radius is not None and \
+        measured_see_through(scene, pyramid, seed, opts, slack_mm=opts.seed_radius[0]).sees_through()
+
+
 def in_doubt(result: Any) -> bool:
     """Whether a result (:class:`~autoalign.engine.refine.RefineResult`) refined with the depth is
     worth trying without it: the depth contradicts it, or its silhouettes miss the masks (a seed's
@@ -77,42 +82,3 @@ def in_doubt(result: Any) -> bool:
     evidence = depth.evidence() if depth is not None else None
     contradicts = evidence is not None and evidence.stance is Stance.CONTRADICTS and evidence.fails
     return contradicts or float(np.median(result.iou_after)) < LOOSE_IOU
-
-
-def refine_minding_see_through(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.float64] | Click | None,
-                               opts: RefineOptions, progress: Progress | None, anchor: NDArray[np.float64] | None,
-                               run: Callable[..., R]) -> R:
-    """``run`` (the engine on ``scene``, which has measured depth) minding depth that sees through
-    the object (module doc)."""
-
-    def without_depth(told: Progress | None = progress) -> tuple[R, SeeThrough]:
-        """The run without the depth, the table it shows offered, and what the depth says at its pose."""
-        alt = run(replace(scene, depths=None), pyramid, seed, offering_table(scene, opts), told, anchor)
-        seen = measured_see_through(scene, pyramid, alt.T_wm, opts, declared=pyramid.transparent)
-        return replace(alt, measured=(seen,) + alt.measured), seen
-
-    if pyramid.transparent:
-        return without_depth()[0]
-    if pyramid.material != "opaque" and isinstance(seed, np.ndarray) and opts.seed_radius is not None and \
-            measured_see_through(scene, pyramid, seed, opts, slack_mm=opts.seed_radius[0]).sees_through():
-        # seen through already at the given pose, beyond how far the seed may be off: refined without
-        # the depth first, with it only if the result is not seen through (one run instead of two
-        # for glass; an opaque object's seed nearer the camera than its surface is not mistaken)
-        alt, seen = without_depth()
-        return alt if seen.sees_through() else _with_cost_of(run(scene, pyramid, seed, opts, progress, anchor), alt)
-    result = run(scene, pyramid, seed, opts, progress, anchor)
-    if pyramid.material == "opaque" or not in_doubt(result):
-        return result
-
-    def told(stage: str, done: int, total: int) -> None:
-        if progress is not None:
-            progress(f"without the depth: {stage}", done, total)
-
-    alt, seen = without_depth(told)
-    return _with_cost_of(alt, result) if seen.sees_through() else result
-
-
-def _with_cost_of(kept: R, other: Any) -> R:
-    """The result ``kept`` with the renders and timings of the ``other`` run added."""
-    return replace(kept, renders=kept.renders + other.renders,  # type: ignore[type-var]
-                   timings={k: other.timings.get(k, 0.0) + v for k, v in kept.timings.items()})

@@ -2,9 +2,10 @@
 :func:`~autoalign.recon.plane.fit_table_plane`), its normal towards the cameras.
 
 ``refine --resting`` finds its plane here when the scene has no ``recon.json``, and an object whose
-depth is seen through (:mod:`autoalign.engine.see_through`) is offered it. The fit costs about 0.6 s
+depth is seen through (:mod:`autoalign.engine.see_through`) is offered it. The fit costs about 0.1 s
 (10 views of 640x480), so a scene's plane is fitted once and kept for the scenes that share its
-depth images (the instances of one ``--models`` scene).
+depth images (the instances of one ``--models`` scene); two instances that ask at once may each fit
+it, and get the same plane.
 """
 
 from __future__ import annotations
