@@ -115,10 +115,8 @@ class RayCaster:
         ray = mi.Ray3f(mi.Point3f(*(jit_array(mi.Float, o_m[:, i], np.float32) for i in range(3))),
                        mi.Vector3f(*(jit_array(mi.Float, d_m[:, i], np.float32) for i in range(3))))
         pi = self._scene.ray_intersect_preliminary(ray)
-        self._dr.eval(pi.t, pi.prim_index, pi.prim_uv)  # one kernel, run without the GIL (numpy_of)
-        t, uv = numpy_of(pi.t, pi.prim_uv, dtype=np.float32)
+        t, uv, face = numpy_of(pi.t, pi.prim_uv, pi.prim_index, dtype=(np.float32, np.float32, np.int64))
         hit = np.isfinite(t)
-        face = numpy_of(pi.prim_index, dtype=np.int64)[0]
         t = np.where(hit, t, np.float32(np.inf))
         face = np.where(hit, face, 0)
         uv = np.where(hit[:, None], uv.T, np.float32(0.0))
