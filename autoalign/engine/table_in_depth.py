@@ -10,6 +10,7 @@ it, and get the same plane.
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 
 import numpy as np
@@ -22,6 +23,7 @@ DEPTH_STEP = 4
 KEPT = 4
 """Planes kept, the most recently used: the scenes of one run."""
 _kept: OrderedDict[tuple[int, ...], tuple[list, TablePlane]] = OrderedDict()
+_KEPT_LOCK = threading.Lock()  # instances refined side by side ask at once; the fit itself runs outside it
 
 
 def plane_from_depth(scene: Scene) -> TablePlane:
@@ -46,11 +48,13 @@ def table_in_depth(scene: Scene) -> TablePlane:
     """:func:`plane_from_depth` of ``scene``, fitted once for the same depth images and cameras."""
     assert scene.depths is not None
     key = tuple(id(d) for d in scene.depths) + tuple(id(c) for c in scene.cameras)
-    if key in _kept:
-        _kept.move_to_end(key)
-        return _kept[key][1]
+    with _KEPT_LOCK:
+        if key in _kept:
+            _kept.move_to_end(key)
+            return _kept[key][1]
     plane = plane_from_depth(scene)
-    _kept[key] = ([*scene.depths, *scene.cameras], plane)  # the arrays held: their ids stay theirs
-    while len(_kept) > KEPT:
-        _kept.popitem(last=False)
+    with _KEPT_LOCK:
+        _kept[key] = ([*scene.depths, *scene.cameras], plane)  # the arrays held: their ids stay theirs
+        while len(_kept) > KEPT:
+            _kept.popitem(last=False)
     return plane
