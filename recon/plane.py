@@ -48,6 +48,9 @@ def fit_table_plane(points: NDArray[np.float64], camera_centres: NDArray[np.floa
     points = np.asarray(points, dtype=np.float64)
     extent = float(np.median(np.linalg.norm(points - points.mean(0), axis=1)))
     P = points[ransac_plane(points, INLIER_FRACTION_OF_EXTENT * extent, np.random.default_rng(seed))]
+    if len(P) < 3:
+        raise AutoalignError(f"the {len(points)} points reconstructed lie on no plane (on one line or one point); "
+                             "the table plane cannot be found (film the table with more texture)")
     # refine by least squares on the inliers (RANSAC's plane comes from three of them)
     centre = P.mean(0)
     n = np.linalg.svd(P - centre, full_matrices=False)[2][2]  # not the (N, N) U of a full SVD
@@ -60,7 +63,8 @@ def fit_table_plane(points: NDArray[np.float64], camera_centres: NDArray[np.floa
 def ransac_plane(points: NDArray[np.float64], threshold: float, rng: np.random.Generator) -> NDArray[np.bool_]:
     """Which of ``points`` (N, 3) lie within ``threshold`` (their unit) of the plane through three of
     them that the most of :data:`SCORED` points drawn by ``rng`` lie near, of at most :data:`DRAWS`
-    such planes (the first of equally good ones; fewer when :data:`CONFIDENCE` is reached)."""
+    such planes (the first of equally good ones; fewer when :data:`CONFIDENCE` is reached). None
+    when no three of the points drawn span a plane."""
     origin = points.mean(0)  # distances from centred points lose no digits far from the origin
     centred = points - origin
     n = len(points)
@@ -79,6 +83,8 @@ def ransac_plane(points: NDArray[np.float64], threshold: float, rng: np.random.G
         if hi >= _draws_needed(counts.max() / len(scored)):
             break
     best = int(np.argmax(counts))
+    if counts[best] < 0:
+        return np.zeros(n, dtype=bool)
     return np.abs(centred @ normals[best] + offsets[best]) < threshold
 
 

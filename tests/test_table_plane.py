@@ -77,7 +77,11 @@ def test_fits_on_threads_at_once_are_the_fit_alone() -> None:
             assert (plane.inliers, plane.rms) == (alone.inliers, alone.rms)
 
 
-def test_too_few_points_are_a_clear_error() -> None:
+def test_too_few_points_or_points_on_a_line_are_a_clear_error() -> None:
     points, cameras = _table_and_clutter(0)
     with pytest.raises(AutoalignError, match="too few to find the table plane"):
         fit_table_plane(points[:49], cameras)
+    line = np.linspace(0.0, 1.0, 200)[:, None] * [100.0, 50.0, 0.0]
+    for degenerate in (line, np.ones((200, 3))):
+        with pytest.raises(AutoalignError, match="lie on no plane"):
+            fit_table_plane(degenerate, cameras)
