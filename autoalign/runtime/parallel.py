@@ -6,7 +6,7 @@ or a batch worker's share of the cores: :mod:`autoalign.batch`). A refinement's 
 (a band of a few thousand pixels per view) and Python works between them, so a pool of two keeps the
 second core busy with little but waiting. Instances refined side by side, each rendering on its
 share of the pool, keep both busy with work (``docs/results.md``, "Speed of a whole command"); so do
-the views' region targets (numpy and OpenCV let go of the GIL), 0.07 s of the bundled example's 1.66 s.
+the views' region targets, whose numpy and OpenCV work lets go of the GIL.
 The results are those of the instances refined one after the other: each piece of work must
 depend on nothing the others change.
 """
