@@ -23,7 +23,6 @@ from numpy.typing import NDArray
 from autoalign.io.bop import Scene
 from autoalign.losses.mask_term import MaskTerm
 from autoalign.losses.region import RegionOptions, RegionTarget, region_target
-from autoalign.runtime.parallel import side_by_side
 
 
 class RegionTerm(MaskTerm):
@@ -49,18 +48,12 @@ class RegionTerm(MaskTerm):
                    loss: str = "l2", measure: bool = False) -> "RegionTerm":
         """The colour models of every view of ``scene`` learned around ``silhouettes`` (one hard
         silhouette per view, at the pose they are learned at), fused with the views' masks where it has
-        any; with the colour models' separation when ``measure`` (the evidence reported, not the rounds').
-        The views are learned side by side (:func:`~autoalign.runtime.parallel.side_by_side`)."""
+        any; with the colour models' separation when ``measure`` (the evidence reported, not the rounds')."""
         if scene.photos is None:
             raise ValueError("the scene has no photos")
         has_mask = scene.has_masks
-
-        def learned(k: int) -> RegionTarget:
-            view = scene.views[k]
-            return region_target(view.photo, silhouettes[k], view.mask if has_mask else None, view.ignore, options,
-                                 measure)
-
-        return cls(side_by_side(learned, range(len(silhouettes))), has_mask, loss)
+        return cls([region_target(view.photo, sil, view.mask if has_mask else None, view.ignore, options, measure)
+                    for view, sil in zip(scene.views, silhouettes)], has_mask, loss)
 
     @property
     def targets(self) -> list[NDArray[np.float32]]:

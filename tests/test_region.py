@@ -21,7 +21,7 @@ from autoalign.experiments.scenes.synthetic import perturb_pose
 from autoalign.geometry.camera import Camera
 from autoalign.geometry.mesh import mesh_from_trimesh
 from autoalign.geometry.se3 import rotation_angle_deg, transform_points
-from autoalign.io.bop import Scene, read_cameras, read_scene, scene_gt_of
+from autoalign.io.bop import read_cameras, read_scene, scene_gt_of
 from autoalign.io.photos import with_photos
 from autoalign.losses.region import (
     ColourModel,
@@ -136,10 +136,16 @@ def test_colour_separation_is_the_leave_one_out_posteriors_contrast():
     assert np.isnan(colour_separation(key, inside & (np.arange(300) < 30), outside, bins, groups))
 
 
-def _half_masked_views() -> tuple[MeshPyramid, np.ndarray, list[np.ndarray], list[np.ndarray], Scene]:
-    """Three 160x120 views of a box knob at ``T``: its hard silhouettes (the third view's emptied, as if
-    out of frame), two-coloured photos, and a scene whose masks miss the right half of the object."""
+def test_the_region_term_takes_the_mask_terms_place_and_leaves_the_scene_as_given():
+    """The region term, learned at a pose from half masks and two-coloured photos, completes the masks
+    in its targets; the objective of a photo run has it in the mask term's place and compares the views
+    with its targets, leaves out the view whose target does not show the object, keeps it on a subset
+    of the views, fits the true pose better than the half masks alone do; and the caller's scene keeps
+    its masks and photos."""
+    from autoalign.engine.schedule import compared_objective
     from autoalign.experiments.scenes.synthetic import default_K, ring_cameras
+    from autoalign.io.bop import Scene
+    from autoalign.losses.mask_term import MaskTerm
 
     mesh = mesh_from_trimesh(next(p for p in procedural_models() if p.name == "box_knob").mesh, "box_knob")
     cams = ring_cameras(3, np.random.default_rng(5), dist_range=(380.0, 420.0), K=default_K(160, 120, 190.0),
@@ -159,20 +165,7 @@ def _half_masked_views() -> tuple[MeshPyramid, np.ndarray, list[np.ndarray], lis
         if len(cols):
             half[:, (cols.min() + cols.max()) // 2:] = False  # the mask misses the right half
         masks.append(half.astype(np.float32))
-    return pyramid, T, sils, masks, Scene(cams, [m.copy() for m in masks], [1, 2, 3], photos=photos)
-
-
-def test_the_region_term_takes_the_mask_terms_place_and_leaves_the_scene_as_given():
-    """The region term, learned at a pose from half masks and two-coloured photos, completes the masks
-    in its targets; the objective of a photo run has it in the mask term's place and compares the views
-    with its targets, leaves out the view whose target does not show the object, keeps it on a subset
-    of the views, fits the true pose better than the half masks alone do; and the caller's scene keeps
-    its masks and photos."""
-    from autoalign.engine.schedule import compared_objective
-    from autoalign.losses.mask_term import MaskTerm
-
-    pyramid, T, sils, masks, scene = _half_masked_views()
-    photos = scene.photos
+    scene = Scene(cams, [m.copy() for m in masks], [1, 2, 3], photos=photos)
     term = RegionTerm.learned_at(scene, sils, RegionOptions())
     assert term.covered() == [0, 1]
     for k in (0, 1):
@@ -191,18 +184,6 @@ def test_the_region_term_takes_the_mask_terms_place_and_leaves_the_scene_as_give
 
 
 @pytest.mark.slow
-def test_views_learned_side_by_side_are_each_learned_alone(pool_of_two):
-    """The region term's views, learned on two threads at once, are what each view gives alone: the
-    targets to the bit, and the band, agreement, edge contrast and separation."""
-    _, _, sils, _, scene = _half_masked_views()
-    term = RegionTerm.learned_at(scene, sils, RegionOptions(), measure=True)
-    for view, sil, learned in zip(scene.views, sils, term.learned):
-        alone = region_target(view.photo, sil, view.mask, view.ignore, RegionOptions(), separation=True)
-        assert np.array_equal(learned.target, alone.target)
-        assert np.array_equal([learned.band_px, learned.agreement, learned.edge_contrast, learned.separation],
-                              [alone.band_px, alone.agreement, alone.edge_contrast, alone.separation], equal_nan=True)
-
-
 def test_photos_alone_refine_every_object(photo_scene, starts):
     """No masks at all: from 10 mm / 15 deg off, each object ends within 1 mm / 1 deg, and more of
     the band's colours agree with its silhouette there than at the start."""

@@ -1,12 +1,10 @@
-"""Independent pieces of work (the instances of a scene, the views' region targets) run side by side
-on the cores drjit was given.
+"""Independent pieces of work (the instances of a scene) run side by side on the cores drjit was given.
 
 drjit renders on a pool of threads, one per core unless it is told otherwise (``AUTOALIGN_THREADS``,
 or a batch worker's share of the cores: :mod:`autoalign.batch`). A refinement's renders are small
 (a band of a few thousand pixels per view) and Python works between them, so a pool of two keeps the
 second core busy with little but waiting. Instances refined side by side, each rendering on its
-share of the pool, keep both busy with work (``docs/results.md``, "Speed of a whole command"); so do
-the views' region targets, whose numpy and OpenCV work lets go of the GIL.
+share of the pool, keep both busy with work (``docs/results.md``, "Speed of a whole command").
 The results are those of the instances refined one after the other: each piece of work must
 depend on nothing the others change.
 """
