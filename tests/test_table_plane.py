@@ -10,7 +10,7 @@ import open3d as o3d
 import pytest
 
 from autoalign.errors import AutoalignError
-from autoalign.recon.plane import TablePlane, fit_table_plane
+from autoalign.recon.plane import INLIER_FRACTION_OF_EXTENT, TablePlane, fit_table_plane
 
 NORMAL = np.array([0.2, -0.3, 1.0]) / np.linalg.norm([0.2, -0.3, 1.0])
 
@@ -44,7 +44,7 @@ def test_the_plane_is_the_one_open3d_finds_and_the_true_one(seed: int) -> None:
     extent = float(np.median(np.linalg.norm(points - points.mean(0), axis=1)))
     o3d.utility.random.seed(seed)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    _, inliers = pcd.segment_plane(0.01 * extent, 3, 2000)
+    _, inliers = pcd.segment_plane(INLIER_FRACTION_OF_EXTENT * extent, 3, 2000)  # our threshold
     theirs = points[np.asarray(inliers)]
     n = np.linalg.svd(theirs - theirs.mean(0), full_matrices=False)[2][2]
     assert _angle_deg(np.sign(n @ plane.normal) * n, plane.normal) < 0.2
