@@ -78,6 +78,33 @@ def refine_models_command(tmp_path: Path) -> Callable[[Path, Path, list[dict]], 
     return run
 
 
+def at_once(calls: list[Callable[[], Any]]) -> list[Any]:
+    """Each of ``calls`` on a thread of its own, all let go at once (a barrier), and their results in
+    order; the first call's error that failed, if any, raised after all have ended."""
+    import threading
+
+    start = threading.Barrier(len(calls), timeout=60)
+    results: list[Any] = [None] * len(calls)
+    errors: list[BaseException | None] = [None] * len(calls)
+
+    def run(k: int) -> None:
+        start.wait()
+        try:
+            results[k] = calls[k]()
+        except BaseException as exc:  # handed to the caller's thread
+            errors[k] = exc
+
+    threads = [threading.Thread(target=run, args=(k,)) for k in range(len(calls))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    failed = next((e for e in errors if e is not None), None)
+    if failed is not None:
+        raise failed
+    return results
+
+
 def open3d_depth(mesh: Any, T_wm: np.ndarray, cam: Any) -> np.ndarray:
     """Depth (mm along the optical axis, 0: no hit) of pixel (i, j) through OpenCV's (u, v) = (j, i),
     ray-cast by open3d (independent of our caster and of our pixel convention)."""

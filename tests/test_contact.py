@@ -23,6 +23,7 @@ from autoalign.io.bop import Scene, read_scene, with_depth
 from autoalign.engine.table_in_depth import plane_from_depth
 from autoalign.jobs.table_plane import parse_plane
 from autoalign.losses.contact import Contact, RestingContact, TablePlane
+from tests.conftest import at_once
 
 TABLE = TablePlane.of([0.0, 0.0, 1.0], [0.0, 0.0, 0.0])
 
@@ -129,26 +130,14 @@ def test_the_table_plane_from_depth_and_from_the_option(tmp_path: Path) -> None:
 def test_the_table_asked_for_by_instances_at_once_is_the_plane_fitted_alone(tmp_path: Path) -> None:
     """Instances refined side by side ask for their scenes' tables at once (``table_in_depth``, kept
     per scene): from four threads, for two scenes, every plane is the one fitted alone, to the bit."""
-    import threading
-
     from autoalign.engine.table_in_depth import table_in_depth
 
     mesh = mesh_from_trimesh(trimesh.creation.box((40.0, 40.0, 40.0)), "box")
     scenes = [with_depth(read_scene(write_photo_scene(tmp_path / f"scene{k}", [mesh], 4, seed=k, width=320,
                                                       height=240, depth=True).folder)) for k in range(2)]
     alone = [plane_from_depth(sc) for sc in scenes]
-    asked: list[list[TablePlane]] = [[] for _ in range(4)]
-    start = threading.Barrier(4)
-
-    def ask(i: int) -> None:
-        start.wait()
-        asked[i] += [table_in_depth(scenes[(i + j) % 2]) for j in range(2)]
-
-    threads = [threading.Thread(target=ask, args=(i,)) for i in range(4)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
+    asked: list[list[TablePlane]] = at_once([lambda i=i: [table_in_depth(scenes[(i + j) % 2]) for j in range(2)]
+                                             for i in range(4)])
     for i, planes in enumerate(asked):
         for j, plane in enumerate(planes):
             expected = alone[(i + j) % 2]

@@ -15,6 +15,7 @@ import trimesh
 
 from autoalign.geometry.mesh import Mesh, load_mesh
 from autoalign.geometry.mesh_cache import CACHE_ENV
+from tests.conftest import at_once
 
 EXAMPLE_MODEL = Path(__file__).resolve().parents[1] / "autoalign" / "data" / "example" / "model.ply"
 ARRAYS = ("vertices", "faces", "face_normals", "edges", "edge_faces", "centre", "hull", "principal_axes")
@@ -124,8 +125,6 @@ def test_meshes_simplified_on_threads_at_once_are_each_their_own(tmp_path, monke
     decimations at once (instances refined side by side) mixed their meshes, and a YCB-Video box was
     refined, and cached on disk, as the mug's simplified silhouette at the coarse levels (7 of 20 such
     pairs came back wrong before the decimation was serialised)."""
-    import threading
-
     monkeypatch.setenv(CACHE_ENV, "off")
     meshes = [Mesh(np.asarray(s.vertices) * scale, np.asarray(s.faces), name=f"m{k}")
               for k, (s, scale) in enumerate([(trimesh.creation.icosphere(5), (40.0, 30.0, 20.0)),
@@ -135,13 +134,7 @@ def test_meshes_simplified_on_threads_at_once_are_each_their_own(tmp_path, monke
     assert all(len(m.faces) > 8000 for m in meshes)
     alone = [m._decimated(2000) for m in meshes]
     for _ in range(5):
-        got: dict[int, tuple] = {}
-        threads = [threading.Thread(target=lambda k=k: got.__setitem__(k, meshes[k]._decimated(2000)))
-                   for k in range(len(meshes))]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
+        got = at_once([lambda m=m: m._decimated(2000) for m in meshes])
         for k, (v, f) in enumerate(alone):
             assert np.array_equal(got[k][0], v) and np.array_equal(got[k][1], f), f"mesh {k} came back as another's"
 

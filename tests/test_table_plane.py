@@ -3,14 +3,13 @@ the same plane on any thread, alone or with other fits at once."""
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import open3d as o3d
 import pytest
 
 from autoalign.errors import AutoalignError
 from autoalign.recon.plane import INLIER_FRACTION_OF_EXTENT, TablePlane, fit_table_plane
+from tests.conftest import at_once
 
 NORMAL = np.array([0.2, -0.3, 1.0]) / np.linalg.norm([0.2, -0.3, 1.0])
 
@@ -58,21 +57,9 @@ def test_fits_on_threads_at_once_are_the_fit_alone() -> None:
     the bit (open3d's process-wide generator gave 25 of 40 planes up to 0.3 deg off)."""
     points, cameras = _table_and_clutter(3)
     alone = fit_table_plane(points, cameras)
-    results: list[TablePlane | None] = [None] * 4
-    start = threading.Barrier(4)
-
-    def fit(i: int) -> None:
-        start.wait()
-        results[i] = fit_table_plane(points, cameras)
-
     for _ in range(3):
-        threads = [threading.Thread(target=fit, args=(i,)) for i in range(4)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
+        results: list[TablePlane] = at_once([lambda: fit_table_plane(points, cameras)] * 4)
         for plane in results:
-            assert plane is not None
             assert np.array_equal(plane.normal, alone.normal) and np.array_equal(plane.point, alone.point)
             assert (plane.inliers, plane.rms) == (alone.inliers, alone.rms)
 
