@@ -162,9 +162,9 @@ def aligned_copy(a: ArrayLike, dtype: DTypeLike) -> NDArray[Any]:
 def numpy_of(*arrays: Any, dtype: DTypeLike | tuple[DTypeLike, ...]) -> list[NDArray[Any]]:
     """The drjit ``arrays`` as numpy arrays of ``dtype`` (one, or one per array), their kernel launched
     first by ``drjit.eval`` (one kernel for all of them). ``drjit.eval`` launches it without the GIL
-    and returns before it ends; the first read waits for it, without the GIL too. A conversion that evaluates by itself
-    holds the GIL while the kernel runs, and another thread's Python (an instance refined side by
-    side, :mod:`autoalign.runtime.parallel`) then waits for the kernel too."""
+    and returns before it ends; the first read waits for it, without the GIL too. A conversion that
+    evaluates by itself holds the GIL while the kernel runs, and another thread's Python (an instance
+    refined side by side, :mod:`autoalign.runtime.parallel`) then waits for the kernel too."""
     drjit().eval(*arrays)
     dtypes = dtype if isinstance(dtype, tuple) else (dtype,) * len(arrays)
     return [np.array(a, dtype=d) for a, d in zip(arrays, dtypes, strict=True)]
