@@ -303,4 +303,4 @@ class DepthTerm:
         if views.depths is None:
             raise ValueError("the views have no measured depth")
         return depth_terms(caster, mesh, T_wm, views.full_cameras, views.depths, centre_w, self.noise,
-                           max(SAMPLES_MIN, int(MAX_SAMPLES * scale)), views.full_masks)
+                           max(SAMPLES_MIN, int(MAX_SAMPLES * scale)), views.full_targets)

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from autoalign.io.bop import Scene
+from autoalign.losses.compared_views import ComparedViews
 from autoalign.losses.overlap import mask_iou
 
 ON_OBJECT_IOU = 0.5
@@ -64,16 +64,16 @@ def outline_offset(mask: NDArray[np.bool_], visible: NDArray[np.bool_],
     return float(np.median(signed[edge])) if edge.sum() >= MIN_OUTLINE_PX else float("nan")
 
 
-def shared_outline_offset(silhouettes: Sequence[NDArray[np.bool_]], scene: Scene) -> float:
-    """The median over ``scene``'s views of :func:`outline_offset` of its masks from the hard
-    ``silhouettes`` (one per view, full resolution), the pixels the scene ignores (other masks'
-    claims) counting as other objects; views whose mask has an IoU below :data:`ON_OBJECT_IOU`
-    with the silhouette left out. NaN where no view has an offset."""
+def shared_outline_offset(silhouettes: Sequence[NDArray[np.bool_]], views: ComparedViews) -> float:
+    """The median over ``views`` of :func:`outline_offset` of their targets from the hard
+    ``silhouettes`` (one per view, full resolution), the ignored pixels (other masks' claims)
+    counting as other objects; views whose target has an IoU below :data:`ON_OBJECT_IOU` with the
+    silhouette left out. NaN where no view has an offset."""
     offsets = []
-    for k, (sil, target) in enumerate(zip(silhouettes, scene.masks)):
+    for k, (sil, target) in enumerate(zip(silhouettes, views.targets)):
         mask = np.asarray(target) > 0.5
-        others = None if scene.ignore is None else scene.ignore[k]
-        if mask_iou(sil, mask, scene.compared(k)) >= ON_OBJECT_IOU:
+        others = None if views.ignore is None else views.ignore[k]
+        if mask_iou(sil, mask, views.compared(k)) >= ON_OBJECT_IOU:
             offsets.append(outline_offset(mask, sil, others))
     found = np.asarray(offsets, dtype=np.float64)
     found = found[np.isfinite(found)]

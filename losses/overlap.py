@@ -12,7 +12,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from autoalign.io.bop import Scene
+from autoalign.losses.compared_views import ComparedViews
 
 LOOSE_FIT_IOU = 0.75
 """Median IoU below this: the silhouette fits the masks loosely (the verdict asks for a look,
@@ -35,11 +35,11 @@ def mask_iou(a: NDArray[np.bool_], b: NDArray[np.bool_], compared: NDArray[np.bo
     return float(iou_from_counts(np.count_nonzero(a & b), np.count_nonzero(a), np.count_nonzero(b)))
 
 
-def view_ious(silhouettes: Sequence[NDArray[np.bool_]], scene: Scene) -> NDArray[np.float64]:
-    """Per-view IoU of hard silhouettes (one full-resolution mask per view of ``scene``) with the
-    scene's masks thresholded at 0.5, the pixels the scene ignores (other masks' claims) left out:
-    the IoU that ``refine.json``, the overlay and the label page report."""
-    if len(silhouettes) != len(scene):
-        raise ValueError(f"{len(silhouettes)} silhouettes for {len(scene)} views")
-    return np.array([mask_iou(s, np.asarray(t) > 0.5, scene.compared(k))
-                     for k, (s, t) in enumerate(zip(silhouettes, scene.masks))], dtype=np.float64)
+def view_ious(silhouettes: Sequence[NDArray[np.bool_]], views: ComparedViews) -> NDArray[np.float64]:
+    """Per-view IoU of hard silhouettes (one full-resolution mask per one of ``views``) with the
+    views' targets thresholded at 0.5, the ignored pixels (other masks' claims) left out: the IoU
+    that ``refine.json``, the overlay and the label page report."""
+    if len(silhouettes) != len(views):
+        raise ValueError(f"{len(silhouettes)} silhouettes for {len(views)} views")
+    return np.array([mask_iou(s, np.asarray(t) > 0.5, views.compared(k))
+                     for k, (s, t) in enumerate(zip(silhouettes, views.targets))], dtype=np.float64)

@@ -7,20 +7,21 @@ it, so that the solver compares its steps on one objective. Learned again at the
 is the alternation PWP3D and RBOT use per frame (the rounds of :mod:`autoalign.engine.photo_evidence`).
 It takes the mask term's place: the silhouettes are compared with its targets by the mask term's
 loss, and its targets are what the views' overlaps are measured against (the objective's views
-as it compares them: :meth:`RegionTerm.targets_in`). Fused per pixel, not added beside the masks:
+as it compares them: :meth:`RegionTerm.targets_in`, a
+:class:`~autoalign.losses.compared_views.ComparedViews`). Fused per pixel, not added beside the masks:
 added, a pixel that the mask misses but whose colour is clearly the object's would pull nowhere
 (measured: ``experiments/results/photo_fusion_additive_*.md``).
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
 from autoalign.io.bop import Scene
+from autoalign.losses.compared_views import ComparedViews
 from autoalign.losses.mask_term import MaskTerm
 from autoalign.losses.region import RegionOptions, RegionTarget, region_target
 
@@ -69,10 +70,10 @@ class RegionTerm(MaskTerm):
         """The term on the views at positions ``idx``."""
         return RegionTerm([self.learned[int(i)] for i in idx], self.masks_given, self.loss)
 
-    def targets_in(self, scene: Scene) -> Scene:
-        """``scene`` (the views this term was learned on) as this term compares it: its targets in the
-        masks' place, and the photos kept only without masks (the edge term reads them then:
+    def targets_in(self, scene: Scene) -> ComparedViews:
+        """``scene`` (the views this term was learned on) as this term compares it: with its targets,
+        and the photos left to the other terms only without masks (the edge term reads them then:
         :mod:`autoalign.losses.edge`); with masks the photos are this term's alone."""
         if len(scene) != len(self.learned):
             raise ValueError(f"{len(scene)} views, but the region term was learned on {len(self.learned)}")
-        return replace(scene, masks=self.targets, photos=None if self.masks_given else scene.photos)
+        return ComparedViews(scene, self.targets, None if self.masks_given else scene.photos)

@@ -34,7 +34,7 @@ from autoalign.rasterizers.soft_silhouette import Silhouettes, SoftSilhouetteRas
 class LevelViews:
     """The views of one resolution level: cameras, area-resampled targets in [0, 1], per-view
     target sums, and the pixels not compared (``None``: all are), all at that resolution; and the
-    same views' full-resolution cameras, masks, measured depth (mm, 0 = none; ``None``: no depth) and
+    same views' full-resolution cameras, targets, measured depth (mm, 0 = none; ``None``: no depth) and
     photos (BGR uint8; ``None``: none read by a term)."""
 
     cameras: list[Camera]
@@ -42,7 +42,7 @@ class LevelViews:
     totals: NDArray[np.float64]
     ignore: list[NDArray[np.bool_]] | None
     full_cameras: list[Camera]
-    full_masks: list[NDArray[np.float32]]
+    full_targets: list[NDArray[np.float32]]
     depths: list[NDArray[np.float32]] | None = None
     photos: list[NDArray[np.uint8]] | None = None
 

@@ -31,6 +31,7 @@ from autoalign.experiments.studies.runner import get_model, model_ids
 from autoalign.experiments.studies.shared_data import REAL_SCENES
 from autoalign.geometry.mesh import mesh_from_trimesh
 from autoalign.geometry.se3 import make_pose, rotation_angle_deg, transform_points
+from autoalign.losses.compared_views import ComparedViews
 from autoalign.rasterizers.camera_batch import CameraBatch
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
@@ -97,9 +98,9 @@ def test_coarse_to_fine_scoring_keeps_the_best_of_full_scoring() -> None:
     mesh, _, _, scene = _trial("mug", 0)
     rast = SoftSilhouetteRasterizer(mesh.simplified(1500))
     poses = poses_at(rotation_grid(384), hull_centre(scene, mesh.diameter), mesh.centre)
-    scores, rescored = score_poses(rast, scene, poses)
+    scores, rescored = score_poses(rast, ComparedViews.of(scene), poses)
     full_top = rescored[np.argsort(-scores)[:8]]
-    top = best_poses(rast, scene, poses, 8)
+    top = best_poses(rast, ComparedViews.of(scene), poses, 8)
     assert top.shape == (8, 4, 4)
     np.testing.assert_allclose(top, full_top, atol=1e-9)
 
@@ -113,7 +114,7 @@ def test_the_climb_walks_back_turns_about_the_model_axes(name: str) -> None:
     rast = SoftSilhouetteRasterizer(mesh.simplified(1500))
     c = mesh.centre
     start = geo.T_gt @ _turn(5.0, [0, 1, 0], c) @ _turn(10.0, [1, 0, 0], c)
-    climbed = climb_poses(rast, scene, start[None], (10.0, 5.0))[0]
+    climbed = climb_poses(rast, ComparedViews.of(scene), start[None], (10.0, 5.0))[0]
     assert rotation_angle_deg(climbed[:3, :3], geo.T_gt[:3, :3]) < 1e-6
     shift = np.linalg.norm(transform_points(climbed, c[None]) - transform_points(geo.T_gt, c[None]))
     assert shift < 1.0, shift
@@ -124,8 +125,8 @@ def test_the_climb_moves_the_grid_poses_closer() -> None:
     mesh, sym, geo, scene = _trial("z_bracket", 0)
     rast = SoftSilhouetteRasterizer(mesh.simplified(1500))
     poses = poses_at(rotation_grid(384), hull_centre(scene, mesh.diameter), mesh.centre)
-    top = best_poses(rast, scene, poses, 8)
-    climbed = climb_poses(rast, scene, top)
+    top = best_poses(rast, ComparedViews.of(scene), poses, 8)
+    climbed = climb_poses(rast, ComparedViews.of(scene), top)
     err = np.array([[pose_errors(T, geo.T_gt, mesh.centre, None, sym).rot_err_deg for T in P] for P in (top, climbed)])
     assert err[1].min() < err[0].min() and np.median(err[1]) < np.median(err[0]), err
 
@@ -145,8 +146,8 @@ def test_recentring_stays_near_the_seed_it_is_anchored_to() -> None:
     poses = poses_at(rotation_grid(96), anchor, mesh.centre)
     drift = {}
     for name, a in (("anchored", anchor), ("free", None)):
-        top = best_poses(rast, scene, poses, 4, anchor=a)
-        climbed = climb_poses(rast, scene, top, anchor=a)
+        top = best_poses(rast, ComparedViews.of(scene), poses, 4, anchor=a)
+        climbed = climb_poses(rast, ComparedViews.of(scene), top, anchor=a)
         centres = climbed[:, :3, :3] @ mesh.centre + climbed[:, :3, 3]
         drift[name] = float(np.linalg.norm(centres - anchor, axis=1).max())
     assert drift["anchored"] <= ANCHOR_REACH * radius + 1e-6
@@ -171,7 +172,7 @@ def test_recentring_leaves_out_masks_on_another_object(monkeypatch: pytest.Monke
     off = {}
     for rule, factor in (("robust", hyp.CENTROID_OUTLIER), ("every view", np.inf)):
         monkeypatch.setattr(hyp, "CENTROID_OUTLIER", factor)
-        _, moved = score_poses(rast, scene, start[None])
+        _, moved = score_poses(rast, ComparedViews.of(scene), start[None])
         off[rule] = float(np.linalg.norm(transform_points(moved[0], mesh.centre[None])[0] - truth_c))
     assert off["robust"] < 5.0, off
     assert off["every view"] > 3 * off["robust"], off

@@ -10,6 +10,7 @@ from autoalign.engine.uncertainty import BOUNDARY_BIAS_PX, uncertainty_of, with_
 from autoalign.experiments.studies.shared_data import YCBV_RGBD
 from autoalign.geometry.camera import Camera
 from autoalign.io.bop import Scene
+from autoalign.losses.compared_views import ComparedViews
 from autoalign.losses.outline_offset import outline_offset, shared_outline_offset
 
 SHAPE = (240, 320)
@@ -64,10 +65,11 @@ def test_offset_worked_on_the_box_is_the_whole_image_s(centre):
     assert np.isnan(outline_offset(mask, np.zeros(SHAPE, bool)))  # no silhouette: no outline to compare
 
 
-def _scene(masks: list[np.ndarray], ignore: list[np.ndarray] | None = None) -> Scene:
+def _views(masks: list[np.ndarray], ignore: list[np.ndarray] | None = None) -> ComparedViews:
     cam = Camera.from_opencv(np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]]), np.eye(3), np.zeros(3),
                              SHAPE[1], SHAPE[0])
-    return Scene([cam] * len(masks), [m.astype(np.float32) for m in masks], list(range(len(masks))), ignore=ignore)
+    return ComparedViews.of(Scene([cam] * len(masks), [m.astype(np.float32) for m in masks], list(range(len(masks))),
+                                  ignore=ignore))
 
 
 def test_shared_offset_is_the_median_over_the_views_on_the_object():
@@ -75,8 +77,8 @@ def test_shared_offset_is_the_median_over_the_views_on_the_object():
     the tight ones' -3; the mask elsewhere is left out, not read as a huge shift."""
     sil = disk(40)
     masks = [disk(37), disk(37), disk(37), disk(41), disk(30, (40, 40))]
-    assert shared_outline_offset([sil] * 5, _scene(masks)) == pytest.approx(-3.0, abs=0.5)
-    assert np.isnan(shared_outline_offset([sil], _scene([disk(30, (40, 40))])))
+    assert shared_outline_offset([sil] * 5, _views(masks)) == pytest.approx(-3.0, abs=0.5)
+    assert np.isnan(shared_outline_offset([sil], _views([disk(30, (40, 40))])))
 
 
 def test_disagreement_widens_the_outline_prior_along_its_shift():

@@ -23,6 +23,7 @@ from autoalign.geometry.se3 import make_pose
 from autoalign.io.instances import read_instance_scenes, read_instances
 from autoalign.io.models import ModelSet
 from autoalign.label.page_geometry import SilhouetteRenderer, fit
+from autoalign.losses.compared_views import ComparedViews
 from autoalign.losses.overlap import view_ious
 from autoalign.rasterizers.pyramid import MeshDetail
 
@@ -73,8 +74,8 @@ def test_every_reported_iou_is_one_number(pair) -> None:
     result = refine(scene, models.pyramid(obj_id), T0, RefineOptions(detail=detail))
 
     drawn = models.pyramid(obj_id).fine(detail)
-    after = view_ious(drawn.hard_masks(result.T_wm, scene.cameras), scene)
-    before = view_ious(drawn.hard_masks(result.T_init, scene.cameras), scene)
+    after = view_ious(drawn.hard_masks(result.T_wm, scene.cameras), ComparedViews.of(scene))
+    before = view_ious(drawn.hard_masks(result.T_init, scene.cameras), ComparedViews.of(scene))
     np.testing.assert_allclose(result.iou_after, after, rtol=0, atol=1e-12)  # from the last evaluation, not cast again
     np.testing.assert_allclose(result.iou_before, before, rtol=0, atol=1e-12)
     assert after.mean() > before.mean() and after.min() > 0.9
@@ -84,5 +85,6 @@ def test_every_reported_iou_is_one_number(pair) -> None:
     np.testing.assert_allclose([shown[im] for im in scene.image_ids], after, rtol=0, atol=1e-12)
 
     # the file's own mesh gives other numbers: the pyramid's detail is what makes them one
-    as_file = view_ious(models.pyramid(obj_id).with_faces(None).hard_masks(result.T_wm, scene.cameras), scene)
+    as_file = view_ious(models.pyramid(obj_id).with_faces(None).hard_masks(result.T_wm, scene.cameras),
+                        ComparedViews.of(scene))
     assert np.abs(as_file - after).max() > 1e-6

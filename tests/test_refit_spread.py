@@ -53,7 +53,7 @@ def test_too_few_views_are_not_checked() -> None:
     """Fewer than two views per group: no ratio, and the spread is left as it is."""
 
     class Few:
-        scene = [None] * (2 * GROUPS - 1)
+        compared = [None] * (2 * GROUPS - 1)
 
     assert refit_ratio(Few(), np.eye(4), None, None, "lm") is None  # type: ignore[arg-type]
     assert spread_factor(None) == 1.0 and spread_factor(0.0) == 1.0 and spread_factor(7.5) == 7.5

@@ -173,8 +173,11 @@ def test_the_region_term_takes_the_mask_terms_place_and_leaves_the_scene_as_give
     opts = RefineOptions()
     obj = compared_objective(pyramid, scene, opts, term)
     assert [t for t in obj.terms if type(t) is MaskTerm] == [] and term.subset([0, 1]).learned == obj.region.learned
-    assert obj.scene.image_ids == [1, 2] and obj.scene.photos is None  # with masks the photos are the term's alone
-    assert all(np.array_equal(a, b) for a, b in zip(obj.scene.masks, term.targets[:2]))
+    assert obj.compared.image_ids == [1, 2]
+    assert obj.compared.photos is None  # with masks the photos are the term's alone
+    assert all(np.array_equal(a, b) for a, b in zip(obj.compared.targets, term.targets[:2]))
+    assert obj.compared.scene.photos is not None  # the scene it holds is as given: masks and photos
+    assert all(np.array_equal(a, b) for a, b in zip(obj.compared.scene.masks, masks[:2]))
     sub = obj.subset([1])
     assert sub.region is not None and sub.region.learned == (term.learned[1],)
     masks_alone = compared_objective(pyramid, scene, opts)

@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from autoalign.geometry.camera import pixel_centres
 from autoalign.geometry.se3 import invert, make_pose, so3_exp, so3_log
-from autoalign.io.bop import Scene
+from autoalign.losses.compared_views import ComparedViews
 from autoalign.losses.overlap import iou_from_counts
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
@@ -47,14 +47,14 @@ def turns(T_wm: NDArray[np.float64], axis_m: NDArray[np.float64], centre_m: NDAr
     return np.stack([T_wm @ _turn_about(so3_exp(a * np.radians(t)), centre_m) for t in angles_deg])
 
 
-def turn_scores(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.float64],
+def turn_scores(rast: SoftSilhouetteRasterizer, views: ComparedViews, T_wm: NDArray[np.float64],
                 axes_m: list[NDArray[np.float64]], centre_m: NDArray[np.float64],
                 angles_deg: tuple[float, ...]) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
     """The robust hard-IoU score (:func:`score_poses` at 1/4 resolution) of ``T_wm`` and of its
     turns about each model axis of ``axes_m`` through ``centre_m`` by ``angles_deg``: its score,
     the turns' scores and the turned poses (K, 4, 4)."""
     cands = np.concatenate([turns(T_wm, a, centre_m, angles_deg) for a in axes_m])
-    scores, _ = score_poses(rast, scene, np.concatenate([T_wm[None], cands]), scale=0.25, recentre=False)
+    scores, _ = score_poses(rast, views, np.concatenate([T_wm[None], cands]), scale=0.25, recentre=False)
     return float(scores[0]), scores[1:], cands
 
 
@@ -107,13 +107,13 @@ visible silhouette's where parts are missed or hidden by an unmodelled occluder)
 class _LowResViews:
     """Crop pixels of a subset of views at low resolution, shared by all hypotheses."""
 
-    def __init__(self, scene: Scene, centre_w: NDArray[np.float64],
+    def __init__(self, views: ComparedViews, centre_w: NDArray[np.float64],
                  reach: float, scale: float, max_views: int) -> None:
-        idx = scene.spread(max_views)
+        idx = views.spread(max_views)
         centres, dirs, pix, tgt, view, J, g_cent, t_tot, care = [], [], [], [], [], [], [], [], []
         for k in idx:
-            cam = scene.cameras[k].scaled(scale)
-            mask = cv2.resize(scene.masks[k].astype(np.float32, copy=False), (cam.width, cam.height),
+            cam = views.cameras[k].scaled(scale)
+            mask = cv2.resize(views.targets[k].astype(np.float32, copy=False), (cam.width, cam.height),
                               interpolation=cv2.INTER_AREA) > 0.5
             Xc = cam.to_camera(centre_w[None])[0]
             if Xc[2] <= reach or not mask.any():
@@ -130,8 +130,8 @@ class _LowResViews:
             dirs.append(cam.ray_directions(uv))
             pix.append(uv)
             tgt.append(mask[y0:y1, x0:x1].ravel())
-            if scene.ignore is not None:  # rays there count neither as silhouette nor as overlap
-                ign = cv2.resize(scene.ignore[k].astype(np.float32), (cam.width, cam.height),
+            if views.ignore is not None:  # rays there count neither as silhouette nor as overlap
+                ign = cv2.resize(views.ignore[k].astype(np.float32), (cam.width, cam.height),
                                  interpolation=cv2.INTER_AREA) > 0.5
                 care.append(~ign[y0:y1, x0:x1].ravel())
             else:
@@ -179,14 +179,14 @@ def _centroid_inliers(offsets: NDArray[np.float64], ok: NDArray[np.bool_]) -> ND
     return ok & (size <= CENTROID_OUTLIER * np.maximum(med, 1.0)[:, None])
 
 
-def score_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.float64],
+def score_poses(rast: SoftSilhouetteRasterizer, targets: ComparedViews, poses: NDArray[np.float64],
                 scale: float = 0.125, max_views: int = 20, trim: float = 0.2,
                 recentre: bool = True, anchor: NDArray[np.float64] | None = None
                 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Robust mean hard IoU of each pose against the masks, at ``scale`` of the image size.
+    """Robust mean hard IoU of each pose against the ``targets``, at ``scale`` of the image size.
 
     Returns ``(scores, poses)``: with ``recentre`` each pose's translation is first corrected so
-    its silhouette centroids match the masks' (the returned poses carry that correction), its
+    its silhouette centroids match the targets' (the returned poses carry that correction), its
     object centre kept within :data:`ANCHOR_REACH` of the model's radius from ``anchor`` (world,
     mm; the seed's centre) if given.
     Every pose is ray-cast in the same crop per view: the projection of a sphere enclosing all
@@ -197,7 +197,7 @@ def score_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.
     centres = poses[:, :3, 3] + np.einsum("kij,j->ki", poses[:, :3, :3], rast.mesh.centre)
     centre_w = centres.mean(0)
     reach = radius + float(np.linalg.norm(centres - centre_w, axis=1).max()) + (0.5 * radius if recentre else 0.0)
-    views = _LowResViews(scene, centre_w, reach, scale, max_views)
+    views = _LowResViews(targets, centre_w, reach, scale, max_views)
     if views.n == 0:
         return np.zeros(len(poses)), poses
     stats = views.overlap_stats(rast, poses)
@@ -229,7 +229,7 @@ def score_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.
     return scores, poses
 
 
-def best_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.float64], n: int,
+def best_poses(rast: SoftSilhouetteRasterizer, views: ComparedViews, poses: NDArray[np.float64], n: int,
                scale: float = 0.125, shortlist: int = 48, shortlist_views: int = 12,
                anchor: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
     """The ``n`` best poses by :func:`score_poses` (re-centred, best first), found coarse to fine.
@@ -239,13 +239,13 @@ def best_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.f
     the top 8 came out the same as scoring every pose at ``scale``, at a quarter of the time.
     """
     if len(poses) > shortlist:
-        scores, _ = score_poses(rast, scene, poses, scale=scale / 2, max_views=shortlist_views, anchor=anchor)
+        scores, _ = score_poses(rast, views, poses, scale=scale / 2, max_views=shortlist_views, anchor=anchor)
         poses = poses[np.argsort(-scores)[:shortlist]]
-    scores, poses = score_poses(rast, scene, poses, scale=scale, anchor=anchor)
+    scores, poses = score_poses(rast, views, poses, scale=scale, anchor=anchor)
     return poses[np.argsort(-scores)[:n]]
 
 
-def climb_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.float64],
+def climb_poses(rast: SoftSilhouetteRasterizer, views: ComparedViews, poses: NDArray[np.float64],
                 steps_deg: tuple[float, ...] = (10.0, 5.0), scale: float = 0.125,
                 max_views: int = 20, anchor: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
     """Each pose (K, 4, 4) moved uphill on its hard IoU (:func:`score_poses`) by small turns.
@@ -265,7 +265,7 @@ def climb_poses(rast: SoftSilhouetteRasterizer, scene: Scene, poses: NDArray[np.
                 R = so3_exp(sign * np.radians(d) * axis)
                 turns.append(_turn_about(R, c))
         cand = np.concatenate([poses[:, None], poses[:, None] @ np.stack(turns)[None]], axis=1)  # (K, 7, 4, 4)
-        scores, cand = score_poses(rast, scene, cand.reshape(-1, 4, 4), scale=scale, max_views=max_views,
+        scores, cand = score_poses(rast, views, cand.reshape(-1, 4, 4), scale=scale, max_views=max_views,
                                    anchor=anchor)
         cand = cand.reshape(len(poses), -1, 4, 4)
         poses = cand[np.arange(len(poses)), np.argmax(scores.reshape(len(poses), -1), axis=1)]

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -13,6 +13,7 @@ from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import transform_points
 from autoalign.io.bop import Scene
 from autoalign.losses import ViewTerms, robust_view_weights
+from autoalign.losses.compared_views import ComparedViews
 from autoalign.losses.depth import DepthNoise, DepthTerm
 from autoalign.losses.edge import EdgeTerm
 from autoalign.losses.mask_term import MaskTerm
@@ -78,18 +79,18 @@ class Evaluation:
         return ViewTermsRecord.of(self.values, self.weights)
 
 
-def view_terms(loss: str, depth: DepthNoise | None, scene: Scene, edges: float | None = None,
+def view_terms(loss: str, depth: DepthNoise | None, views: ComparedViews, edges: float | None = None,
                region: RegionTerm | None = None) -> tuple[Term, ...]:
-    """The evidence terms every view of ``scene`` (as compared: :meth:`SilhouetteObjective.__init__`)
-    is compared with, in order: the depth term (with a sensor's ``depth`` noise and measured depth)
-    before the mask term (``loss``), or in its place the ``region`` term (the masks fused with the
-    photos' colours), which do not compare the pixels the depth shows hidden, and the edge term (with
-    weight ``edges`` and the scene's photos). The one list of per-view terms."""
+    """The evidence terms every one of ``views`` is compared with, in order: the depth term (with a
+    sensor's ``depth`` noise and measured depth) before the mask term (``loss``), or in its place the
+    ``region`` term (the masks fused with the photos' colours), which do not compare the pixels the
+    depth shows hidden, and the edge term (with weight ``edges`` and the photos the region term leaves
+    to it). The one list of per-view terms."""
     terms: list[Term] = []
-    if depth is not None and scene.depths is not None:
+    if depth is not None and views.depths is not None:
         terms.append(DepthTerm(depth))
     terms.append(MaskTerm(loss) if region is None else region)
-    if edges is not None and scene.photos is not None:
+    if edges is not None and views.photos is not None:
         terms.append(EdgeTerm(edges))
     return tuple(terms)
 
@@ -99,7 +100,7 @@ class SilhouetteObjective:
 
     Args:
         pyramid: the object's mesh and its simplified versions (:class:`~autoalign.rasterizers.pyramid.MeshPyramid`).
-        scene: cameras and target masks.
+        scene: the views as given: cameras, masks, and the measured depth and photos if any.
         loss: one of :data:`autoalign.losses.LOSSES`, the mask term's.
         robust: re-weight views with Cauchy weights on ``1 - IoU`` (see :func:`~autoalign.losses.robust_view_weights`).
         detail: the mesh's detail at each level's resolution (:class:`~autoalign.rasterizers.pyramid.MeshDetail`).
@@ -109,10 +110,12 @@ class SilhouetteObjective:
         edges: the edge term's weight: with it, and the scene's photos, each view's term adds the
             photo's edges under the outline (:mod:`autoalign.losses.edge`); ``None``: no edge term.
         region: the region term learned on the scene's views (:mod:`autoalign.losses.region_term`),
-            which takes the mask term's place: the views' targets are then its, and ``scene`` holds
-            the views as it compares them (:meth:`~autoalign.losses.region_term.RegionTerm.targets_in`).
+            which takes the mask term's place: the views' targets are then its
+            (:meth:`~autoalign.losses.region_term.RegionTerm.targets_in`).
 
     The terms are :func:`view_terms`, plus those on the pose alone given to :meth:`with_pose_term`.
+    ``compared`` holds the views as they are compared (:class:`~autoalign.losses.compared_views.ComparedViews`:
+    the scene as given and each view's target).
     """
 
     def __init__(self, pyramid: MeshPyramid, scene: Scene, loss: str = "l2", robust: bool = True,
@@ -124,12 +127,12 @@ class SilhouetteObjective:
         self.detail = detail
         self.depth = depth
         self.centre_m = pyramid.mesh.centre  # the point twists turn about, model frame (mm)
-        self.scene = scene if region is None else region.targets_in(scene)
+        self.compared = ComparedViews.of(scene) if region is None else region.targets_in(scene)
         self.loss_name = loss
         self.robust = robust
         self.edges = edges
         self.region = region
-        self.terms: tuple[Term, ...] = view_terms(loss, depth, self.scene, edges, region)
+        self.terms: tuple[Term, ...] = view_terms(loss, depth, self.compared, edges, region)
         self._levels: dict[tuple[float, int | None], LevelViews] = {}
         self._renders = [0]  # shared with the objectives made by with_pose_term
 
@@ -158,8 +161,8 @@ class SilhouetteObjective:
         (see :meth:`Scene.spread`); a resampled pixel is ignored when most of it was."""
         key = (scale, max_views)
         if key not in self._levels:
-            scene = self.scene if max_views is None else self.scene.subset(self.scene.spread(max_views))
-            cams = [c.scaled(scale) for c in scene.cameras]
+            views = self.compared if max_views is None else self.compared.subset(self.compared.spread(max_views))
+            cams = [c.scaled(scale) for c in views.cameras]
 
             def resampled(m: NDArray, c: Camera) -> NDArray[np.float32]:
                 if scale == 1.0:
@@ -171,30 +174,31 @@ class SilhouetteObjective:
                     return g  # no copy: read only, and at full size as many bytes as the image has pixels
                 return resampled(g, c) > 0.5
 
-            tg = [resampled(m, c) for m, c in zip(scene.masks, cams)]
-            ignore = None if scene.ignore is None else [ignored(g, c) for g, c in zip(scene.ignore, cams)]
-            self._levels[key] = LevelViews(cams, tg, np.array([float(t.sum()) for t in tg]), ignore, scene.cameras,
-                                           scene.masks, scene.depths, scene.photos)
+            tg = [resampled(m, c) for m, c in zip(views.targets, cams)]
+            ignore = None if views.ignore is None else [ignored(g, c) for g, c in zip(views.ignore, cams)]
+            self._levels[key] = LevelViews(cams, tg, np.array([float(t.sum()) for t in tg]), ignore, views.cameras,
+                                           views.targets, views.depths, views.photos)
         return self._levels[key]
 
     def subset(self, idx: list[int] | NDArray[np.int64]) -> "SilhouetteObjective":
         """The same objective on the views at positions ``idx`` (no terms on the pose), with the
         resampled targets of every view at each scale already computed taken from this one."""
         idx = [int(i) for i in idx]
-        sub = SilhouetteObjective(self.pyramid, self.scene.subset(idx), self.loss_name, self.robust, self.detail,
-                                  self.depth, self.edges, None if self.region is None else self.region.subset(idx))
+        sub = SilhouetteObjective(self.pyramid, self.compared.scene.subset(idx), self.loss_name, self.robust,
+                                  self.detail, self.depth, self.edges,
+                                  None if self.region is None else self.region.subset(idx))
         for (scale, max_views), lv in self._levels.items():
             if max_views is None:
                 sub._levels[(scale, None)] = LevelViews(
                     [lv.cameras[i] for i in idx], [lv.targets[i] for i in idx], lv.totals[idx],
                     None if lv.ignore is None else [lv.ignore[i] for i in idx], [lv.full_cameras[i] for i in idx],
-                    [lv.full_masks[i] for i in idx], None if lv.depths is None else [lv.depths[i] for i in idx],
+                    [lv.full_targets[i] for i in idx], None if lv.depths is None else [lv.depths[i] for i in idx],
                     None if lv.photos is None else [lv.photos[i] for i in idx])
         return sub
 
     def use_cameras(self, cameras: list[Camera]) -> None:
         """Render through ``cameras`` (one per view of the scene, e.g. corrected ones) from now on."""
-        self.scene = replace(self.scene, cameras=list(cameras))
+        self.compared = self.compared.through(cameras)
         self._levels.clear()
 
     def fragments(self, T_wm: NDArray[np.float64], level: Level, with_derivatives: bool = True) -> Fragments:

@@ -27,6 +27,7 @@ from autoalign.engine.schedule import compared_objective, polish
 from autoalign.engine.uncertainty import with_outline_disagreement
 from autoalign.geometry.se3 import pose_change
 from autoalign.io.bop import Scene
+from autoalign.losses.compared_views import ComparedViews
 from autoalign.losses.region import EDGE_SUPPORTS, RegionOptions, RegionTarget
 from autoalign.losses.region_term import RegionTerm
 from autoalign.losses.term import Stance, TermEvidence
@@ -229,7 +230,7 @@ def photo_result(result: R, scene: Scene, pyramid: MeshPyramid, term: RegionTerm
     keep = term.covered()  # the views refine used
     used = term.subset(keep)
     evidence = PhotoEvidence.of(used.learned, run.rounds + 1, term.masks_given, run.side)
-    compared = scene.subset(keep) if term.masks_given else used.targets_in(scene.subset(keep))
+    compared = ComparedViews.of(scene.subset(keep)) if term.masks_given else used.targets_in(scene.subset(keep))
     rast = pyramid.fine(detail)
     iou_after, unc = result.iou_after, result.uncertainty
     if term.masks_given:

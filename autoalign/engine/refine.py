@@ -47,6 +47,7 @@ from autoalign.geometry.mesh import Mesh
 from autoalign.geometry.se3 import pose_change, symmetric_pose_change, transform_points
 from autoalign.io.bop import Scene
 from autoalign.losses import targets_in_crops
+from autoalign.losses.compared_views import ComparedViews
 from autoalign.losses.silhouette import boundary_bias_grads
 from autoalign.losses.contact import (CONTACT_MAX_LEAN_DEG, CONTACT_STIFFNESS, OFFERED_GAP_MM, Contact, RestingContact,
                                       TablePlane)
@@ -228,12 +229,12 @@ def _final_loss(obj: SilhouetteObjective, T: NDArray[np.float64], level: Level,
     return ev.value / len(ev.weights), float(np.mean(ev.terms.iou)), ev.weights
 
 
-def _hard_ious_of(ev: Evaluation, scene: Scene) -> NDArray[np.float64]:
+def _hard_ious_of(ev: Evaluation, views: ComparedViews) -> NDArray[np.float64]:
     """:func:`~autoalign.losses.overlap.view_ious` from the hard masks of a full-resolution
-    evaluation, without casting them again (the scene's ignored pixels are already off the
-    evaluation's silhouettes and never on the instance's own mask)."""
+    evaluation, without casting them again (the ignored pixels are already off the evaluation's
+    silhouettes and never on the instance's own target)."""
     sil = ev.silhouettes
-    tg = [m > 0.5 for m in scene.masks]
+    tg = [m > 0.5 for m in views.targets]
     t_crop = targets_in_crops(tg, sil) > 0.5
     vp = sil.view_of_pixel()
     inter = np.bincount(vp, weights=sil.hard & t_crop, minlength=sil.n_views)
@@ -241,10 +242,10 @@ def _hard_ious_of(ev: Evaluation, scene: Scene) -> NDArray[np.float64]:
     return iou_from_counts(inter, area, [float(t.sum()) for t in tg])
 
 
-def hard_ious(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Per-view IoU of the ray-cast silhouette at ``T_wm`` with the scene's masks, full resolution
-    (pixels the scene ignores left out)."""
-    return view_ious(rast.hard_masks(T_wm, scene.cameras), scene)
+def hard_ious(rast: SoftSilhouetteRasterizer, views: ComparedViews, T_wm: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Per-view IoU of the ray-cast silhouette at ``T_wm`` with the views' targets, full resolution
+    (the ignored pixels left out)."""
+    return view_ious(rast.hard_masks(T_wm, views.cameras), views)
 
 
 ALIKE_TURNS_DEG = np.r_[np.arange(5.0, 180.0, 5.0), -np.arange(5.0, 180.0, 5.0)]
@@ -406,7 +407,7 @@ descent, and the refined pose before its uncertainty and verdict are worked out 
 a seed's hold, a resting contact, a weak turn, may still move it)."""
 
 
-def _seed(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,
+def _seed(views: ComparedViews, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,
           progress: Progress | None, preview: PosePreview | None = None) -> list[NDArray[np.float64]]:
     """Stage 1: the starting poses: the seed itself, or the best-scoring orientations of a rotation
     grid placed at the click's or the visual hull's centre, each climbed to the best of its small
@@ -414,14 +415,15 @@ def _seed(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: RefineOptions,
     if seed is not None and not isinstance(seed, Click):
         return [np.asarray(seed, dtype=np.float64)]
     mesh, search = pyramid.mesh, pyramid.with_faces(opts.detail.search)
+    scene = views.scene  # no region term without a given pose: the targets are the masks
     centre = click_centre(scene, seed, mesh.diameter) if isinstance(seed, Click) else hull_centre(scene, mesh.diameter)
     poses = poses_at(rotation_grid(opts.search.n_rotations), centre, mesh.centre)
     if progress is not None:
         progress("scoring orientations", 0, 1)
-    top = best_poses(search, scene, poses, opts.search.n_starts, anchor=centre)
+    top = best_poses(search, views, poses, opts.search.n_starts, anchor=centre)
     if preview is not None:
         preview(top[0].copy())
-    starts = list(climb_poses(search, scene, top, opts.search.climb_deg, anchor=centre))
+    starts = list(climb_poses(search, views, top, opts.search.climb_deg, anchor=centre))
     if progress is not None:
         progress("scoring orientations", 1, 1)
     return starts
@@ -450,7 +452,7 @@ def _with_candidate(obj: SilhouetteObjective, final: list[Finalist], parent: Hyp
     return sorted(final + polished, key=lambda f: f.hypothesis.rank())
 
 
-def _with_best_turn(obj: SilhouetteObjective, scene: Scene, final: list[Finalist], parent: Hypothesis,
+def _with_best_turn(obj: SilhouetteObjective, views: ComparedViews, final: list[Finalist], parent: Hypothesis,
                     axes_m: list[NDArray[np.float64]], angles_deg: tuple[float, ...], margin: float, stage: Stage,
                     opts: RefineOptions, progress: Progress | None, both_ways: bool = False
                     ) -> tuple[list[Finalist], float]:
@@ -461,7 +463,7 @@ def _with_best_turn(obj: SilhouetteObjective, scene: Scene, final: list[Finalist
     by ``margin``: a pose between two near-equal minima (a keyed gear half a tooth off) has one on
     each side, and 1/4 resolution cannot tell which holds the key. Returns the finalists and how
     much better ``parent`` scored than its best turn (negative: the turn was better)."""
-    own, scores, cands = turn_scores(obj.pyramid.with_faces(opts.detail.coarse), scene, parent.T_final,
+    own, scores, cands = turn_scores(obj.pyramid.with_faces(opts.detail.coarse), views, parent.T_final,
                                      axes_m, obj.centre_m, angles_deg)
     k = int(np.argmax(scores))
     picked = [k] if scores[k] > own + margin else []
@@ -491,7 +493,7 @@ def _turn_rise(obj: SilhouetteObjective, T_wm: NDArray[np.float64], axes_m: NDAr
     return float(values[a].min() / own - 1.0), np.asarray(axes_m[a], dtype=np.float64)
 
 
-def _with_orbit(obj: SilhouetteObjective, scene: Scene, final: list[Finalist], standing: Standing,
+def _with_orbit(obj: SilhouetteObjective, views: ComparedViews, final: list[Finalist], standing: Standing,
                 centre_m: NDArray[np.float64], others: list[Hypothesis], opts: RefineOptions,
                 progress: Progress | None) -> tuple[list[Finalist], Standing]:
     """When the runner-up is competitive and a 1/n turn from the best, the rest of that turn's
@@ -506,15 +508,15 @@ def _with_orbit(obj: SilhouetteObjective, scene: Scene, final: list[Finalist], s
     if not len(cands):
         return final, standing
     fine = obj.pyramid.fine(opts.detail)
-    ious = np.array([float(np.mean(hard_ious(fine, scene, T))) for T in cands])
-    if ious.max() <= float(np.mean(hard_ious(fine, scene, best.T_final))) + opts.disambiguation.margin:
+    ious = np.array([float(np.mean(hard_ious(fine, views, T))) for T in cands])
+    if ious.max() <= float(np.mean(hard_ious(fine, views, best.T_final))) + opts.disambiguation.margin:
         return final, standing
     final = _with_candidate(obj, final, best, cands[int(np.argmax(ious))], Stage.ORBIT, opts.schedule[-1], opts,
                             progress)
     return final, _rank(final, others, centre_m, opts)
 
 
-def _alike_turns(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.float64], mesh: Mesh,
+def _alike_turns(rast: SoftSilhouetteRasterizer, views: ComparedViews, T_wm: NDArray[np.float64], mesh: Mesh,
                  opts: RefineOptions) -> NDArray[np.float64]:
     """Poses (K, 4, 4) that ``T_wm`` turned about an axis it is nearly round about (:attr:`Mesh.round_axes
     <autoalign.geometry.mesh.Mesh.round_axes>`) looks alike at: the smallest turn of :data:`ALIKE_TURNS_DEG`,
@@ -525,7 +527,7 @@ def _alike_turns(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.
     out = []
     margin = opts.disambiguation.near_margin
     for axis in mesh.round_axes:
-        own, scores, cands = turn_scores(rast, scene, T_wm, [axis], mesh.centre, tuple(ALIKE_TURNS_DEG))
+        own, scores, cands = turn_scores(rast, views, T_wm, [axis], mesh.centre, tuple(ALIKE_TURNS_DEG))
         n = len(ALIKE_TURNS_DEG) // 2
         for k in np.argsort(np.abs(ALIKE_TURNS_DEG), kind="stable"):
             way = slice(0, n) if ALIKE_TURNS_DEG[k] > 0 else slice(n, 2 * n)
@@ -536,8 +538,8 @@ def _alike_turns(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.
     return np.concatenate(out) if out else np.zeros((0, 4, 4))
 
 
-def _with_alike_turn(obj: SilhouetteObjective, scene: Scene, final: list[Finalist], standing: Standing, mesh: Mesh,
-                     others: list[Hypothesis], opts: RefineOptions, progress: Progress | None
+def _with_alike_turn(obj: SilhouetteObjective, views: ComparedViews, final: list[Finalist], standing: Standing,
+                     mesh: Mesh, others: list[Hypothesis], opts: RefineOptions, progress: Progress | None
                      ) -> tuple[list[Finalist], Standing]:
     """The best's turns that look alike (:func:`_alike_turns`) scored by hard IoU at
     :data:`ALIKE_SCORE_SCALE`, and the best of them, if it beats the best by
@@ -547,12 +549,12 @@ def _with_alike_turn(obj: SilhouetteObjective, scene: Scene, final: list[Finalis
     if not opts.disambiguation.orbits or not len(mesh.round_axes):
         return final, standing
     best = standing.ranked[0]
-    cands = _alike_turns(obj.pyramid.with_faces(opts.detail.coarse), scene, best.T_final, mesh, opts)
+    cands = _alike_turns(obj.pyramid.with_faces(opts.detail.coarse), views, best.T_final, mesh, opts)
     if not len(cands):
         return final, standing
-    scores, _ = score_poses(obj.pyramid.at(ALIKE_SCORE_SCALE, opts.detail), scene,
+    scores, _ = score_poses(obj.pyramid.at(ALIKE_SCORE_SCALE, opts.detail), views,
                             np.concatenate([best.T_final[None], cands]), scale=ALIKE_SCORE_SCALE,
-                            max_views=len(scene.cameras), trim=0.0, recentre=False)
+                            max_views=len(views), trim=0.0, recentre=False)
     k = int(np.argmax(scores[1:]))
     if scores[1 + k] <= scores[0] + opts.disambiguation.margin:
         return final, standing
@@ -560,7 +562,7 @@ def _with_alike_turn(obj: SilhouetteObjective, scene: Scene, final: list[Finalis
     return final, _rank(final, others, mesh.centre, opts)
 
 
-def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: list[Finalist],
+def _disambiguate(obj: SilhouetteObjective, views: ComparedViews, mesh: Mesh, final: list[Finalist],
                   others: list[Hypothesis], given_pose: bool, opts: RefineOptions, progress: Progress | None,
                   pose_only: bool = False, preview: PosePreview | None = None
                   ) -> tuple[list[Finalist], Standing, Evaluation, Uncertainty | None, TurnTests]:
@@ -588,17 +590,17 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
     The best pose goes to ``preview`` before its uncertainty is worked out.
     """
     levels = opts.schedule
-    final, standing = _with_orbit(obj, scene, final, _rank(final, others, mesh.centre, opts), mesh.centre, others,
+    final, standing = _with_orbit(obj, views, final, _rank(final, others, mesh.centre, opts), mesh.centre, others,
                                   opts, progress)
     if opts.disambiguation.near_turns:
         before = len(final)
-        final, _ = _with_best_turn(obj, scene, final, standing.ranked[0], list(mesh.principal_axes),
+        final, _ = _with_best_turn(obj, views, final, standing.ranked[0], list(mesh.principal_axes),
                                    opts.disambiguation.near_turns, opts.disambiguation.near_margin, Stage.NEAR_TURN,
                                    opts, progress, both_ways=True)
         standing = _rank(final, others, mesh.centre, opts)
         if len(final) > before:  # the near turns' minima may be a 1/n turn apart (a keyed gear's teeth)
-            final, standing = _with_orbit(obj, scene, final, standing, mesh.centre, others, opts, progress)
-    final, standing = _with_alike_turn(obj, scene, final, standing, mesh, others, opts, progress)
+            final, standing = _with_orbit(obj, views, final, standing, mesh.centre, others, opts, progress)
+    final, standing = _with_alike_turn(obj, views, final, standing, mesh, others, opts, progress)
     best = final[0]
     if preview is not None:  # the pose first, its uncertainty (a sizeable part of the time) when ready
         preview(best.hypothesis.T_final.copy())
@@ -606,7 +608,7 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
                                    with_uncertainty=given_pose or not pose_only)
     turn_gap = None
     if given_pose and opts.disambiguation.weak_turns and uncertainty is not None and uncertainty.weak_turn_axes:
-        final, turn_gap = _with_best_turn(obj, scene, final, best.hypothesis, uncertainty.weak_turn_axes,
+        final, turn_gap = _with_best_turn(obj, views, final, best.hypothesis, uncertainty.weak_turn_axes,
                                           opts.disambiguation.weak_turns, opts.disambiguation.margin, Stage.WEAK_TURN,
                                           opts, progress)
         if turn_gap < -opts.disambiguation.margin:
@@ -622,13 +624,13 @@ def _disambiguate(obj: SilhouetteObjective, scene: Scene, mesh: Mesh, final: lis
 
 def _seed_region(obj: SilhouetteObjective, anchor: NDArray[np.float64], opts: RefineOptions) -> SeedRegion:
     """The region of poses within ``opts.seed_radius`` of the given pose ``anchor``, as a term on the pose."""
-    return SeedRegion(anchor, obj.centre_m, opts.seed_radius, STIFFNESS * len(obj.scene), obj.pyramid.symmetries)
+    return SeedRegion(anchor, obj.centre_m, opts.seed_radius, STIFFNESS * len(obj.compared), obj.pyramid.symmetries)
 
 
 def _contact(obj: SilhouetteObjective, plane: TablePlane) -> RestingContact:
     """The object resting on ``plane`` on one of its stable faces, as a term on the pose."""
     mesh = obj.pyramid.mesh
-    return RestingContact(plane, mesh.hull, obj.centre_m, CONTACT_STIFFNESS * len(obj.scene), mesh.resting_downs)
+    return RestingContact(plane, mesh.hull, obj.centre_m, CONTACT_STIFFNESS * len(obj.compared), mesh.resting_downs)
 
 
 def _held_near_seed(obj: SilhouetteObjective, anchor: NDArray[np.float64], best: Finalist, ev: Evaluation,
@@ -718,7 +720,7 @@ def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, plane: Ta
     if sunk:  # in the table its depth shows: stood on its faces where the orientation is the search's,
         # from a given pose without masks on the face nearest its own orientation and its start's
         if may_turn:
-            starts = list(best_standings(obj.pyramid.with_faces(opts.detail.coarse), obj.scene, h.T_final, term))
+            starts = list(best_standings(obj.pyramid.with_faces(opts.detail.coarse), obj.compared, h.T_final, term))
         elif nearest:
             starts = [T for T in (nearest_standing(h.T_final, term), nearest_standing(h.T_init, term)) if T is not None]
         else:
@@ -729,7 +731,7 @@ def _resting(obj: SilhouetteObjective, best: Finalist, ev: Evaluation, plane: Ta
         return None  # the evidence does not put it on the table
     else:  # where the search chose the orientation, its other standings compete on the plane too: masks
         # that cannot tell a glass's base from its rim leave the search's pick upside down as often as not
-        starts = [h.T_final, h.T_init] + (list(best_standings(obj.pyramid.with_faces(opts.detail.coarse), obj.scene,
+        starts = [h.T_final, h.T_init] + (list(best_standings(obj.pyramid.with_faces(opts.detail.coarse), obj.compared,
                                                               h.T_final, term)) if may_turn else [])
     T_on, traces, ev_on = _held_on(obj, term, starts, opts, progress)
     syms = obj.pyramid.symmetries
@@ -828,7 +830,7 @@ def _refine_minding_see_through(scene: Scene, pyramid: MeshPyramid, seed: Seed, 
         """The run without the depth, the table it shows offered, and what the depth says at its pose."""
         alt = _refine_evidence(replace(scene, depths=None), pyramid, seed, offering_table(scene, opts), told, anchor,
                                preview)
-        seen = measured_see_through(scene, pyramid, alt.T_wm, opts, declared=pyramid.transparent)
+        seen = measured_see_through(ComparedViews.of(scene), pyramid, alt.T_wm, opts, declared=pyramid.transparent)
         return replace(alt, measured=(seen,) + alt.measured), seen
 
     if pyramid.transparent:
@@ -863,15 +865,15 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     obj = compared_objective(pyramid, scene, opts, region)
-    scene = obj.scene  # the views as compared: those whose target shows the object
-    if len(scene) == 0:
+    views = obj.compared  # those whose target shows the object
+    if len(views) == 0:
         raise AutoalignError("every mask of the scene is empty; there is nothing to align the object with")
     timings["setup"] = time.perf_counter() - t_start
     t0 = time.perf_counter()
     given_pose = seed is not None and not isinstance(seed, Click)
     mesh = pyramid.mesh
     levels = opts.schedule
-    starts = _seed(scene, pyramid, seed, opts, progress, preview)
+    starts = _seed(views, pyramid, seed, opts, progress, preview)
     timings["seed"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -885,7 +887,7 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
 
     t0 = time.perf_counter()
     final, dropped = _polish(obj, finalists, rest, opts, progress)
-    final, standing, final_ev, uncertainty, turn = _disambiguate(obj, scene, mesh, final, others + dropped,
+    final, standing, final_ev, uncertainty, turn = _disambiguate(obj, views, mesh, final, others + dropped,
                                                                  given_pose, opts, progress, pose_only, preview)
     timings["refine"] = time.perf_counter() - t0
     hold, holds = None, []
@@ -916,8 +918,8 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
 
     t0 = time.perf_counter()
     best = final[0].hypothesis
-    iou_before = hard_ious(obj.pyramid.fine(opts.detail), scene, best.T_init)
-    iou_after = _hard_ious_of(final_ev, scene)
+    iou_before = hard_ious(obj.pyramid.fine(opts.detail), views, best.T_init)
+    iou_after = _hard_ious_of(final_ev, views)
     timings["report"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     history = [{"scale": lv.scale, "sigma": lv.sigma, "values": tr.values, "poses": tr.iterates, "iterations": tr.iterations,
@@ -926,7 +928,7 @@ def _refine_evidence(scene: Scene, pyramid: MeshPyramid, seed: Seed, opts: Refin
         T_wm=best.T_final, T_init=best.T_init, iou_before=iou_before, iou_after=iou_after,
         iterations=sum(tr.iterations for _, tr in best.path), renders=obj.renders, timings=timings,
         hypotheses=standing.ranked, ambiguous=standing.ambiguous, runner_up=standing.runner_up,
-        weights=final[0].weights, history=history, image_ids=list(scene.image_ids), uncertainty=uncertainty,
+        weights=final[0].weights, history=history, image_ids=list(views.image_ids), uncertainty=uncertainty,
         turn_gap=turn.gap, turn_rise=turn.rise, turn_rise_axis_m=turn.rise_axis_m, terms=final_ev.record(),
         measured=final_ev.measured + ((contact,) if contact else ()),
         seed_hold=hold, holds=tuple(holds))

@@ -65,7 +65,7 @@ def refit_ratio(obj: SilhouetteObjective, T_wm: NDArray[np.float64], ev: Evaluat
     (:func:`~autoalign.engine.uncertainty.deletion_step`, as the jackknife's) from the
     full-resolution evaluation ``ev`` at ``T_wm`` (its weights held); the polishes at
     :data:`REFIT_SCALE` with ``last``'s blur and iterations. ``None`` with too few views."""
-    n = len(obj.scene)
+    n = len(obj.compared)
     if n < 2 * GROUPS:
         return None
     level = replace(last, scale=REFIT_SCALE, max_views=None, ftol=REFIT_FTOL, max_iters=REFIT_ITERS)

@@ -31,6 +31,7 @@ from autoalign.engine.seeding import Click
 from autoalign.engine.table_in_depth import table_in_depth
 from autoalign.errors import AutoalignError
 from autoalign.io.bop import Scene
+from autoalign.losses.compared_views import ComparedViews
 from autoalign.losses.depth import DepthTerms
 from autoalign.losses.see_through import SeeThrough, see_through_shares
 from autoalign.losses.term import Stance
@@ -40,16 +41,16 @@ LOOSE_IOU = 0.5
 """A result whose median IoU with the masks is below this is in doubt: the verdict's own line for
 silhouettes that do not match the masks (:data:`~autoalign.quality.verdict.FAILED_IOU`, a layer above)."""
 
-def measured_see_through(scene: Scene, pyramid: MeshPyramid, T_wm: NDArray[np.float64], opts: RefineOptions,
-                         declared: bool = False, slack_mm: float = 0.0) -> SeeThrough:
-    """The share of the object's depth samples inside its masks (without masks: its silhouettes at
+def measured_see_through(views: ComparedViews, pyramid: MeshPyramid, T_wm: NDArray[np.float64],
+                         opts: RefineOptions, declared: bool = False, slack_mm: float = 0.0) -> SeeThrough:
+    """The share of the object's depth samples inside its targets (none showing it: its silhouettes at
     ``T_wm``) that lie behind its surface (by more than the occluder margin and ``slack_mm``) or are
-    missing, per view of ``scene`` (with depth)."""
-    assert scene.depths is not None and opts.depth is not None
+    missing, per one of ``views`` (with depth)."""
+    assert views.depths is not None and opts.depth is not None
     rast = pyramid.fine(opts.detail)
-    masks = scene.masks if scene.has_masks else rast.hard_masks(T_wm, scene.cameras)
+    masks = views.targets if views.has_targets else rast.hard_masks(T_wm, views.cameras)
     noise = replace(opts.depth, occluder_mm=opts.depth.occluder_mm + slack_mm)
-    return SeeThrough(see_through_shares(rast.caster, pyramid.mesh, T_wm, scene.cameras, scene.depths, masks,
+    return SeeThrough(see_through_shares(rast.caster, pyramid.mesh, T_wm, views.cameras, views.depths, masks,
                                          noise), declared)
 
 
@@ -71,7 +72,7 @@ def seen_through_at_seed(scene: Scene, pyramid: MeshPyramid, seed: NDArray[np.fl
     pose ``seed``, beyond how far the seed may be off (``opts.seed_radius``'s millimetres): an opaque
     object's seed nearer the camera than its surface is not mistaken for it."""
     return pyramid.material != "opaque" and isinstance(seed, np.ndarray) and opts.seed_radius is not None and \
-        measured_see_through(scene, pyramid, seed, opts, slack_mm=opts.seed_radius[0]).sees_through()
+        measured_see_through(ComparedViews.of(scene), pyramid, seed, opts, slack_mm=opts.seed_radius[0]).sees_through()
 
 
 def in_doubt(result: Any) -> bool:

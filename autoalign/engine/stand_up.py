@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from autoalign.engine.hypotheses import score_poses
 from autoalign.geometry.se3 import make_pose, rotation_angle_deg, so3_exp
-from autoalign.io.bop import Scene
+from autoalign.losses.compared_views import ComparedViews
 from autoalign.losses.contact import CONTACT_MAX_LEAN_DEG, RestingContact
 from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
 
@@ -57,17 +57,17 @@ def nearest_standing(T_wm: NDArray[np.float64], term: RestingContact) -> NDArray
     return cands[int(np.argmin([rotation_angle_deg(T[:3, :3], T_wm[:3, :3]) for T in cands]))]
 
 
-def best_standings(rast: SoftSilhouetteRasterizer, scene: Scene, T_wm: NDArray[np.float64],
+def best_standings(rast: SoftSilhouetteRasterizer, views: ComparedViews, T_wm: NDArray[np.float64],
                    term: RestingContact) -> NDArray[np.float64]:
     """The best standings of ``T_wm`` (:func:`standings`) on :data:`STAND_UP_POLISHED` different
     faces (their downward directions more than
     :data:`~autoalign.losses.contact.CONTACT_MAX_LEAN_DEG` apart), by how well their silhouettes fit
-    ``scene``'s masks (robust hard IoU at 1/4 resolution, each moved across the views to the masks'
+    ``views``' targets (robust hard IoU at 1/4 resolution, each moved across the views to the masks'
     centroids and put back on the plane), best first; (k, 4, 4)."""
     cands = standings(T_wm, term)
     if not len(cands):
         return cands
-    scores, moved = score_poses(rast, scene, cands, scale=0.25, recentre=True)
+    scores, moved = score_poses(rast, views, cands, scale=0.25, recentre=True)
     # the best yaw of each of the best distinct faces: two yaws of one face (or of two faces a mesh's
     # facets split from one) would leave the other way up untried where the masks barely tell them apart
     downs = np.repeat(term.downs_m, len(STAND_UP_YAWS_DEG), axis=0)

@@ -16,6 +16,7 @@ from autoalign.geometry.camera import Camera
 from autoalign.geometry.se3 import make_pose, so3_exp
 from autoalign.io.bop import Scene
 from autoalign.io.models import ModelSet
+from autoalign.losses.compared_views import ComparedViews
 from autoalign.losses.overlap import view_ious
 from autoalign.rasterizers.pyramid import MeshDetail
 
@@ -54,7 +55,7 @@ def outlines(silhouettes: dict[int, NDArray[np.bool_]]) -> Outlines:
 def fit(scene: Scene, silhouettes: dict[int, NDArray[np.bool_]]) -> dict[int, float]:
     """Per-view hard IoU of the silhouettes with ``scene``'s masks
     (:func:`~autoalign.losses.overlap.view_ious`), by image id."""
-    ious = view_ious([silhouettes[im] for im in scene.image_ids], scene)
+    ious = view_ious([silhouettes[im] for im in scene.image_ids], ComparedViews.of(scene))
     return {im: float(v) for im, v in zip(scene.image_ids, ious)}
 
 

@@ -168,7 +168,6 @@ class OcclusionObjective:
         self.robust = robust
         self.objectives = [SilhouetteObjective(p, s, detail=detail, depth=depth, edges=edges, region=r)
                            for p, s, r in zip(pyramids, found.scenes, regions or [None] * len(pyramids))]
-        self.scenes = [o.scene for o in self.objectives]  # as compared: a region term's targets in the masks' place
         used = sorted({im for s in found.scenes for im in s.image_ids})
         by_id = dict(zip(found.image_ids, found.cameras))
         self.image_ids = used
@@ -182,7 +181,7 @@ class OcclusionObjective:
         """Render through ``cameras`` (by image id) from now on."""
         self.cameras = [cameras[im] for im in self.image_ids]
         for o in self.objectives:
-            o.use_cameras([cameras[im] for im in o.scene.image_ids])
+            o.use_cameras([cameras[im] for im in o.compared.image_ids])
         self._last.clear()
 
     def evaluate(self, poses: list[NDArray[np.float64]], level: Level,

@@ -51,6 +51,7 @@ from autoalign.geometry.se3 import pose_change, symmetric_pose_change, transform
 from autoalign.errors import AutoalignError
 from autoalign.io.instances import Instance, InstanceScenes
 from autoalign.io.models import ModelSet
+from autoalign.losses.compared_views import ComparedViews
 from autoalign.losses.contact import Contact, RestingContact
 from autoalign.losses.region import RegionOptions
 from autoalign.losses.region_term import RegionTerm
@@ -180,7 +181,8 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
         _, again = region_terms(given.through(found.camera_by_id), models, joint.poses, opts, region)
         for k in moved:
             photo[k] = again[k]
-    compared = [sc if term is None else term.targets_in(sc) for sc, term in zip(found.scenes, regions)]
+    compared = [ComparedViews.of(sc) if term is None else term.targets_in(sc)
+                for sc, term in zip(found.scenes, regions)]
     after = []
     for k, r in enumerate(alone):
         alone_unc = r.result.uncertainty
@@ -203,8 +205,8 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
         if photo[k] is not None and own_scene.has_masks:  # with its own masks
             own = replace(own_scene, cameras=found.scenes[k].cameras)
             silhouettes = pyramids[k].fine(opts.detail).hard_masks(joint.poses[k], own.cameras)
-            iou = view_ious(silhouettes, own)
-            unc = with_outline_disagreement(unc, shared_outline_offset(silhouettes, own))
+            iou = view_ious(silhouettes, ComparedViews.of(own))
+            unc = with_outline_disagreement(unc, shared_outline_offset(silhouettes, ComparedViews.of(own)))
         if joint.scale_sigma > 0.0:  # the labels follow the solved scale along their rays
             centre_w = transform_points(joint.poses[k], pyramids[k].mesh.centre[None])[0]
             distance = float(np.median([np.linalg.norm(centre_w - c.centre) for c in found.scenes[k].cameras]))

@@ -292,6 +292,7 @@ def _engine_poses(result: Any) -> list[np.ndarray] | None:
 def run_task(task: dict[str, Any]) -> dict[str, Any]:
     """Run one task (see :func:`build_tasks`) and return its record (JSON-able)."""
     from autoalign.engine.refine import RefineOptions, hard_ious, refine
+    from autoalign.losses.compared_views import ComparedViews
     from autoalign.engine.solver import Adam
     from autoalign.experiments.studies.paper_method import refine_paper
     from autoalign.rasterizers.soft_silhouette import SoftSilhouetteRasterizer
@@ -349,7 +350,7 @@ def run_task(task: dict[str, Any]) -> dict[str, Any]:
     e = _errors(T_final, geo, entry)
     rec.update(e.as_dict())
     rec.update(_flags(e, diameter))
-    rec["iou_mean"] = float(np.mean(hard_ious(rast, scene, T_final)))
+    rec["iou_mean"] = float(np.mean(hard_ious(rast, ComparedViews.of(scene), T_final)))
     traj = _trajectory(poses, geo, entry)
     if len(traj) > TRAJ_MAX:  # keep the start and the end
         traj = traj[: TRAJ_MAX // 2] + traj[-TRAJ_MAX // 2:]
