@@ -179,11 +179,11 @@ def _centroid_inliers(offsets: NDArray[np.float64], ok: NDArray[np.bool_]) -> ND
     return ok & (size <= CENTROID_OUTLIER * np.maximum(med, 1.0)[:, None])
 
 
-def score_poses(rast: SoftSilhouetteRasterizer, targets: ComparedViews, poses: NDArray[np.float64],
+def score_poses(rast: SoftSilhouetteRasterizer, views: ComparedViews, poses: NDArray[np.float64],
                 scale: float = 0.125, max_views: int = 20, trim: float = 0.2,
                 recentre: bool = True, anchor: NDArray[np.float64] | None = None
                 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Robust mean hard IoU of each pose against the ``targets``, at ``scale`` of the image size.
+    """Robust mean hard IoU of each pose against the targets of ``views``, at ``scale`` of the image size.
 
     Returns ``(scores, poses)``: with ``recentre`` each pose's translation is first corrected so
     its silhouette centroids match the targets' (the returned poses carry that correction), its
@@ -197,19 +197,19 @@ def score_poses(rast: SoftSilhouetteRasterizer, targets: ComparedViews, poses: N
     centres = poses[:, :3, 3] + np.einsum("kij,j->ki", poses[:, :3, :3], rast.mesh.centre)
     centre_w = centres.mean(0)
     reach = radius + float(np.linalg.norm(centres - centre_w, axis=1).max()) + (0.5 * radius if recentre else 0.0)
-    views = _LowResViews(targets, centre_w, reach, scale, max_views)
-    if views.n == 0:
+    low = _LowResViews(views, centre_w, reach, scale, max_views)
+    if low.n == 0:
         return np.zeros(len(poses)), poses
-    stats = views.overlap_stats(rast, poses)
+    stats = low.overlap_stats(rast, poses)
     if recentre:
         area = stats[:, 0]
         ok = area > 0
         cent = stats[:, 2:4] / np.maximum(area, 1.0)[:, None]  # (K, 2, V)
-        r = (views.g_cent.T[None] - cent).transpose(0, 2, 1)  # (K, V, 2)
+        r = (low.g_cent.T[None] - cent).transpose(0, 2, 1)  # (K, V, 2)
         ok &= _centroid_inliers(r, ok)
         r = np.where(ok[:, :, None], r, 0.0)
         # rows of left-out views zeroed
-        J = np.where(ok[:, :, None, None], views.J[None], 0.0).reshape(len(poses), -1, 3)
+        J = np.where(ok[:, :, None, None], low.J[None], 0.0).reshape(len(poses), -1, 3)
         JtJ = np.einsum("kri,krj->kij", J, J)
         Jtr = np.einsum("kri,kr->ki", J, r.reshape(len(poses), -1))
         solvable = ok.sum(1) >= 2
@@ -222,10 +222,10 @@ def score_poses(rast: SoftSilhouetteRasterizer, targets: ComparedViews, poses: N
             dist = np.linalg.norm(away, axis=1, keepdims=True)
             shifts = anchor + away * np.minimum(1.0, ANCHOR_REACH * radius / np.maximum(dist, 1e-9)) - centres
         poses[:, :3, 3] += shifts
-        stats = views.overlap_stats(rast, poses)
+        stats = low.overlap_stats(rast, poses)
     area, inter = stats[:, 0], stats[:, 1]
-    iou = iou_from_counts(inter, area, views.t_tot[None])
-    scores = np.sort(iou, axis=1)[:, int(np.floor(trim * views.n)):].mean(1)
+    iou = iou_from_counts(inter, area, low.t_tot[None])
+    scores = np.sort(iou, axis=1)[:, int(np.floor(trim * low.n)):].mean(1)
     return scores, poses
 
 
