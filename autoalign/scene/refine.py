@@ -203,10 +203,10 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
         iou = joint.evaluation.hard_iou(k)
         own_scene = given.scenes[k]
         if photo[k] is not None and own_scene.has_masks:  # with its own masks
-            own = replace(own_scene, cameras=found.scenes[k].cameras)
+            own = ComparedViews.of(replace(own_scene, cameras=found.scenes[k].cameras))
             silhouettes = pyramids[k].fine(opts.detail).hard_masks(joint.poses[k], own.cameras)
-            iou = view_ious(silhouettes, ComparedViews.of(own))
-            unc = with_outline_disagreement(unc, shared_outline_offset(silhouettes, ComparedViews.of(own)))
+            iou = view_ious(silhouettes, own)
+            unc = with_outline_disagreement(unc, shared_outline_offset(silhouettes, own))
         if joint.scale_sigma > 0.0:  # the labels follow the solved scale along their rays
             centre_w = transform_points(joint.poses[k], pyramids[k].mesh.centre[None])[0]
             distance = float(np.median([np.linalg.norm(centre_w - c.centre) for c in found.scenes[k].cameras]))
