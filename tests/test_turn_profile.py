@@ -79,3 +79,30 @@ def test_a_floor_raises_its_turn_alone():
     assert raised.turn_floors and "turn about model z: 3 deg" in raised.weak
     kept = with_turn_floors(u, [TurnFloor(z, np.radians(0.1) ** 2)])
     np.testing.assert_allclose(kept.covariance, u.covariance)
+
+
+def test_a_free_spin_is_neither_profiled_nor_searched():
+    """A can whose spin about its axis the covariance calls weak: declared as the model's continuous
+    symmetry, that spin is not among the turns left to measure, and its profile renders nothing and
+    leaves the uncertainty as it was; undeclared, the same spin is profiled (13 renders) and floored."""
+    from autoalign.engine.objective import SilhouetteObjective
+    from autoalign.engine.turn_profile import with_turn_profiles
+    from autoalign.engine.uncertainty import uncertainty_of
+    from autoalign.geometry.se3 import Symmetries
+    from autoalign.rasterizers.pyramid import MeshPyramid
+
+    pm = next(m for m in procedural_models() if m.name == "can_plain")
+    mesh = mesh_from_trimesh(pm.mesh, pm.name)
+    T = make_pose(np.eye(3), -mesh.centre)
+    scene = make_scene(mesh, T, ring_cameras(6, np.random.default_rng(3)))
+    z = np.array([0.0, 0.0, 1.0])
+    cov = np.diag([0.05, 0.05, 0.05, np.radians(0.1), np.radians(0.1), np.radians(5.0)]) ** 2
+    u = uncertainty_of(cov, cov, np.eye(3))
+    assert len(u.weak_turn_axes) == 1 and abs(u.weak_turn_axes[0] @ z) > 0.99
+    declared = SilhouetteObjective(MeshPyramid(mesh, Symmetries(continuous=((z, np.zeros(3)),))), scene)
+    assert u.weak_turns_not_free(declared.pyramid.symmetries.axes) == []
+    kept = with_turn_profiles(declared, T, u, np.ones(len(scene)), 0.5)
+    assert kept is u and declared.renders == 0
+    plain = SilhouetteObjective(MeshPyramid(mesh), scene)
+    profiled = with_turn_profiles(plain, T, u, np.ones(len(scene)), 0.5)
+    assert plain.renders == 1 + 2 * 6 and len(profiled.turn_floors) == 1

@@ -607,8 +607,9 @@ def _disambiguate(obj: SilhouetteObjective, views: ComparedViews, mesh: Mesh, fi
     ev, uncertainty = _final_state(obj, best.hypothesis, best.weights, levels, opts.optimizer,
                                    with_uncertainty=given_pose or not pose_only)
     turn_gap = None
-    if given_pose and opts.disambiguation.weak_turns and uncertainty is not None and uncertainty.weak_turn_axes:
-        final, turn_gap = _with_best_turn(obj, views, final, best.hypothesis, uncertainty.weak_turn_axes,
+    weak = [] if uncertainty is None else uncertainty.weak_turns_not_free(obj.pyramid.symmetries.axes)
+    if given_pose and opts.disambiguation.weak_turns and weak:
+        final, turn_gap = _with_best_turn(obj, views, final, best.hypothesis, weak,
                                           opts.disambiguation.weak_turns, opts.disambiguation.margin, Stage.WEAK_TURN,
                                           opts, progress)
         if turn_gap < -opts.disambiguation.margin:

@@ -73,8 +73,10 @@ def with_turn_profiles(obj: SilhouetteObjective, T_wm: NDArray[np.float64], u: U
     raised to its profile's (see the module doc), the loss evaluated at :data:`PROFILE_SCALE` with
     the silhouettes' blur ``sigma_px`` and the views' ``weights`` (the pose's). ``groups``: the views
     of one viewpoint each (:func:`~autoalign.engine.uncertainty.viewpoint_groups`), resampled as one;
-    ``None``: each view its own."""
-    if not u.weak_turn_axes:
+    ``None``: each view its own. A turn about an axis of the model's continuous symmetry is not
+    profiled: its loss is flat by the model's shape, and no view can say where it lies."""
+    weak = u.weak_turns_not_free(obj.pyramid.symmetries.axes)
+    if not weak:
         return u
     level = Level(PROFILE_SCALE, sigma_px, 0)
     side = np.asarray(PROFILE_DEG, dtype=np.float64)
@@ -82,7 +84,7 @@ def with_turn_profiles(obj: SilhouetteObjective, T_wm: NDArray[np.float64], u: U
     own = weights * obj.evaluate(T_wm, level, weights=weights, with_derivatives=False).terms.loss
     rng = np.random.default_rng(0)
     floors = []
-    for axis_m in u.weak_turn_axes:
+    for axis_m in weak:
         a_m = np.asarray(axis_m, dtype=np.float64) / np.linalg.norm(axis_m)
         poses = turns(T_wm, a_m, obj.centre_m, tuple(angles[angles != 0.0]))
         turned = [weights * obj.evaluate(T, level, weights=weights, with_derivatives=False).terms.loss for T in poses]

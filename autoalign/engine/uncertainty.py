@@ -205,6 +205,12 @@ class Uncertainty:
         there is no spread apart from it."""
         return self.covariance if self.spread is None else self.spread
 
+    def weak_turns_not_free(self, free_axes_m: tuple[NDArray[np.float64], ...] = ()) -> list[NDArray[np.float64]]:
+        """:attr:`weak_turn_axes` but those about an axis of continuous symmetry ``free_axes_m`` (model
+        frame): a can's free spin is no weakness, and no profile or search can measure it."""
+        free = [np.asarray(a, dtype=np.float64) / np.linalg.norm(a) for a in free_axes_m]
+        return [a for a in self.weak_turn_axes if all(abs(float(a @ f)) < SAME_AXIS for f in free)]
+
     def components(self) -> dict[str, NDArray[np.float64]]:
         """:attr:`covariance` as the sum it is made of (6x6 each, model axes; :class:`CovarianceParts`):
         ``views`` (the views' spread, scaled by :attr:`spread_factor`, with the turn profiles'

@@ -141,6 +141,11 @@ class Symmetries:
     def __bool__(self) -> bool:
         return bool(self.discrete or self.continuous)
 
+    @property
+    def axes(self) -> tuple[NDArray[np.float64], ...]:
+        """The axes of the continuous symmetries (model frame), about which every turn is as good."""
+        return tuple(np.asarray(axis, dtype=np.float64) for axis, _ in self.continuous)
+
 
 def closest_symmetric_pose(A: ArrayLike, B: ArrayLike, discrete: Sequence[ArrayLike] = (),
                            continuous: Sequence[tuple[ArrayLike, ArrayLike]] = ()) -> NDArray[np.float64]:

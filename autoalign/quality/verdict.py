@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from autoalign.engine.photo_evidence import PhotoEvidence
 from autoalign.engine.refine import RefineResult
 from autoalign.engine.seed_region import SEED_RADIUS, SeedHold
-from autoalign.engine.uncertainty import (MIN_VIEWPOINTS, SAME_AXIS, SAME_VIEWPOINT_DEG, Uncertainty, direction_name,
+from autoalign.engine.uncertainty import (MIN_VIEWPOINTS, SAME_VIEWPOINT_DEG, Uncertainty, direction_name,
                                          turn_sigma_deg, turns_not_free, weak_directions)
 from autoalign.losses.overlap import LOOSE_FIT_IOU
 from autoalign.losses.term import Stance, TermEvidence
@@ -137,8 +137,7 @@ def nearly_symmetric(uncertainty: Uncertainty, free_axes_m: tuple[NDArray[np.flo
     :data:`NEAR_TURN_RISE`) names it nearly symmetric too, unless its symmetries are declared."""
     if flat_turn(turn_rise, symmetric):
         return True
-    free = [np.asarray(a, dtype=np.float64) / np.linalg.norm(a) for a in free_axes_m]
-    weak = [a for a in uncertainty.weak_turn_axes if all(abs(float(a @ f)) < SAME_AXIS for f in free)]
+    weak = uncertainty.weak_turns_not_free(free_axes_m)
     if not weak:
         return False
     loose = any(turn_sigma_deg(uncertainty.views_spread, a) >= NEAR_SYMMETRY_DEG for a in weak)

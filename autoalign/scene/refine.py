@@ -190,9 +190,10 @@ def _after_joint(alone: list[InstanceResult], joint: JointRefinement, given: Ins
             spread_factor=alone_unc.spread_factor, bias_shift=alone_unc.bias_shift, view_dir_m=alone_unc.view_dir_m,
             turn_floors=tuple(alone_unc.turn_floors))
         gap = None
-        if unc.weak_turn_axes and opts.disambiguation.weak_turns:  # the joint system's weak turns, tried at its pose
+        weak = unc.weak_turns_not_free(pyramids[k].symmetries.axes)
+        if weak and opts.disambiguation.weak_turns:  # the joint system's weak turns, tried at its pose
             own, scores, _ = turn_scores(pyramids[k].with_faces(opts.detail.coarse), compared[k],
-                                         joint.poses[k], unc.weak_turn_axes, pyramids[k].mesh.centre,
+                                         joint.poses[k], weak, pyramids[k].mesh.centre,
                                          opts.disambiguation.weak_turns)
             gap = own - float(scores.max())
         by_terms = joint.evaluation.measured(k)  # its own terms' records beside the masks (the depth's)
