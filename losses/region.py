@@ -11,6 +11,14 @@ in the same per-pixel residual ``s(x) - p(x)`` as a mask (:func:`~autoalign.loss
 so the photo joins the Levenberg-Marquardt system like the mask term. A colour both models share
 gives ``p = 1/2``, whose residual is the same for ``s = 0`` and ``s = 1``: it pulls nowhere.
 
+The histograms are learned from a few thousand pixels in ``sectors * bins^3`` bins, so they tell
+apart even colours that both sides share (clear glass shows its background's) by chance. Where they
+are fused with a mask, the posterior's log-odds are first weighted by :func:`colour_weight`: the
+tempering under which they best predict pixels the histograms were not learned from (1 for colours
+the object has of its own; near 0 where they differ by chance, so the term weights itself and cannot
+drag the outline the mask draws). Without a mask the colours alone draw it (with the photo's edges),
+as learned.
+
 With the histograms held fixed the target is a fixed image and the objective a function of the pose
 alone, so the solver's steps are compared on one objective; the histograms are learned again from
 the pose reached, as RBOT and PWP3D learn them again per frame (:mod:`autoalign.engine.photo_evidence`).
@@ -105,8 +113,13 @@ class ColourModel:
                    groups: int = 1, min_px: int = 0) -> "ColourModel":
         """:meth:`learn` from each pixel's ``key``, ``group * bins^3 + code`` (its bin in the flattened
         ``(groups, bins^3)`` histograms), for a caller that has the keys already."""
-        fg, bg = colour_counts(key, inside, outside, bins, groups, min_px)
-        fg /= np.maximum(fg.sum(1, keepdims=True), 1.0)  # in place: no fresh (groups, bins^3) arrays
+        return ColourModel.of_counts(*colour_counts(key, inside, outside, bins, groups, min_px), bins)
+
+    @staticmethod
+    def of_counts(fg: NDArray[np.float64], bg: NDArray[np.float64], bins: int) -> "ColourModel":
+        """The models of pixel counts per bin ``(groups, bins^3)`` (:func:`colour_counts`), normalised
+        in place: no fresh ``(groups, bins^3)`` arrays (the counts are the models' afterwards)."""
+        fg /= np.maximum(fg.sum(1, keepdims=True), 1.0)
         bg /= np.maximum(bg.sum(1, keepdims=True), 1.0)
         return ColourModel(fg, bg, bins)
 
@@ -216,14 +229,16 @@ class RegionTarget:
     band's pixels whose posterior agrees with the pose's silhouette (> 1/2 inside, < 1/2 outside),
     and the edge contrast: the mean posterior in a ring just inside the outline (:data:`EDGE_RING_PX`)
     less that in the ring just outside it (near 1: the outline lies on the photo's object edge; near 0
-    or below: the colours do not change there; NaN: nothing to compare), and how well the colour models
-    tell the object from its surroundings (:func:`colour_separation`)."""
+    or below: the colours do not change there; NaN: nothing to compare), how well the colour models
+    tell the object from its surroundings (:func:`colour_separation`), and the weight the target gave
+    the colours' log-odds (:func:`colour_weight`; 1: as learned, as always without a mask)."""
 
     target: NDArray[np.float32]
     band_px: float
     agreement: float
     edge_contrast: float = float("nan")
     separation: float = float("nan")
+    weight: float = 1.0
 
 
 SECTOR_EDGE_RAD = 0.01
@@ -338,8 +353,11 @@ def region_target(photo: NDArray[np.uint8], silhouette: NDArray[np.bool_], mask:
     key *= options.bins ** 3
     key += _code_image(photo[box], options.bins)
     key_n = key[near]
-    model = ColourModel.learn_keys(key_n, inside_n, outside_n, options.bins, options.sectors, options.min_sector_px)
-    post_n = model.posterior_of_keys(key_n)
+    counts = colour_counts(key_n, inside_n, outside_n, options.bins, options.sectors, options.min_sector_px)
+    # with a mask, the colours' log-odds weighted by what they predict (before the counts become the
+    # models); without one they alone draw the outline (with the photo's edges), as learned
+    weight = colour_weight(*counts, key_n, inside_n, outside_n) if mask is not None else 1.0
+    post_n = ColourModel.of_counts(*counts, options.bins).posterior_of_keys(key_n)
     if excl_n is not None:
         post_n[excl_n] = 0.5
     post = np.full(sil.shape, 0.5)  # the box's posteriors, for the edge contrasts
@@ -347,19 +365,24 @@ def region_target(photo: NDArray[np.uint8], silhouette: NDArray[np.bool_], mask:
     band_n = (din_n <= band + gap) | ~sil_n
     if excl_n is not None:
         band_n &= ~excl_n
-    fused_n = post_n
+    told, told_n = post, post_n  # what the colours tell, with their log-odds weighted
+    if weight != 1.0:
+        told_n = _tempered(post_n, weight)
+        told = np.full(sil.shape, 0.5)
+        told[near] = told_n
+    fused_n = told_n
     if mask is not None:  # the mask and the colours as independent evidence: their odds multiply
         trust, miss = MASK_TRUST, MASK_MISS
-        if edge_contrast(known, post, excl) >= EDGE_SUPPORTS:  # the colours change where the mask's outline is
+        if edge_contrast(known, told, excl) >= EDGE_SUPPORTS:  # the colours change where the mask's outline is
             trust, miss = mask_rates(known_n[band_n], sil_n[band_n])
-        fused_n = _fused(known_n, post_n, trust, miss)
+        fused_n = _fused(known_n, told_n, trust, miss)
     target[box][near] = fused_n
     # what the photo alone says of the pose: its colours' agreement with the silhouette, and their change across it
     agree = np.where(sil_n, post_n > 0.5, post_n < 0.5)[band_n & (post_n != 0.5)]
     return RegionTarget(target, band, float(agree.mean()) if agree.size else float("nan"),
                         edge_contrast(sil, post, excl, (d_in, d_out)),
                         colour_separation(key_n, inside_n, outside_n, options.bins, options.sectors,
-                                          options.min_sector_px) if separation else float("nan"))
+                                          options.min_sector_px) if separation else float("nan"), weight)
 
 
 MIN_SEPARATION_PX = 20
@@ -376,22 +399,76 @@ def colour_separation(key: NDArray[np.int64], inside: NDArray[np.bool_], outside
     background's); near 1: no colour shared. NaN with fewer than :data:`MIN_SEPARATION_PX` pixels a side."""
     if np.count_nonzero(inside) < MIN_SEPARATION_PX or np.count_nonzero(outside) < MIN_SEPARATION_PX:
         return float("nan")
-    n = bins ** 3
     fg, bg = colour_counts(key, inside, outside, bins, groups, min_px)
-    n_fg, n_bg = fg.sum(1), bg.sum(1)
-    eps = 0.5 / n  # as :meth:`ColourModel.posterior`
 
     def mean_posterior(k: NDArray[np.int64], own_fg: bool) -> float:
-        f, b = fg.ravel()[k], bg.ravel()[k]
-        nf, nb = n_fg[k // n], n_bg[k // n]
-        if own_fg:
-            f, nf = f - 1.0, nf - 1.0
-        else:
-            b, nb = b - 1.0, nb - 1.0
-        pf, pb = f / np.maximum(nf, 1.0) + eps, b / np.maximum(nb, 1.0) + eps
+        pf, pb = _held_out_likelihoods(fg, bg, k, own_fg)
         return float(np.mean(pf / (pf + pb)))
 
     return mean_posterior(key[inside], True) - mean_posterior(key[outside], False)
+
+
+def _held_out_likelihoods(fg: NDArray[np.float64], bg: NDArray[np.float64], key: NDArray[np.int64],
+                          own_fg: bool) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``P(y | object)`` and ``P(y | surroundings)`` (each with :meth:`ColourModel.posterior`'s half count)
+    of the pixels with ``key``, from the counts ``fg``, ``bg`` (:func:`colour_counts`) less each pixel's
+    own (it is one of the object's, ``own_fg``, or of the surroundings')."""
+    n = fg.shape[1]
+    f, b = fg.ravel()[key], bg.ravel()[key]
+    nf, nb = fg.sum(1)[key // n], bg.sum(1)[key // n]
+    if own_fg:
+        f, nf = f - 1.0, nf - 1.0
+    else:
+        b, nb = b - 1.0, nb - 1.0
+    eps = 0.5 / n
+    return f / np.maximum(nf, 1.0) + eps, b / np.maximum(nb, 1.0) + eps
+
+
+WEIGHT_PX = 2000
+"""Pixels of each side :func:`colour_weight` calibrates on at most (every k-th of them): the weight
+is one number, and a few thousand pixels fix it to about 0.01."""
+WEIGHT_BISECTIONS = 14
+"""Halvings of [0, 1] that find :func:`colour_weight` (to 6e-5)."""
+
+
+def colour_weight(fg: NDArray[np.float64], bg: NDArray[np.float64], key: NDArray[np.int64],
+                  inside: NDArray[np.bool_], outside: NDArray[np.bool_]) -> float:
+    """The weight ``w`` in [0, 1] of the colour models' log-odds that best predicts pixels they were not
+    learned from: the maximum over ``w`` of the mean log-likelihood of the ``inside`` pixels' being the
+    object and the ``outside`` pixels' not (each side's mean, as the posterior's equal priors), each
+    pixel's log-odds from the models learned without it (``fg``, ``bg``: the counts the models are
+    learned from, ``key``: each pixel's bin, :func:`colour_counts`). The tempering of a classifier's
+    scores to calibrate them (Platt scaling without a bias), never above 1: models that tell the sides
+    apart keep their posteriors (1), and colours both sides share, whose histograms still differ by
+    chance, are drawn towards 1/2, where they pull nowhere (:func:`_tempered`). 1 with fewer than
+    :data:`MIN_SEPARATION_PX` pixels a side."""
+    sides = []
+    for side, own_fg in ((inside, True), (outside, False)):
+        at = np.flatnonzero(side)
+        if len(at) < MIN_SEPARATION_PX:
+            return 1.0
+        pf, pb = _held_out_likelihoods(fg, bg, key[at[::-(-len(at) // WEIGHT_PX)]], own_fg)
+        sides.append(np.log(pf / pb))
+    l_in, l_out = sides
+
+    def slope(w: float) -> float:  # d/dw of the mean log-likelihood; it falls as w grows (concave)
+        return float(np.mean(l_in / (1.0 + np.exp(w * l_in))) - np.mean(l_out / (1.0 + np.exp(-w * l_out))))
+
+    if slope(1.0) >= 0.0:
+        return 1.0
+    if slope(0.0) <= 0.0:
+        return 0.0
+    lo, hi = 0.0, 1.0
+    for _ in range(WEIGHT_BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if slope(mid) > 0.0 else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def _tempered(post: NDArray[np.float64], weight: float) -> NDArray[np.float64]:
+    """Posteriors with their log-odds times ``weight``: ``p^w / (p^w + (1 - p)^w)``."""
+    odds = np.power(post / np.maximum(1.0 - post, 1e-300), weight)
+    return odds / (1.0 + odds)
 
 
 def edge_contrast(region: NDArray[np.bool_], post: NDArray[np.float64], exclude: NDArray[np.bool_] | None = None,

@@ -27,7 +27,9 @@ from autoalign.losses.region import (
     ColourModel,
     RegionOptions,
     colour_codes,
+    colour_counts,
     colour_separation,
+    colour_weight,
     region_target,
 )
 from autoalign.losses.region_term import RegionTerm
@@ -134,6 +136,58 @@ def test_colour_separation_is_the_leave_one_out_posteriors_contrast():
     assert region_target(distinct, sil, None, None, RegionOptions(), separation=True).separation > 0.95
     assert np.isnan(region_target(distinct, sil, None, None, RegionOptions()).separation)  # not asked: not measured
     assert np.isnan(colour_separation(key, inside & (np.arange(300) < 30), outside, bins, groups))
+
+
+def test_colour_weight_is_the_calibrating_temperature_of_the_leave_one_out_log_odds():
+    """:func:`colour_weight` is the weight in [0, 1] of the colour models' log-odds that maximises
+    the balanced log-likelihood of pixels they were not learned from (models learned again without
+    each pixel; scipy's bounded search, to 1e-4). Fused with a mask, a photo whose object shows its
+    background's colours gets a weight near 0 and a target that is the mask's evidence alone, and
+    distinct colours keep the posteriors as learned (weight exactly 1); without a mask the colours
+    are kept as learned."""
+    from scipy.optimize import minimize_scalar
+
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        n, bins, groups = 400, 2, 2
+        inside = rng.random(n) < 0.45
+        outside = ~inside
+        own = rng.random(n) < 0.6  # each pixel's colour leans weakly to its own side's half of the codes
+        key = rng.integers(0, groups, n) * bins ** 3 + rng.integers(0, 4, n) + np.where(inside == own, 0, 4)
+        logits, is_in = [], []
+        for i in range(n):
+            without = np.ones(n, bool)
+            without[i] = False
+            p = ColourModel.learn_keys(key, inside & without, outside & without, bins, groups).posterior_of_keys(
+                key[i:i + 1])[0]
+            logits.append(np.log(p / (1.0 - p)))
+            is_in.append(inside[i])
+        lg, y = np.array(logits), np.array(is_in)
+
+        def nll(w: float) -> float:
+            return float(np.mean(np.log1p(np.exp(-w * lg[y]))) + np.mean(np.log1p(np.exp(w * lg[~y]))))
+
+        best = minimize_scalar(nll, bounds=(0.0, 1.0), method="bounded", options={"xatol": 1e-8}).x
+        assert 0.05 < best < 0.95  # the weight is found inside the range, not at a bound
+        assert colour_weight(*colour_counts(key, inside, outside, bins, groups), key, inside, outside) == \
+            pytest.approx(best, abs=1e-4)
+
+    rng = np.random.default_rng(1)
+    sil = np.zeros((120, 120), bool)
+    sil[30:90, 30:90] = True
+    texture = rng.integers(0, 256, (120, 120, 3), dtype=np.uint8)  # the same colours everywhere
+    mask = np.zeros((120, 120), np.float32)
+    mask[34:86, 34:86] = 1.0  # 4 px inside the silhouette all round
+    glassy = region_target(texture, sil, mask, None, RegionOptions())
+    assert glassy.weight < 0.05
+    ring = sil & (mask == 0)
+    assert np.all(np.abs(glassy.target[ring] - 0.2) < 0.02)  # the mask's P(object | it says background) alone
+    distinct = texture.copy()
+    distinct[sil] = (180, 40, 160)
+    distinct[~sil] = (40, 160, 40)
+    kept = region_target(distinct, sil, mask, None, RegionOptions())
+    assert kept.weight == 1.0 and np.all(kept.target[ring] > 0.9)  # the colours complete the mask
+    assert region_target(texture, sil, None, None, RegionOptions()).weight == 1.0  # no mask: they draw the outline
 
 
 def test_the_region_term_takes_the_mask_terms_place_and_leaves_the_scene_as_given():

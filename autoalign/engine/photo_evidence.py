@@ -77,7 +77,8 @@ class PhotoEvidence:
     rounds the colour models were learned in, and whether the instance had masks (``--masks none``:
     the photo's colour regions stand in for them, in the IoUs too); without a given pose, the side it
     chose where it was asked to (:class:`SideChoice`); per view how well its colour models tell the
-    object from its surroundings (:func:`~autoalign.losses.region.colour_separation`; ``None``: not measured)."""
+    object from its surroundings (:func:`~autoalign.losses.region.colour_separation`; ``None``: not measured),
+    and the weight its target gave their log-odds (:func:`~autoalign.losses.region.colour_weight`)."""
 
     band_px: NDArray[np.float64]
     agreement: NDArray[np.float64]
@@ -86,16 +87,19 @@ class PhotoEvidence:
     masks_given: bool = True
     side: SideChoice | None = None
     separation: NDArray[np.float64] | None = None
+    colour_weight: NDArray[np.float64] | None = None
     name = "photo"
 
     def record(self) -> dict[str, Any]:
         """Per view: the band's half-width (px), the share of the band's pixels whose colour posterior
-        agrees with the silhouette, the edge contrast across the outline, the colour models' separation;
-        the rounds, and the side chosen."""
+        agrees with the silhouette, the edge contrast across the outline, the colour models' separation
+        and the weight of their log-odds; the rounds, and the side chosen."""
         out = {"band_px": self.band_px, "agreement": self.agreement, "edge_contrast": self.edge_contrast,
                "rounds": self.rounds, "masks_given": self.masks_given}
         if self.separation is not None:
             out["separation"] = self.separation
+        if self.colour_weight is not None:
+            out["colour_weight"] = self.colour_weight
         if self.side is not None:
             out["side"] = self.side.record()
         return out
@@ -126,7 +130,7 @@ class PhotoEvidence:
         """The evidence of the region targets ``learned`` (one per view, their separation measured)."""
         return cls(np.array([rt.band_px for rt in learned]), np.array([rt.agreement for rt in learned]),
                    np.array([rt.edge_contrast for rt in learned]), rounds, masks_given, side,
-                   np.array([rt.separation for rt in learned]))
+                   np.array([rt.separation for rt in learned]), np.array([rt.weight for rt in learned]))
 
 
 def region_term_at(scene: Scene, pyramid: MeshPyramid, T_wm: NDArray[np.float64], options: RefineOptions,

@@ -10,8 +10,9 @@ inside less that outside): with the instance's mask, as the region term learns i
 ``autoalign check`` would measure it at a label, at the label and at a label 10 mm / 10 deg off; per
 instance the medians over the views (and the smallest view, with the mask), and per kind of object
 their ranges. It says whether a weight on the photo by its own separation could leave clear glass
-out while leaving every opaque object as it is, and whether ``check`` could tell glass by its colours
-without mistaking a wrong label for glass. Results: ``experiments/results/colour_separation.md``.
+out while leaving every opaque object as it is, what the region target's own weight on the colours
+(:func:`~autoalign.losses.region.colour_weight`) is for each kind, and whether ``check`` could tell
+glass by its colours without mistaking a wrong label for glass. Results: ``experiments/results/colour_separation.md``.
 
 ``python -m autoalign.experiments.studies.colour_separation [--glass 8] [--glass-kept DIR] [--textured 3] [--data DIR]``
 (``--glass-kept``: the folder ``glass_photos --keep`` left, whose renders are reused).
@@ -49,19 +50,21 @@ def separations(scene: Path, models: Path, kinds: dict[int, str], source: str) -
         views, pyramid, T = with_photos(views), model_set.pyramid(inst.obj_id), poses[inst.index]
         off = perturb_pose(T, 10.0, 10.0, rng, pyramid.mesh.centre)
 
-        def per_view(T_wm: np.ndarray, with_mask: bool) -> np.ndarray:
-            sep = np.array([region_target(v.photo, s, v.mask if with_mask else None, v.ignore, RegionOptions(),
-                                          separation=True).separation
-                            for v, s in zip(views.views, pyramid.fine().hard_masks(T_wm, views.cameras))])
-            return sep[np.isfinite(sep)]
+        def per_view(T_wm: np.ndarray, with_mask: bool) -> tuple[np.ndarray, np.ndarray]:
+            got = [region_target(v.photo, s, v.mask if with_mask else None, v.ignore, RegionOptions(), separation=True)
+                   for v, s in zip(views.views, pyramid.fine().hard_masks(T_wm, views.cameras))]
+            sep, weight = np.array([g.separation for g in got]), np.array([g.weight for g in got])
+            return sep[np.isfinite(sep)], weight[np.isfinite(sep)]
 
-        sep = per_view(T, True)
+        sep, weight = per_view(T, True)
         if len(sep):
             rows.append({"source": source, "scene": scene.parent.name if scene.name == "scene" else scene.name,
                          "obj_id": inst.obj_id, "kind": kinds.get(inst.obj_id, "opaque"), "views": len(sep),
                          "median": float(np.median(sep)), "min": float(sep.min()),
-                         "median_no_mask": float(np.median(per_view(T, False))),
-                         "median_no_mask_off": float(np.median(per_view(off, False)))})
+                         "weight_median": float(np.median(weight)), "weight_min": float(weight.min()),
+                         "weight_one": float(np.mean(weight == 1.0)),
+                         "median_no_mask": float(np.median(per_view(T, False)[0])),
+                         "median_no_mask_off": float(np.median(per_view(off, False)[0]))})
             print(rows[-1], flush=True)
     return rows
 
@@ -93,9 +96,12 @@ def main(argv: list[str] | None = None) -> int:
              "over its views of the region term's colour separation (the band's mean leave-one-out posterior "
              "inside less that outside, `losses/region.py: colour_separation`) at its labelled pose with its mask "
              "(as the region term learns), and without it (as `autoalign check` measures) at the label and at a "
-             "label 10 mm / 10 deg off.",
+             "label 10 mm / 10 deg off; and the weight the region target gives the colours' log-odds "
+             "(`colour_weight`: the tempering under which they best predict pixels left out of their histograms, "
+             "at most 1) with the mask: its medians per instance, the smallest view, the share of views at 1.",
              "", "| source | kind | instances | with the mask: medians | smallest view | without: medians | "
-             "without, 10 mm / 10 deg off |", "|---|---|---|---|---|---|---|"]
+             "without, 10 mm / 10 deg off | weight: medians | smallest view | views at 1 |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
 
     def spread(mine: list[dict], key: str) -> str:
         return f"{min(r[key] for r in mine):.2f}-{max(r[key] for r in mine):.2f}"
@@ -104,11 +110,13 @@ def main(argv: list[str] | None = None) -> int:
         mine = [r for r in rows if (r["source"], r["kind"]) == (source, kind)]
         lines.append(f"| {source} | {kind} | {len(mine)} | {spread(mine, 'median')} | "
                      f"{min(r['min'] for r in mine):.2f} | {spread(mine, 'median_no_mask')} | "
-                     f"{spread(mine, 'median_no_mask_off')} |")
-    lines += ["", "| source | scene | obj | kind | views | median | smallest | without the mask | without, off |",
-              "|---|---|---|---|---|---|---|---|---|"]
+                     f"{spread(mine, 'median_no_mask_off')} | {spread(mine, 'weight_median')} | "
+                     f"{min(r['weight_min'] for r in mine):.2f} | {np.mean([r['weight_one'] for r in mine]):.0%} |")
+    lines += ["", "| source | scene | obj | kind | views | median | smallest | without the mask | without, off | "
+              "weight median | weight smallest |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     lines += [f"| {r['source']} | {r['scene']} | {r['obj_id']} | {r['kind']} | {r['views']} | {r['median']:.2f} | "
-              f"{r['min']:.2f} | {r['median_no_mask']:.2f} | {r['median_no_mask_off']:.2f} |" for r in rows]
+              f"{r['min']:.2f} | {r['median_no_mask']:.2f} | {r['median_no_mask_off']:.2f} | "
+              f"{r['weight_median']:.2f} | {r['weight_min']:.2f} |" for r in rows]
     write_results("colour_separation", rows, lines, shown=len(kinds) + 6)
     return 0
 
