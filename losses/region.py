@@ -426,7 +426,8 @@ def _held_out_likelihoods(fg: NDArray[np.float64], bg: NDArray[np.float64], key:
 
 WEIGHT_PX = 2000
 """Pixels of each side :func:`colour_weight` calibrates on at most (every k-th of them): the weight
-is one number, and a few thousand pixels fix it to about 0.01."""
+is one number (against all the pixels, the 44 glass and LM-O instances' median weights moved by 0.004
+typically, at most 0.02)."""
 WEIGHT_BISECTIONS = 14
 """Halvings of [0, 1] that find :func:`colour_weight` (to 6e-5)."""
 
